@@ -1,0 +1,31 @@
+# Two commands: `make demo` and `make test`. Both create .venv when missing and
+# install the project into it; the install is skipped when pyproject.toml is unchanged.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test bench install clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/sumoco demo --config configs/demo.toml --out runs/demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/sumoco bench sumo --json
+	$(BIN)/sumoco bench physics --json
+
+clean:
+	rm -rf $(VENV) runs build *.egg-info
