@@ -1,0 +1,82 @@
+"""Zenoh key expressions of a sumoco run, all under ``<root>/<run>/``.
+
+| key                         | who puts          | what                                  |
+|-----------------------------|-------------------|---------------------------------------|
+| <root>/<run>/sumo/step      | SUMO side         | StepMessage, one per SUMO step        |
+| <root>/<run>/sumo/static    | SUMO side (query) | StaticData, answered to `get`         |
+| <root>/<run>/sumo/alive     | SUMO side         | liveliness token                      |
+| <root>/<run>/physics/state  | physics side      | PhysicsState, per control tick        |
+| <root>/<run>/physics/ack    | physics side      | StepAck (lockstep)                    |
+| <root>/<run>/physics/alive  | physics side      | liveliness token                      |
+| <root>/<run>/ego/<id>       | outside clients   | EgoPose of ego vehicle <id>           |
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from protocol.errors import ProtocolError
+
+_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def check_chunk(value: str, what: str) -> str:
+    """A key chunk must be non-empty and free of Zenoh wildcards and separators."""
+    if not _CHUNK.match(value or ""):
+        raise ProtocolError(
+            f"expected letters, digits, '_', '-' or '.', got {value!r}", what
+        )
+    return value
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions for one run under one root."""
+
+    root: str = "sumoco"
+    run: str = "default"
+
+    def __post_init__(self) -> None:
+        for part in self.root.split("/"):
+            check_chunk(part, "root")
+        check_chunk(self.run, "run")
+
+    @property
+    def base(self) -> str:
+        return f"{self.root}/{self.run}"
+
+    @property
+    def step(self) -> str:
+        return f"{self.base}/sumo/step"
+
+    @property
+    def static(self) -> str:
+        return f"{self.base}/sumo/static"
+
+    @property
+    def sumo_alive(self) -> str:
+        return f"{self.base}/sumo/alive"
+
+    @property
+    def physics_state(self) -> str:
+        return f"{self.base}/physics/state"
+
+    @property
+    def ack(self) -> str:
+        return f"{self.base}/physics/ack"
+
+    @property
+    def physics_alive(self) -> str:
+        return f"{self.base}/physics/alive"
+
+    def ego(self, ego_id: str) -> str:
+        return f"{self.base}/ego/{check_chunk(ego_id, 'ego id')}"
+
+    @property
+    def ego_all(self) -> str:
+        return f"{self.base}/ego/*"
+
+    @property
+    def everything(self) -> str:
+        return f"{self.base}/**"

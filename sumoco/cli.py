@@ -1,0 +1,90 @@
+"""``sumoco`` command: argument parsing only; every subcommand calls a typed ``main``.
+
+Subcommands import their package lazily so ``sumoco sumo`` never loads MuJoCo and
+``sumoco physics`` never loads libsumo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from protocol.errors import ConfigError, SumocoError
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", help="TOML config file (configs/*.toml)")
+    p.add_argument("--run", help="run id (overrides [run].id)")
+    p.add_argument("--listen", action="append", default=None, help="zenoh endpoint to listen on")
+    p.add_argument("--connect", action="append", default=None, help="zenoh endpoint to connect to")
+    p.add_argument("--mode", choices=["peer", "client", "router"], help="zenoh session mode")
+    p.add_argument("--timing", choices=["realtime", "lockstep"], help="overrides [run].timing")
+    p.add_argument("--duration", type=float, help="simulated seconds to run (overrides [run].duration_s)")
+    p.add_argument("--quiet", action="store_true", help="warnings and errors only")
+    p.add_argument("--verbose", action="store_true", help="debug logging")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="sumoco", description="SUMO <-> MuJoCo co-simulation over Zenoh")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("sumo", help="run the SUMO side daemon")
+    _add_common(p)
+    p.add_argument("--sumocfg", help="run this .sumocfg instead of the config's scenario")
+    p.add_argument("--gui", action="store_true", help="use sumo-gui through TraCI (needs a display)")
+
+    p = sub.add_parser("physics", help="run the physics side daemon")
+    _add_common(p)
+    p.add_argument("--preset", help="control preset for every agent type (paper|default|kinematic)")
+
+    p = sub.add_parser("demo", help="both daemons on loopback, bounded run, report")
+    _add_common(p)
+    p.add_argument("--sumocfg", help="bring your own SUMO scenario")
+    p.add_argument("--out", default="runs/demo", help="output folder")
+    p.add_argument("--wall", type=float, help="wall-clock limit [s]")
+
+    p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
+    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec"])
+    p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
+    p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--verbose", action="store_true")
+
+    p = sub.add_parser("router", help="a Zenoh router (Python session in router mode)")
+    p.add_argument("--listen", action="append", default=None)
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--verbose", action="store_true")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from sumoco.logs import setup_logging
+
+    setup_logging(getattr(args, "quiet", False), getattr(args, "verbose", False))
+    try:
+        if args.cmd == "sumo":
+            from sumo_side.daemon import cli_main
+        elif args.cmd == "physics":
+            from physics_side.daemon import cli_main
+        elif args.cmd == "demo":
+            from sumoco.demo import cli_main
+        elif args.cmd == "bench":
+            from sumoco.bench import cli_main
+        elif args.cmd == "router":
+            from sumoco.router import cli_main
+        else:  # pragma: no cover - argparse enforces the choices
+            return 2
+        return int(cli_main(args) or 0)
+    except ConfigError as e:
+        print(f"sumoco {args.cmd}: configuration error: {e}", file=sys.stderr)
+        return 2
+    except SumocoError as e:
+        print(f"sumoco {args.cmd}: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
