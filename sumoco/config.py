@@ -180,3 +180,21 @@ def load_common(path: str | Path) -> tuple[CommonConfig, dict[str, Any], Path]:
         zenoh=section(data, "zenoh", ZenohConfig, base, str(path)),
     )
     return common, data, base
+
+
+def apply_cli(common: CommonConfig, args: Any) -> CommonConfig:
+    """Apply the shared command-line overrides (--run, --listen, --connect, --mode, ...)."""
+    run, zen = common.run, common.zenoh
+    if getattr(args, "run", None):
+        run = replace(run, id=args.run)
+    if getattr(args, "timing", None):
+        run = replace(run, timing=args.timing)
+    if getattr(args, "duration", None) is not None:
+        run = replace(run, duration_s=float(args.duration))
+    if getattr(args, "listen", None):
+        zen = replace(zen, listen=tuple(args.listen))
+    if getattr(args, "connect", None):
+        zen = replace(zen, connect=tuple(args.connect))
+    if getattr(args, "mode", None):
+        zen = replace(zen, mode=args.mode)
+    return CommonConfig(run=run, zenoh=zen)
