@@ -5,9 +5,13 @@
 | <root>/<run>/sumo/step      | SUMO side         | StepMessage, one per SUMO step        |
 | <root>/<run>/sumo/static    | SUMO side (query) | StaticData, answered to `get`         |
 | <root>/<run>/sumo/alive     | SUMO side         | liveliness token                      |
-| <root>/<run>/physics/state  | physics side      | PhysicsState, per control tick        |
-| <root>/<run>/physics/ack    | physics side      | StepAck (lockstep)                    |
-| <root>/<run>/physics/alive  | physics side      | liveliness token                      |
+| <root>/<run>/physics/<inst>/state | physics side | PhysicsState, per control tick     |
+| <root>/<run>/physics/<inst>/ack   | physics side | StepAck (lockstep)                 |
+| <root>/<run>/physics/<inst>/alive | physics side | liveliness token                   |
+
+``<inst>`` names one physics process ("main" by default): several can follow the same SUMO
+run side by side (the demo runs the ``paper`` and ``default`` presets at once) or split
+the agents between them (shards).
 | <root>/<run>/ego/<id>       | outside clients   | EgoPose of ego vehicle <id>           |
 """
 
@@ -36,11 +40,13 @@ class Keys:
 
     root: str = "sumoco"
     run: str = "default"
+    physics: str = "main"  # physics instance name used by physics_state / ack / physics_alive
 
     def __post_init__(self) -> None:
         for part in self.root.split("/"):
             check_chunk(part, "root")
         check_chunk(self.run, "run")
+        check_chunk(self.physics, "physics instance")
 
     @property
     def base(self) -> str:
@@ -60,15 +66,34 @@ class Keys:
 
     @property
     def physics_state(self) -> str:
-        return f"{self.base}/physics/state"
+        return f"{self.base}/physics/{self.physics}/state"
 
     @property
     def ack(self) -> str:
-        return f"{self.base}/physics/ack"
+        return f"{self.base}/physics/{self.physics}/ack"
 
     @property
     def physics_alive(self) -> str:
-        return f"{self.base}/physics/alive"
+        return f"{self.base}/physics/{self.physics}/alive"
+
+    # Wildcards over every physics instance (the SUMO side collects acks with these).
+    @property
+    def physics_state_all(self) -> str:
+        return f"{self.base}/physics/*/state"
+
+    @property
+    def ack_all(self) -> str:
+        return f"{self.base}/physics/*/ack"
+
+    @property
+    def physics_alive_all(self) -> str:
+        return f"{self.base}/physics/*/alive"
+
+    @staticmethod
+    def instance_of(key: str) -> str:
+        """Physics instance name in a ``.../physics/<inst>/...`` key."""
+        parts = str(key).split("/")
+        return parts[parts.index("physics") + 1] if "physics" in parts[:-1] else ""
 
     def ego(self, ego_id: str) -> str:
         return f"{self.base}/ego/{check_chunk(ego_id, 'ego id')}"

@@ -38,7 +38,10 @@ def test_keys_layout():
     k = Keys("sumoco", "demo")
     assert k.step == "sumoco/demo/sumo/step"
     assert k.static == "sumoco/demo/sumo/static"
-    assert k.ack == "sumoco/demo/physics/ack"
+    assert k.ack == "sumoco/demo/physics/main/ack"
+    assert Keys("sumoco", "demo", "paper").physics_state == "sumoco/demo/physics/paper/state"
+    assert k.ack_all == "sumoco/demo/physics/*/ack"
+    assert Keys.instance_of("sumoco/demo/physics/paper/ack") == "paper"
     assert k.ego("ego") == "sumoco/demo/ego/ego"
     assert k.ego_all == "sumoco/demo/ego/*"
 
