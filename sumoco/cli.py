@@ -50,6 +50,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")
 
+    p = sub.add_parser("report", help="rebuild summary.json, figures and report.md from a recording")
+    p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
+    p.add_argument("--out", help="output folder (default: the recording's folder)")
+    p.add_argument("--no-sweep", action="store_true", help="skip the LAD_min replay figure")
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--verbose", action="store_true")
+
     p = sub.add_parser("router", help="a Zenoh router (Python session in router mode)")
     p.add_argument("--listen", action="append", default=None)
     p.add_argument("--quiet", action="store_true")
@@ -71,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
             from sumoco.demo import cli_main
         elif args.cmd == "bench":
             from sumoco.bench import cli_main
+        elif args.cmd == "report":
+            from sumoco.report import cli_main
         elif args.cmd == "router":
             from sumoco.router import cli_main
         else:  # pragma: no cover - argparse enforces the choices

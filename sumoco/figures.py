@@ -1,0 +1,136 @@
+"""The paper's Figures 7-12 for the reference car, presets side by side (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, no display needed
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+_STYLE = {"paper": dict(color="tab:blue"), "default": dict(color="tab:green")}
+
+
+def _style(inst: str) -> dict:
+    return _STYLE.get(inst, {})
+
+
+def _save(fig, out: Path, name: str) -> str:
+    fig.tight_layout()
+    fig.savefig(out / name, dpi=110)
+    plt.close(fig)
+    return name
+
+
+def make_figures(data, ref_id: str, out: Path, lad_sweep: bool = True, summary: dict | None = None) -> list[str]:
+    from sumoco.report import ref_series, ref_track
+
+    series = {inst: ref_series(data, inst, ref_id) for inst in sorted(data.phys)}
+    series = {k: v for k, v in series.items() if len(v["t"])}
+    track = ref_track(data, ref_id)
+    names: list[str] = []
+    if not series:
+        return names
+
+    # Fig. 7: trajectory overlay.
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.plot(track["x"], track["y"], "r--", lw=1.5, label="SUMO reference")
+    for inst, s in series.items():
+        ax.plot(s["x"], s["y"], lw=1.2, label=f"physics ({inst})", **_style(inst))
+    for d in range(0, int(series[next(iter(series))]["dist"].max()) + 1, 25):
+        i = np.searchsorted(series[next(iter(series))]["dist"], d)
+        s0 = series[next(iter(series))]
+        if i < len(s0["t"]):
+            ax.annotate(f"{d} m", (s0["ref_x"][i], s0["ref_y"][i]), fontsize=7, color="0.3")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"Fig. 7: trajectory of '{ref_id}', actual vs reference")
+    ax.legend()
+    names.append(_save(fig, out, "fig07_trajectory.png"))
+
+    # Fig. 8: position error over distance.
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for inst, s in series.items():
+        ax.plot(s["dist"], s["err"], lw=1, label=inst, **_style(inst))
+    ax.set_xlabel("distance along reference [m]")
+    ax.set_ylabel("front-bumper error [m]")
+    ax.set_title("Fig. 8: position error over distance")
+    ax.legend()
+    names.append(_save(fig, out, "fig08_error_over_distance.png"))
+
+    # Fig. 9: LAD_min sweep through the right turn (paper preset, car replayed alone).
+    if lad_sweep:
+        try:
+            sweep = lad_min_sweep(track)
+        except Exception as e:  # the sweep is an extra; the report stands without it
+            log.warning("LAD_min sweep skipped: %s", e)
+            sweep = None
+        if sweep:
+            if summary is not None:
+                summary["lad_sweep"] = [
+                    {k: v for k, v in row.items() if not isinstance(v, np.ndarray)} for row in sweep
+                ]
+            fig, axes = plt.subplots(1, len(sweep), figsize=(4 * len(sweep), 4), sharey=True)
+            for ax, row in zip(np.atleast_1d(axes), sweep):
+                ax.plot(row["ref_x"], row["ref_y"], "r--", lw=1.2, label="reference")
+                ax.plot(row["x"], row["y"], "b-", lw=1.2, label="actual")
+                ax.set_title(f"LAD_min = {row['lad_min_m']} m")
+                ax.set_aspect("equal", adjustable="datalim")
+                ax.set_xlabel("x [m]")
+            np.atleast_1d(axes)[0].set_ylabel("y [m]")
+            np.atleast_1d(axes)[0].legend()
+            fig.suptitle("Fig. 9: influence of LAD_min in the right turn (paper preset)")
+            names.append(_save(fig, out, "fig09_lad_sweep.png"))
+
+    # Figs. 10-12: steering, torque, velocity over time.
+    for num, key, ylabel, fname in (
+        (10, "steer", "front-wheel steering [deg]", "fig10_steering.png"),
+        (11, "drive", "drive torque u_in [N·m]", "fig11_torque.png"),
+    ):
+        fig, ax = plt.subplots(figsize=(8, 3.5))
+        for inst, s in series.items():
+            ax.plot(s["t"], s[key], lw=1, label=inst, **_style(inst))
+            if key == "drive":
+                ax.plot(s["t"], -s["brake"], lw=0.8, ls=":", label=f"{inst} brake (−)", **_style(inst))
+        ax.set_xlabel("simulation time [s]")
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"Fig. {num}: {ylabel.split(' [')[0]}")
+        ax.legend()
+        names.append(_save(fig, out, fname))
+
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.plot(track["t"], track["speed"], "r--", lw=1.5, label="SUMO reference")
+    for inst, s in series.items():
+        ax.plot(s["t"], s["speed"], lw=1, label=inst, **_style(inst))
+    ax.set_xlabel("simulation time [s]")
+    ax.set_ylabel("speed [m/s]")
+    ax.set_title("Fig. 12: velocity tracking")
+    ax.legend()
+    names.append(_save(fig, out, "fig12_velocity.png"))
+    return names
+
+
+def lad_min_sweep(track: dict, lad_mins=(5.0, 6.0, 7.0, 8.0)) -> list[dict]:
+    """Replay the reference car alone under the paper preset for several LAD_min."""
+    from physics_side.experiments import replay_reference
+
+    turn = np.array([False] * len(track["t"]))
+    if "lane_internal" in track:
+        turn = track["lane_internal"]
+    rows = []
+    for lad in lad_mins:
+        r = replay_reference(track, preset="paper", overrides={"lad_min_m": lad})
+        sel = r["turn"] if "turn" in r else turn
+        rows.append({
+            "lad_min_m": lad,
+            "x": r["x"], "y": r["y"], "ref_x": r["ref_x"], "ref_y": r["ref_y"],
+            "turn_lat_max_m": float(np.nanmax(np.abs(r["lat"][sel]))) if np.any(sel) else float(np.nanmax(np.abs(r["lat"]))),
+            "err_max_m": float(np.nanmax(r["err"])),
+        })
+    return rows

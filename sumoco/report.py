@@ -1,0 +1,378 @@
+"""Tracking report from a recording: ``summary.json``, the paper's figures, ``report.md``.
+
+Everything here is computed from the recorded messages alone, so ``sumoco report
+run.mcap`` rebuilds exactly what the live demo wrote.
+
+Error metric (the same for every preset): the physics agent's *front-bumper centre* at
+physics time t against SUMO's front-bumper centre at the same t, linearly interpolated
+between the two SUMO steps around t. Only agents in mode PHYSICAL count; kinematic and
+external (ego) agents are reported apart.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from protocol.keys import Keys
+from protocol.messages import AgentClass, AgentMode, PhysicsState, StaticData, StepMessage
+from sumoco.record import ReadResult, iter_decoded, read_recording
+
+log = logging.getLogger(__name__)
+
+CLASS_NAMES = {int(c): c.name.lower() for c in AgentClass}
+#: Fields of summary.json that depend on the wall clock (excluded from determinism checks).
+WALL_CLOCK_FIELDS = ("wall",)
+
+
+@dataclass
+class RefTable:
+    """SUMO reference, long format: one row per (step, agent)."""
+
+    t: np.ndarray
+    aid: np.ndarray  # global agent index
+    x: np.ndarray
+    y: np.ndarray
+    angle: np.ndarray
+    speed: np.ndarray
+    lane: np.ndarray
+    cls: np.ndarray
+
+
+@dataclass
+class PhysTable:
+    """Physics state of one instance, long format: one row per (tick, agent)."""
+
+    t: np.ndarray
+    aid: np.ndarray
+    cls: np.ndarray
+    mode: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    heading: np.ndarray
+    speed: np.ndarray
+    steer: np.ndarray
+    drive: np.ndarray
+    brake: np.ndarray
+    counters: dict = field(default_factory=dict)
+
+
+@dataclass
+class RunData:
+    static: StaticData | None
+    ids: list[str]
+    ref: RefTable
+    phys: dict[str, PhysTable]
+    steps: int
+    sim_span_s: float
+    wall_span_s: float
+    truncated: bool = False
+    first_seen: dict[str, float] = field(default_factory=dict)
+
+
+def _cat(parts, dtype):
+    return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
+
+
+def load_run(res: ReadResult) -> RunData:
+    """Turn recorded messages into long-format numpy tables."""
+    index: dict[str, int] = {}
+    ids: list[str] = []
+
+    def aids(names: list[str]) -> np.ndarray:
+        out = np.empty(len(names), np.int64)
+        for i, n in enumerate(names):
+            j = index.get(n)
+            if j is None:
+                j = index[n] = len(ids)
+                ids.append(n)
+            out[i] = j
+        return out
+
+    static = None
+    ref_cols: dict[str, list] = {k: [] for k in ("t", "aid", "x", "y", "angle", "speed", "lane", "cls")}
+    phys_cols: dict[str, dict[str, list]] = {}
+    counters: dict[str, dict] = {}
+    steps = 0
+    t_first = t_last = None
+    w_first = w_last = None
+    first_seen: dict[str, float] = {}
+    for m, msg in iter_decoded(res):
+        if isinstance(msg, StaticData):
+            static = static or msg
+        elif isinstance(msg, StepMessage):
+            a = msg.agents
+            steps += 1
+            t_first = msg.time if t_first is None else t_first
+            t_last = msg.time
+            w_first = m.log_time_ns if w_first is None else w_first
+            w_last = m.log_time_ns
+            ai = aids(a.ids)
+            for name in a.ids:
+                first_seen.setdefault(name, msg.time)
+            ref_cols["t"].append(np.full(a.n, msg.time))
+            ref_cols["aid"].append(ai)
+            for k in ("x", "y", "angle", "speed", "lane", "cls"):
+                ref_cols[k].append(getattr(a, k))
+        elif isinstance(msg, PhysicsState):
+            inst = Keys.instance_of(m.topic) or "main"
+            cols = phys_cols.setdefault(inst, {k: [] for k in (
+                "t", "aid", "cls", "mode", "x", "y", "heading", "speed", "steer", "drive", "brake")})
+            a = msg.agents
+            cols["t"].append(np.full(a.n, msg.time))
+            cols["aid"].append(aids(a.ids))
+            for k in ("cls", "mode", "x", "y", "heading", "speed", "steer", "drive", "brake"):
+                cols[k].append(getattr(a, k))
+            counters[inst] = dict(msg.counters)
+    ref = RefTable(
+        t=_cat(ref_cols["t"], np.float64), aid=_cat(ref_cols["aid"], np.int64),
+        x=_cat(ref_cols["x"], np.float64), y=_cat(ref_cols["y"], np.float64),
+        angle=_cat(ref_cols["angle"], np.float64), speed=_cat(ref_cols["speed"], np.float64),
+        lane=_cat(ref_cols["lane"], np.int64), cls=_cat(ref_cols["cls"], np.int64),
+    )
+    phys = {}
+    for inst, cols in phys_cols.items():
+        phys[inst] = PhysTable(
+            t=_cat(cols["t"], np.float64), aid=_cat(cols["aid"], np.int64),
+            cls=_cat(cols["cls"], np.int64), mode=_cat(cols["mode"], np.int64),
+            **{k: _cat(cols[k], np.float64) for k in
+               ("x", "y", "heading", "speed", "steer", "drive", "brake")},
+            counters=counters.get(inst, {}),
+        )
+    return RunData(
+        static=static, ids=ids, ref=ref, phys=phys, steps=steps,
+        sim_span_s=float((t_last or 0.0) - (t_first or 0.0)),
+        wall_span_s=float(((w_last or 0) - (w_first or 0)) / 1e9),
+        truncated=res.truncated, first_seen=first_seen,
+    )
+
+
+@dataclass
+class Errors:
+    """Per physics sample: reference at the same time and the error against it."""
+
+    valid: np.ndarray  # bool: a reference exists at that time and the agent is PHYSICAL
+    err: np.ndarray  # |front-bumper error| [m]
+    lon: np.ndarray  # along the reference heading [m]
+    lat: np.ndarray  # across it, + left [m]
+    ref_x: np.ndarray
+    ref_y: np.ndarray
+    ref_speed: np.ndarray
+    ref_lane: np.ndarray
+
+
+def tracking_errors(ref: RefTable, ph: PhysTable) -> Errors:
+    """Interpolate each agent's SUMO reference to the physics sample times (loop over agents only)."""
+    n = len(ph.t)
+    out = Errors(np.zeros(n, bool), *(np.full(n, np.nan) for _ in range(6)),
+                 ref_lane=np.full(n, -1, np.int64))
+    if n == 0 or len(ref.t) == 0:
+        return out
+    r_order = np.lexsort((ref.t, ref.aid))
+    p_order = np.lexsort((ph.t, ph.aid))
+    r_aid, p_aid = ref.aid[r_order], ph.aid[p_order]
+    r_bounds = np.searchsorted(r_aid, np.unique(p_aid), side="left"), np.searchsorted(r_aid, np.unique(p_aid), side="right")
+    p_u, p_start = np.unique(p_aid, return_index=True)
+    p_end = np.append(p_start[1:], len(p_aid))
+    for k, aid in enumerate(p_u):
+        r0, r1 = r_bounds[0][k], r_bounds[1][k]
+        if r1 - r0 < 2:
+            continue
+        rs = r_order[r0:r1]
+        ps = p_order[p_start[k]:p_end[k]]
+        rt, pt = ref.t[rs], ph.t[ps]
+        inside = (pt >= rt[0]) & (pt <= rt[-1])
+        ps, pt = ps[inside], pt[inside]
+        if not len(ps):
+            continue
+        rx = np.interp(pt, rt, ref.x[rs])
+        ry = np.interp(pt, rt, ref.y[rs])
+        ang = np.unwrap(np.deg2rad(90.0 - ref.angle[rs]))
+        yaw = np.interp(pt, rt, ang)
+        dx, dy = ph.x[ps] - rx, ph.y[ps] - ry
+        out.lon[ps] = dx * np.cos(yaw) + dy * np.sin(yaw)
+        out.lat[ps] = -dx * np.sin(yaw) + dy * np.cos(yaw)
+        out.err[ps] = np.hypot(dx, dy)
+        out.ref_x[ps], out.ref_y[ps] = rx, ry
+        out.ref_speed[ps] = np.interp(pt, rt, ref.speed[rs])
+        nearest = np.clip(np.searchsorted(rt, pt), 0, len(rt) - 1)
+        out.ref_lane[ps] = ref.lane[rs][nearest]
+        out.valid[ps] = ph.mode[ps] == AgentMode.PHYSICAL
+    return out
+
+
+def _stats(e: np.ndarray) -> dict:
+    e = e[np.isfinite(e)]
+    if not len(e):
+        return {"mean": None, "p95": None, "max": None, "samples": 0}
+    return {"mean": round(float(e.mean()), 4), "p95": round(float(np.percentile(e, 95)), 4),
+            "max": round(float(e.max()), 4), "samples": int(len(e))}
+
+
+def reference_car(data: RunData, prefer: str = "ref") -> str | None:
+    """``ref`` if present, else the first passenger car SUMO reported."""
+    if prefer in data.ids:
+        return prefer
+    cars = np.unique(data.ref.aid[data.ref.cls == AgentClass.PASSENGER])
+    if not len(cars):
+        return None
+    return min((data.ids[i] for i in cars), key=lambda n: (data.first_seen.get(n, 0.0), n))
+
+
+def internal_lane_mask(static: StaticData | None, lane_idx: np.ndarray) -> np.ndarray:
+    """True where the lane is a junction-internal lane (SUMO ids starting with ':')."""
+    if static is None:
+        return np.zeros(len(lane_idx), bool)
+    internal = np.array([i.startswith(":") for i in static.lanes.ids] + [False])
+    return internal[np.where(lane_idx >= 0, lane_idx, len(internal) - 1)]
+
+
+def summarise(data: RunData, ref_id: str | None = None) -> dict:
+    ref_id = ref_id or reference_car(data)
+    summary: dict = {
+        "steps": data.steps,
+        "sim_time_s": round(data.sim_span_s, 3),
+        "reference_car": ref_id,
+        "agents_seen_sumo": _seen(data.ref.aid, data.ref.cls),
+        "presets": {},
+        "wall": {
+            "wall_s": round(data.wall_span_s, 3),
+            "rtf": round(data.sim_span_s / data.wall_span_s, 3) if data.wall_span_s > 0 else None,
+        },
+    }
+    if data.truncated:
+        summary["truncated_recording"] = True
+    rid = data.ids.index(ref_id) if ref_id in data.ids else -1
+    for inst, ph in sorted(data.phys.items()):
+        e = tracking_errors(data.ref, ph)
+        v = e.valid
+        per_type = {CLASS_NAMES[int(c)]: _stats(e.err[v & (ph.cls == c)]) for c in np.unique(ph.cls[v])}
+        modes = {m.name.lower(): int(len(np.unique(ph.aid[ph.mode == m]))) for m in AgentMode}
+        entry = {
+            "error_m": {"overall": _stats(e.err[v]), "per_type": per_type},
+            "collisions": int(ph.counters.get("collisions", 0)),
+            "placements": int(ph.counters.get("placements", 0)),
+            "rejected": int(ph.counters.get("rejected", 0)),
+            "agents_seen": _seen(ph.aid, ph.cls),
+            "agents_by_mode": modes,
+            "counters": {k: int(x) for k, x in sorted(ph.counters.items())},
+        }
+        if rid >= 0:
+            r = v & (ph.aid == rid)
+            turn = internal_lane_mask(data.static, e.ref_lane)
+            entry["reference_car"] = {
+                "overall": _stats(e.err[r]),
+                "straight": _stats(e.err[r & ~turn]),
+                "turn": _stats(e.err[r & turn]),
+                "lateral_abs_max": _stats(np.abs(e.lat[r]))["max"],
+            }
+        summary["presets"][inst] = entry
+    return summary
+
+
+def _seen(aid: np.ndarray, cls: np.ndarray) -> dict:
+    out = {}
+    for c in np.unique(cls):
+        out[CLASS_NAMES.get(int(c), str(int(c)))] = int(len(np.unique(aid[cls == c])))
+    return out
+
+
+def ref_series(data: RunData, inst: str, ref_id: str) -> dict[str, np.ndarray]:
+    """Time series of the reference car in one instance (for the figures)."""
+    ph = data.phys[inst]
+    rid = data.ids.index(ref_id)
+    e = tracking_errors(data.ref, ph)
+    sel = (ph.aid == rid) & np.isfinite(e.err)
+    order = np.argsort(ph.t[sel])
+    s = {k: getattr(ph, k)[sel][order] for k in ("t", "x", "y", "speed", "steer", "drive", "brake")}
+    s.update({k: getattr(e, k)[sel][order] for k in ("err", "lon", "lat", "ref_x", "ref_y", "ref_speed")})
+    s["dist"] = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(s["ref_x"]), np.diff(s["ref_y"])))])
+    return s
+
+
+def ref_track(data: RunData, ref_id: str) -> dict[str, np.ndarray]:
+    """The reference car's SUMO samples (10 Hz): t, x, y, angle, speed."""
+    rid = data.ids.index(ref_id)
+    sel = data.ref.aid == rid
+    order = np.argsort(data.ref.t[sel])
+    return {k: getattr(data.ref, k)[sel][order] for k in ("t", "x", "y", "angle", "speed", "lane")}
+
+
+def write_report(recording: str | Path, out_dir: str | Path, lad_sweep: bool = True) -> dict:
+    """Rebuild summary.json, the figures and report.md from a recording."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    res = read_recording(recording)
+    data = load_run(res)
+    summary = summarise(data)
+    figures: list[str] = []
+    ref_id = summary["reference_car"]
+    if ref_id and data.phys:
+        from sumoco import figures as figs
+
+        figures = figs.make_figures(data, ref_id, out, lad_sweep=lad_sweep, summary=summary)
+    summary["figures"] = figures
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    (out / "report.md").write_text(render_markdown(summary, recording))
+    return summary
+
+
+def _fmt(s: dict | None) -> str:
+    if not s or s.get("mean") is None:
+        return "n/a"
+    return f"{s['mean']:.3f} / {s['p95']:.3f} / {s['max']:.3f}"
+
+
+def render_markdown(summary: dict, recording) -> str:
+    lines = [
+        "# sumoco run report",
+        "",
+        f"Recording: `{Path(recording).name}`; {summary['steps']} SUMO steps, "
+        f"{summary['sim_time_s']} s simulated"
+        + (f", real-time factor {summary['wall']['rtf']}" if summary["wall"].get("rtf") else "")
+        + ".",
+        f"Reference car: `{summary['reference_car']}`. Agents SUMO reported: "
+        + ", ".join(f"{k} {v}" for k, v in summary["agents_seen_sumo"].items()) + ".",
+        "",
+        "Front-bumper position error against SUMO at the same time [m], mean / p95 / max:",
+        "",
+        "| preset | all agents | reference car | ref straight | ref turn | collisions | placements |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for inst, p in summary["presets"].items():
+        rc = p.get("reference_car", {})
+        lines.append(
+            f"| {inst} | {_fmt(p['error_m']['overall'])} | {_fmt(rc.get('overall'))} | "
+            f"{_fmt(rc.get('straight'))} | {_fmt(rc.get('turn'))} | {p['collisions']} | {p['placements']} |"
+        )
+    lines += ["", "Per agent type (mean / p95 / max) [m]:", ""]
+    types = sorted({t for p in summary["presets"].values() for t in p["error_m"]["per_type"]})
+    lines.append("| preset | " + " | ".join(types) + " |")
+    lines.append("|---" * (len(types) + 1) + "|")
+    for inst, p in summary["presets"].items():
+        lines.append(f"| {inst} | " + " | ".join(_fmt(p["error_m"]["per_type"].get(t)) for t in types) + " |")
+    if summary.get("figures"):
+        lines += ["", "## Figures (reference car, presets side by side)", ""]
+        for f in summary["figures"]:
+            lines.append(f"![{f}]({f})")
+            lines.append("")
+    if summary.get("lad_sweep"):
+        lines += ["", "LAD_min sweep through the right turn (paper preset, reference car replayed alone):", "",
+                  "| LAD_min [m] | max lateral error in turn [m] | max error [m] |", "|---|---|---|"]
+        for row in summary["lad_sweep"]:
+            lines.append(f"| {row['lad_min_m']} | {row['turn_lat_max_m']:.3f} | {row['err_max_m']:.3f} |")
+    if summary.get("truncated_recording"):
+        lines += ["", "**The recording is truncated**: numbers cover what it holds."]
+    return "\n".join(lines) + "\n"
+
+
+def cli_main(args) -> int:
+    out = Path(args.out) if getattr(args, "out", None) else Path(args.recording).parent
+    summary = write_report(args.recording, out, lad_sweep=not getattr(args, "no_sweep", False))
+    print(json.dumps({k: summary[k] for k in ("steps", "reference_car")} | {
+        "presets": {k: v["error_m"]["overall"] for k, v in summary["presets"].items()}}, indent=1))
+    return 0
