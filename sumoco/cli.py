@@ -7,17 +7,29 @@ Subcommands import their package lazily so ``sumoco sumo`` never loads MuJoCo an
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from protocol.errors import ConfigError, SumocoError
 
 
+def _env_list(name: str) -> list[str] | None:
+    v = os.environ.get(name, "").strip()
+    return [x.strip() for x in v.split(",") if x.strip()] or None
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", help="TOML config file (configs/*.toml)")
-    p.add_argument("--run", help="run id (overrides [run].id)")
-    p.add_argument("--listen", action="append", default=None, help="zenoh endpoint to listen on")
-    p.add_argument("--connect", action="append", default=None, help="zenoh endpoint to connect to")
-    p.add_argument("--mode", choices=["peer", "client", "router"], help="zenoh session mode")
+    # Environment variables (SUMOCO_*) give the defaults, for containers; flags win.
+    p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None,
+                   help="TOML config file (configs/*.toml) [env SUMOCO_CONFIG]")
+    p.add_argument("--run", default=os.environ.get("SUMOCO_RUN") or None,
+                   help="run id (overrides [run].id) [env SUMOCO_RUN]")
+    p.add_argument("--listen", action="append", default=None,
+                   help="zenoh endpoint to listen on (repeatable) [env SUMOCO_LISTEN, comma-separated]")
+    p.add_argument("--connect", action="append", default=None,
+                   help="zenoh endpoint to connect to (repeatable) [env SUMOCO_CONNECT]")
+    p.add_argument("--mode", choices=["peer", "client", "router"], default=os.environ.get("SUMOCO_MODE") or None,
+                   help="zenoh session mode [env SUMOCO_MODE]")
     p.add_argument("--timing", choices=["realtime", "lockstep"], help="overrides [run].timing")
     p.add_argument("--duration", type=float, help="simulated seconds to run (overrides [run].duration_s)")
     p.add_argument("--quiet", action="store_true", help="warnings and errors only")
@@ -66,6 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if hasattr(args, "listen") and args.listen is None:
+        args.listen = _env_list("SUMOCO_LISTEN")
+    if hasattr(args, "connect") and args.connect is None:
+        args.connect = _env_list("SUMOCO_CONNECT")
     from sumoco.logs import setup_logging
 
     setup_logging(getattr(args, "quiet", False), getattr(args, "verbose", False))
