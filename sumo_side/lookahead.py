@@ -1,0 +1,425 @@
+"""Look-ahead point and path ahead for all agents at once.
+
+The paper (3.3.2) evaluates the look-ahead point ``LAD`` metres along the track ahead of
+the SUMO pose, with ``LAD = LAD_min if v < LAD_min else min(v * k_LAD, LAD_max)``.
+
+How it is computed here without a per-agent Python loop on the hot path:
+
+1. *Lane sequences* (Python, rare): for a vehicle on lane L with route R and route index
+   ri, walk from L through junction-internal lanes along R until the sequence reaches
+   ``path_length`` metres past the end of L. Identical sequences are stored once in a
+   ``PolylineStore`` and shared by every vehicle that follows them. A vehicle's sequence
+   is only re-resolved when its lane or route index changes (once per lane, not per
+   step).
+2. *Per step* (numpy, all agents): the distance ``s0`` of the front bumper along its
+   sequence is ``lanePos * geometry_factor`` (the sequence starts at the start of the
+   current lane); the look-ahead point and the path ahead are interpolations on the
+   stored polylines, done with one ``searchsorted`` over a global, monotonic
+   "sequence base + distance" coordinate.
+
+Agents without a lane sequence (walking persons, vehicles off the road or teleporting)
+get a straight path along their heading; persons riding a vehicle get an empty path and
+their own position as look-ahead point.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from itertools import repeat
+from typing import Callable, Sequence
+
+import numpy as np
+
+from sumo_side.lanes import LaneGraph
+
+log = logging.getLogger(__name__)
+
+#: Distances closer than this are the same point [m].
+_EPS = 1e-6
+#: Gap in the global coordinate between two stored sequences [m] (any value > 0 works:
+#: queries are clamped into their own sequence before the search).
+_GAP = 1.0
+#: A lane walk never takes more lanes than this (guards against cycles in odd nets).
+MAX_WALK_LANES = 64
+
+# Path modes per agent.
+MODE_LANES = 0  # along a lane sequence
+MODE_STRAIGHT = 1  # along the heading (walking persons, vehicles without a lane)
+MODE_NONE = 2  # no path (persons inside a vehicle)
+
+
+def look_ahead_distance(speed, lad_min: float, lad_max: float, k_lad: float) -> np.ndarray:
+    """The paper's LAD [m] for speeds [m/s] (vectorised).
+
+    ``LAD_min`` if ``v < LAD_min`` (the paper compares the speed with the distance as
+    written) else ``min(v * k_LAD, LAD_max)``.
+    """
+    v = np.asarray(speed, np.float64)
+    return np.where(v < lad_min, lad_min, np.minimum(v * k_lad, lad_max))
+
+
+class PolylineStore:
+    """Append-only store of polylines with arc length, queried for many points at once.
+
+    Vertex ``j`` has position ``xy[j]`` and global coordinate ``g[j] = base[seq] + s``,
+    where ``s`` is the arc length from the start of its polyline. ``g`` increases over the
+    whole store, so one ``searchsorted`` finds the segments for any set of (seq, s).
+    """
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self._xy = np.zeros((capacity, 2), np.float64)
+        self._g = np.zeros(capacity, np.float64)
+        self._m = 0
+        self._base: list[float] = []
+        self._length: list[float] = []
+        self._first: list[int] = []
+        self._last: list[int] = []
+        self._arrays_dirty = True
+        self.base = np.zeros(0)
+        self.length = np.zeros(0)
+        self.first = np.zeros(0, np.int64)
+        self.last = np.zeros(0, np.int64)
+
+    @property
+    def n(self) -> int:
+        return len(self._base)
+
+    @property
+    def xy(self) -> np.ndarray:
+        return self._xy[: self._m]
+
+    @property
+    def g(self) -> np.ndarray:
+        return self._g[: self._m]
+
+    def add(self, xy: np.ndarray) -> int:
+        """Store one polyline (k >= 1 points) and return its id."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        if len(xy) == 0:
+            raise ValueError("a polyline needs at least one point")
+        seg = np.hypot(*np.diff(xy, axis=0).T) if len(xy) > 1 else np.zeros(0)
+        s = np.concatenate(([0.0], np.cumsum(seg)))
+        base = (self._base[-1] + self._length[-1] + _GAP) if self._base else 0.0
+        k = len(xy)
+        if self._m + k > len(self._g):
+            cap = max(2 * len(self._g), self._m + k)
+            self._xy = np.resize(self._xy, (cap, 2))
+            self._g = np.resize(self._g, cap)
+        self._xy[self._m : self._m + k] = xy
+        self._g[self._m : self._m + k] = base + s
+        self._base.append(base)
+        self._length.append(float(s[-1]))
+        self._first.append(self._m)
+        self._last.append(self._m + k - 1)
+        self._m += k
+        self._arrays_dirty = True
+        return len(self._base) - 1
+
+    def _refresh(self) -> None:
+        if self._arrays_dirty:
+            self.base = np.asarray(self._base, np.float64)
+            self.length = np.asarray(self._length, np.float64)
+            self.first = np.asarray(self._first, np.int64)
+            self.last = np.asarray(self._last, np.int64)
+            self._arrays_dirty = False
+
+    def clamp(self, seq: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """``s`` clamped into [0, length of its polyline]."""
+        self._refresh()
+        return np.clip(s, 0.0, self.length[seq])
+
+    def point_at(self, seq: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Points at arc length ``s`` (clamped) along polylines ``seq``; shape (n, 2)."""
+        self._refresh()
+        seq = np.asarray(seq, np.int64)
+        if len(seq) == 0:
+            return np.zeros((0, 2))
+        s = np.clip(np.asarray(s, np.float64), 0.0, self.length[seq])
+        g = self.base[seq] + s
+        gs = self.g
+        i = np.searchsorted(gs, g, side="right") - 1
+        # Segment start inside the polyline; single-point polylines use their only point.
+        i = np.clip(i, self.first[seq], np.maximum(self.last[seq] - 1, self.first[seq]))
+        j = np.minimum(i + 1, self.last[seq])
+        seg = gs[j] - gs[i]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(seg > _EPS, (g - gs[i]) / seg, 0.0)
+        t = np.clip(t, 0.0, 1.0)[:, None]
+        xy = self.xy
+        return xy[i] + t * (xy[j] - xy[i])
+
+    def pieces(self, seq: np.ndarray, s0: np.ndarray, s1: np.ndarray):
+        """Sub-polylines from ``s0`` to ``s1`` (both clamped, s1 >= s0) of each ``seq``.
+
+        Returns ``(counts, xy)``: piece i has ``counts[i]`` points (start point, the
+        stored vertices strictly between, end point; always >= 2) and the pieces are
+        concatenated in ``xy``.
+        """
+        self._refresh()
+        seq = np.asarray(seq, np.int64)
+        n = len(seq)
+        if n == 0:
+            return np.zeros(0, np.int64), np.zeros((0, 2))
+        s0 = np.clip(s0, 0.0, self.length[seq])
+        s1 = np.clip(np.maximum(s1, s0), 0.0, self.length[seq])
+        p0 = self.point_at(seq, s0)
+        p1 = self.point_at(seq, s1)
+        base = self.base[seq]
+        gs = self.g
+        a = np.searchsorted(gs, base + s0 + 1e-4, side="right")  # first vertex after the start
+        b = np.searchsorted(gs, base + s1 - 1e-4, side="left")  # first vertex at/after the end
+        mid = np.maximum(b - a, 0)
+        counts = mid + 2
+        ends = np.cumsum(counts)
+        starts = ends - counts
+        out = np.empty((int(ends[-1]), 2))
+        out[starts] = p0
+        out[ends - 1] = p1
+        total_mid = int(mid.sum())
+        if total_mid:
+            # destination row of every middle vertex and the stored vertex it copies
+            grp_start = np.repeat(np.cumsum(mid) - mid, mid)
+            within = np.arange(total_mid) - grp_start
+            dst = np.repeat(starts + 1, mid) + within
+            src = np.repeat(a, mid) + within
+            out[dst] = self.xy[src]
+        return counts, out
+
+
+@dataclass
+class LookAhead:
+    """Per-agent result of one step."""
+
+    la_xy: np.ndarray
+    """Look-ahead points, shape (n, 2) [m]."""
+    path_offsets: np.ndarray
+    """uint32 (n+1) (empty when paths are off)."""
+    path_xy: np.ndarray
+    """float32 (m, 2) (empty when paths are off)."""
+    seq: np.ndarray
+    """Lane-sequence id per agent, -1 when the agent has none [int64]."""
+
+
+class PathPlanner:
+    """Resolves and caches lane sequences; computes look-ahead points and paths."""
+
+    def __init__(
+        self,
+        graph: LaneGraph,
+        lad_min: float = 7.0,
+        lad_max: float = 10.0,
+        k_lad: float = 1.0,
+        path_length: float = 25.0,
+    ) -> None:
+        self.graph = graph
+        self.lad_min = float(lad_min)
+        self.lad_max = float(lad_max)
+        self.k_lad = float(k_lad)
+        self.path_length = float(max(path_length, lad_max))
+        self.store = PolylineStore()
+        self._seq_of_lanes: dict[tuple[int, ...], int] = {}
+        # Per-agent memory from the previous step, aligned with _prev_ids.
+        self._prev_ids: list[str] = []
+        self._prev_lane = np.zeros(0, np.int64)
+        self._prev_ri = np.zeros(0, np.int64)
+        self._prev_seq = np.zeros(0, np.int64)
+        self.resolved = 0  # number of lane walks done (statistics)
+
+    # ------------------------------------------------------------------ lane walks
+
+    def walk(self, lane: int, route: Sequence[str], route_index: int) -> tuple[int, ...]:
+        """Lanes from ``lane`` along ``route`` until ``path_length`` past the end of ``lane``.
+
+        ``route_index`` is SUMO's: the index of the route edge the vehicle is on, or the
+        edge it just left while it is on a junction-internal lane.
+        """
+        g = self.graph
+        lanes = [lane]
+        need = self.path_length
+        acc = 0.0
+        cur = lane
+        idx = self._route_position(cur, route, route_index)
+        while acc < need and len(lanes) < MAX_WALK_LANES:
+            if g.internal[cur]:
+                links = g.links[cur]
+                if not links:
+                    break
+                nxt = links[0].next
+            else:
+                if idx < 0 or idx + 1 >= len(route):
+                    break  # end of the route (or no route): the path ends with this lane
+                nxt = self._next_lane_towards(cur, route, idx)
+                if nxt < 0:
+                    break
+            if not g.internal[nxt]:
+                # Entering a normal lane: it is the next route edge.
+                idx = idx + 1 if (0 <= idx + 1 < len(route) and route[idx + 1] == g.edges[nxt]) \
+                    else self._find_edge(route, g.edges[nxt], idx)
+            lanes.append(nxt)
+            acc += g.geom_lengths[nxt]
+            cur = nxt
+        return tuple(lanes)
+
+    def _route_position(self, lane: int, route: Sequence[str], route_index: int) -> int:
+        g = self.graph
+        if g.internal[lane]:
+            return route_index if 0 <= route_index < len(route) else -1
+        edge = g.edges[lane]
+        if 0 <= route_index < len(route) and route[route_index] == edge:
+            return route_index
+        return self._find_edge(route, edge, route_index)
+
+    @staticmethod
+    def _find_edge(route: Sequence[str], edge: str, hint: int) -> int:
+        try:
+            return list(route).index(edge, max(hint, 0))
+        except ValueError:
+            try:
+                return list(route).index(edge)
+            except ValueError:
+                return -1
+
+    def _next_lane_towards(self, cur: int, route: Sequence[str], idx: int) -> int:
+        """First lane after ``cur`` on the way to ``route[idx + 1]`` (-1: none)."""
+        g = self.graph
+        target = route[idx + 1]
+        after = route[idx + 2] if idx + 2 < len(route) else None
+        cands = [lk for lk in g.links[cur] if g.edges[lk.to] == target]
+        if not cands:
+            # The vehicle still has to change lanes: continue from the nearest lane of
+            # the same edge that connects (the path jumps sideways at the junction).
+            siblings = g.edge_lanes.get(g.edges[cur], [])
+            pos = siblings.index(cur) if cur in siblings else 0
+            for other in sorted(siblings, key=lambda o: abs(siblings.index(o) - pos)):
+                cands = [lk for lk in g.links[other] if g.edges[lk.to] == target]
+                if cands:
+                    break
+        if not cands:
+            return -1
+        if after is not None and len(cands) > 1:
+            # Prefer a target lane that continues along the route.
+            for lk in cands:
+                if any(g.edges[l2.to] == after for l2 in g.links[lk.to]):
+                    return lk.next
+        return cands[0].next
+
+    def sequence_for(self, lanes: tuple[int, ...]) -> int:
+        """Stored polyline id of a lane sequence (stored on first use)."""
+        sid = self._seq_of_lanes.get(lanes)
+        if sid is None:
+            pts = []
+            for ln in lanes:
+                shp = self.graph.shapes[ln]
+                if pts and len(shp) and np.hypot(*(shp[0] - pts[-1][-1])) < 1e-6:
+                    shp = shp[1:]
+                if len(shp):
+                    pts.append(shp)
+            xy = np.concatenate(pts) if pts else np.zeros((1, 2))
+            sid = self.store.add(xy)
+            self._seq_of_lanes[lanes] = sid
+        return sid
+
+    # ------------------------------------------------------------------ per step
+
+    def update_sequences(
+        self,
+        ids: list[str],
+        lane: np.ndarray,
+        route_index: np.ndarray,
+        use_lanes: np.ndarray,
+        get_route: Callable[[str], Sequence[str]],
+    ) -> np.ndarray:
+        """Lane-sequence id per agent (-1 for agents not following lanes).
+
+        Only agents that are new, or whose lane or route index changed since the previous
+        call, are walked again; ``get_route(id)`` is called for those only.
+        """
+        n = len(ids)
+        lane = np.asarray(lane, np.int64)
+        route_index = np.asarray(route_index, np.int64)
+        seq = np.full(n, -1, np.int64)
+        if ids == self._prev_ids:
+            j = np.arange(n)
+        elif self._prev_ids:
+            where = dict(zip(self._prev_ids, range(len(self._prev_ids))))
+            j = np.fromiter(map(where.get, ids, repeat(-1)), np.int64, n)
+        else:
+            j = np.full(n, -1, np.int64)
+        known = j >= 0
+        jj = np.where(known, j, 0)
+        if len(self._prev_ids):
+            same = known & (self._prev_lane[jj] == lane) & (self._prev_ri[jj] == route_index)
+            seq[same] = self._prev_seq[jj[same]]
+        else:
+            same = np.zeros(n, bool)
+        todo = np.flatnonzero(use_lanes & (lane >= 0) & ~(same & (seq >= 0)))
+        for i in todo.tolist():
+            lanes = self.walk(int(lane[i]), get_route(ids[i]), int(route_index[i]))
+            seq[i] = self.sequence_for(lanes)
+        self.resolved += len(todo)
+        seq[~use_lanes | (lane < 0)] = -1
+        self._prev_ids = list(ids)
+        self._prev_lane = lane.copy()
+        self._prev_ri = route_index.copy()
+        self._prev_seq = seq.copy()
+        return seq
+
+    def compute(
+        self,
+        seq: np.ndarray,
+        lane: np.ndarray,
+        lane_pos: np.ndarray,
+        x: np.ndarray,
+        y: np.ndarray,
+        angle: np.ndarray,
+        speed: np.ndarray,
+        mode: np.ndarray,
+        with_paths: bool = True,
+    ) -> LookAhead:
+        """Look-ahead points (and paths) for all agents.
+
+        ``seq`` from ``update_sequences``; ``mode`` per agent: MODE_LANES (used when the
+        agent has a sequence), MODE_STRAIGHT or MODE_NONE.
+        """
+        n = len(seq)
+        g = self.graph
+        lad = look_ahead_distance(speed, self.lad_min, self.lad_max, self.k_lad)
+        la = np.column_stack([np.asarray(x, np.float64), np.asarray(y, np.float64)]) if n \
+            else np.zeros((0, 2))
+        mode = np.where((mode == MODE_LANES) & (seq < 0), MODE_STRAIGHT, mode)
+        on = np.flatnonzero(mode == MODE_LANES)
+        st = np.flatnonzero(mode == MODE_STRAIGHT)
+        s0 = np.zeros(0)
+        if len(on):
+            ln = lane[on]
+            s0 = np.clip(lane_pos[on] * g.pos_factor[ln], 0.0, g.geom_lengths[ln])
+            la[on] = self.store.point_at(seq[on], s0 + lad[on])
+        rad = np.deg2rad(np.asarray(angle, np.float64)[st])
+        dirs = np.column_stack([np.sin(rad), np.cos(rad)])  # SUMO angle: cw from north
+        if len(st):
+            la[st] = la[st] + lad[st, None] * dirs
+        if not with_paths:
+            return LookAhead(la, np.zeros(0, np.uint32), np.zeros((0, 2), np.float32), seq)
+
+        counts = np.zeros(n, np.int64)
+        pieces_xy = np.zeros((0, 2))
+        if len(on):
+            c_on, pieces_xy = self.store.pieces(seq[on], s0, s0 + self.path_length)
+            counts[on] = c_on
+        counts[st] = 2
+        off = np.zeros(n + 1, np.int64)
+        np.cumsum(counts, out=off[1:])
+        out = np.empty((int(off[-1]), 2), np.float32)
+        if len(on):
+            # Scatter the lane pieces (contiguous per agent) into their agents' slots.
+            c_on = counts[on]
+            src_start = np.cumsum(c_on) - c_on
+            total = int(c_on.sum())
+            within = np.arange(total) - np.repeat(src_start, c_on)
+            out[np.repeat(off[on], c_on) + within] = pieces_xy
+        if len(st):
+            p0 = np.column_stack([np.asarray(x, np.float64)[st], np.asarray(y, np.float64)[st]])
+            out[off[st]] = p0
+            out[off[st] + 1] = p0 + self.path_length * dirs
+        return LookAhead(la, off.astype(np.uint32), out, seq)
