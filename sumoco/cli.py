@@ -62,6 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")
 
+    p = sub.add_parser("record", help="record every key of a run (and a Foxglove scene) to MCAP")
+    _add_common(p)
+    p.add_argument("--out", required=True, help="output file, e.g. runs/x/run.mcap")
+
     p = sub.add_parser("report", help="rebuild summary.json, figures and report.md from a recording")
     p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
     p.add_argument("--out", help="output folder (default: the recording's folder)")
@@ -94,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
             from sumoco.demo import cli_main
         elif args.cmd == "bench":
             from sumoco.bench import cli_main
+        elif args.cmd == "record":
+            from sumoco.record import record_cli as cli_main
         elif args.cmd == "report":
             from sumoco.report import cli_main
         elif args.cmd == "router":

@@ -114,20 +114,53 @@ class McapRecorder:
 
 
 class LiveRecorder:
-    """Subscribes to every key of a run and records it (use as a context manager)."""
+    """Subscribes to every key of a run and records it (use ``start``/``stop``).
+
+    With ``scene=True`` (and foxglove-sdk installed) it also writes a Foxglove 3D scene
+    channel built from the step and physics messages as they arrive.
+    """
 
     def __init__(self, session: zenoh.Session, keys: Keys, recorder: McapRecorder,
-                 on_message=None) -> None:
+                 on_message=None, scene: bool = True) -> None:
+        from sumoco import scene as scene_mod
+
         self.session, self.keys, self.rec = session, keys, recorder
         self._on_message = on_message
         self._sub = None
+        self._scene = scene_mod if scene and scene_mod.available() else None
+        self._sizes: dict[str, tuple[float, float]] = {}
+        self.scene_errors = 0
 
     def _cb(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
         topic = str(sample.key_expr)
-        self.rec.write(topic, payload)
+        stamp = time.time_ns()
+        self.rec.write(topic, payload, stamp)
+        if self._scene is not None:
+            self._write_scene(topic, payload, stamp)
         if self._on_message is not None:
             self._on_message(topic, payload)
+
+    def _write_scene(self, topic: str, payload: bytes, stamp: int) -> None:
+        kind = kind_of_topic(topic)
+        if kind not in ("step", "physics", "static"):
+            return
+        try:
+            msg = decode(payload)
+            if kind == "step":
+                a = msg.agents
+                self._sizes = dict(zip(a.ids, zip(a.length.tolist(), a.width.tolist())))
+                data = self._scene.step_scene(msg)
+            elif kind == "physics":
+                data = self._scene.physics_scene(msg, Keys.instance_of(topic), self._sizes)
+            else:
+                data = self._scene.network_scene(msg)
+        except Exception as e:  # a scene problem must never stop the raw recording
+            self.scene_errors += 1
+            log.debug("scene update failed for %s: %s", topic, e)
+            return
+        name, enc, sch = self._scene.schema()
+        self.rec.write_encoded(self._scene.SCENE_TOPIC, data, name, "protobuf", enc, sch, stamp)
 
     def start(self) -> "LiveRecorder":
         self._sub = self.session.declare_subscriber(self.keys.everything, self._cb)
@@ -140,7 +173,10 @@ class LiveRecorder:
             for reply in self.session.get(self.keys.static, timeout=min(2.0, timeout_s)):
                 if reply.ok is not None:
                     data = reply.ok.payload.to_bytes()
-                    self.rec.write(self.keys.static, data, schema="static")
+                    stamp = time.time_ns()
+                    self.rec.write(self.keys.static, data, stamp, schema="static")
+                    if self._scene is not None:
+                        self._write_scene(self.keys.static, data, stamp)
                     return data
             time.sleep(0.05)
         return None
@@ -149,6 +185,34 @@ class LiveRecorder:
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None
+
+
+def record_cli(args) -> int:
+    """``sumoco record --out run.mcap``: record a live run until Ctrl-C or --duration."""
+    import signal
+
+    from sumoco.config import apply_cli, load_common, CommonConfig
+    from sumoco.transport import open_session
+
+    common = load_common(args.config)[0] if args.config else CommonConfig()
+    common = apply_cli(common, args)
+    keys = Keys(common.zenoh.root, common.run.id)
+    rec = McapRecorder(args.out)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        with open_session(common.zenoh) as session:
+            live = LiveRecorder(session, keys, rec).start()
+            if live.fetch_static(timeout_s=10.0) is None:
+                log.warning("no static data answered on %s (recording the live keys anyway)", keys.static)
+            limit = float(args.duration) if getattr(args, "duration", None) else None
+            stop.wait(limit)
+            live.stop()
+    finally:
+        rec.close()
+    log.info("recorded %d messages to %s", rec.count, args.out)
+    return 0
 
 
 @dataclass
