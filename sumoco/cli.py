@@ -44,10 +44,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.add_argument("--sumocfg", help="run this .sumocfg instead of the config's scenario")
     p.add_argument("--gui", action="store_true", help="use sumo-gui through TraCI (needs a display)")
+    p.add_argument("--wait-for", action="append", default=None, metavar="INSTANCE",
+                   help="lockstep: physics instance whose acks to wait for (repeatable; "
+                        "overrides [sumo].lockstep_instances)")
 
     p = sub.add_parser("physics", help="run the physics side daemon")
     _add_common(p)
     p.add_argument("--preset", help="control preset for every agent type (paper|default|kinematic)")
+    p.add_argument("--instance", help="physics instance name in the keys (default: [physics].instance or 'main')")
 
     p = sub.add_parser("demo", help="both daemons on loopback, bounded run, report")
     _add_common(p)
