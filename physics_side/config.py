@@ -1,0 +1,235 @@
+"""Typed configuration of the physics side: ``[physics]``, ``[control.paper]``, ``[control.default]``.
+
+Every knob has its unit; ``load_physics_config`` reads the tables of a run config (see
+``sumoco.config``), and ``check_rates`` validates the SUMO step / control / MuJoCo step
+ratios once at start-up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from protocol.errors import ConfigError
+from sumoco.config import from_dict, section
+
+PRESETS = ("paper", "default", "kinematic")
+TYPES = ("passenger", "taxi", "bus", "bicycle", "pedestrian", "other")
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    """``[physics]``: world, rates, pools, robustness."""
+
+    instance: str = "main"  # physics instance name in the keys (several can follow one run)
+    control_hz: float = 50.0  # [Hz] control tick rate (one tick = controllers + substeps)
+    timestep_s: float = 0.005  # [s] MuJoCo integration step (implicitfast)
+    sumo_step_s: float = 0.1  # [s] SUMO step length this config expects (checked per message)
+    state_every: int = 1  # [ticks] publish PhysicsState every k control ticks
+    preset: Literal["paper", "default", "kinematic"] = "default"  # for every type not in `presets`
+    presets: dict[str, str] = field(default_factory=dict)  # per type, e.g. {pedestrian="kinematic"}
+    all_wheel_drive: tuple[str, ...] = ()  # car-like types driven on all four wheels
+    divergence_m: float = 6.0  # [m] front-bumper distance to the SUMO pose that forces a placement
+    flip_deg: float = 60.0  # [deg] |roll| or |pitch| beyond which an agent is placed upright again
+    max_extrapolation_s: float = 0.3  # [s] reference extrapolation limit past the newest SUMO step
+    stop_decel: float = 3.0  # [m/s^2] deceleration of the safe stop when the SUMO side is gone
+    shards: int = 2  # parallel MuJoCo simulations (agents in different shards never touch)
+    threads: int = 0  # worker threads for the shards, 0 = one per shard
+    initial_slots: dict[str, int] = field(
+        default_factory=lambda: {"passenger": 64, "taxi": 4, "bus": 4, "bicycle": 8, "pedestrian": 16}
+    )  # [slots per shard] pre-allocated parked slots per type (its default size bucket)
+    pool_chunk: int = 32  # [slots] a pool that runs out grows by at least this many per shard
+    step_queue: int = 64  # [messages] bounded FIFO of received SUMO steps
+    log_every_s: float = 1.0  # [s] status line period (wall clock)
+
+    def validate(self) -> None:
+        from protocol.keys import check_chunk
+
+        try:
+            check_chunk(self.instance, "physics.instance")
+        except Exception as e:
+            raise ConfigError(str(e)) from None
+        if self.control_hz <= 0 or self.timestep_s <= 0 or self.sumo_step_s <= 0:
+            raise ConfigError("physics: control_hz, timestep_s and sumo_step_s must be > 0")
+        if self.state_every < 1:
+            raise ConfigError(f"physics.state_every: expected >= 1, got {self.state_every}")
+        for k, v in self.presets.items():
+            if k not in TYPES:
+                raise ConfigError(f"physics.presets.{k}: unknown agent type (expected one of {', '.join(TYPES)})")
+            if v not in PRESETS:
+                raise ConfigError(f"physics.presets.{k}: expected one of {list(PRESETS)}, got {v!r}")
+        for k in self.all_wheel_drive:
+            if k not in ("passenger", "taxi", "bus"):
+                raise ConfigError(f"physics.all_wheel_drive: {k!r} is not a four-wheel type (passenger, taxi, bus)")
+        for k, v in self.initial_slots.items():
+            if k not in TYPES[:-1]:
+                raise ConfigError(f"physics.initial_slots.{k}: unknown agent type")
+            if v < 0:
+                raise ConfigError(f"physics.initial_slots.{k}: expected >= 0, got {v}")
+        if self.shards < 1 or self.threads < 0:
+            raise ConfigError("physics: shards must be >= 1 and threads >= 0")
+        if self.pool_chunk < 1 or self.step_queue < 1:
+            raise ConfigError("physics: pool_chunk and step_queue must be >= 1")
+        if self.divergence_m <= 0 or self.stop_decel <= 0:
+            raise ConfigError("physics: divergence_m and stop_decel must be > 0")
+
+    def preset_for(self, type_name: str) -> str:
+        return self.presets.get(type_name, self.preset)
+
+    @property
+    def control_dt(self) -> float:
+        """Control period [s]."""
+        return 1.0 / self.control_hz
+
+
+@dataclass(frozen=True)
+class PaperControl:
+    """``[control.paper]``: the seed's controller, Sumonity section 3.3 (defaults = paper)."""
+
+    k1: float = 15.0  # [1/m] P gain on the position error along the path -> u1
+    k2: float = 1.0  # [s/m] P gain on the speed error -> u2; u_in = (u1 + u2) / 2
+    lad_min: float = 7.0  # [m] minimum look-ahead distance
+    lad_max: float = 10.0  # [m] maximum look-ahead distance
+    k_lad: float = 1.0  # [s] LAD = v_ref * k_lad between the limits (must be >= 1)
+    k_steer: float = 0.05  # [1/deg] P_steer = delta_ref[deg] * k_steer, clipped to +-1 (of max steer)
+    lookahead: Literal["message", "path"] = "message"  # la_x/la_y as sent, or recomputed on path_xy
+    # u_in is a pedal command in [-1, 1]: + = fraction of the model's max drive torque,
+    # - = fraction of its max brake torque (the paper's Unity car took a normalised input).
+    ped_omega: float = 3.0  # [rad/s] pedestrian position-loop natural frequency
+    ped_zeta: float = 0.7  # [1] pedestrian position-loop damping ratio
+
+    def validate(self) -> None:
+        if self.lad_min <= 0 or self.lad_max < self.lad_min:
+            raise ConfigError("control.paper: need 0 < lad_min <= lad_max")
+        if self.k_lad < 1.0:
+            raise ConfigError(f"control.paper.k_lad: the paper requires >= 1, got {self.k_lad}")
+
+
+@dataclass(frozen=True)
+class DefaultControl:
+    """``[control.default]``: our controller (front-bumper referenced, feed-forward, damped)."""
+
+    lateral: Literal["stanley", "pursuit"] = "stanley"  # front-bumper Stanley or front-axle pure pursuit
+    k_cross: float = 4.0  # [1/s] Stanley cross-track gain: bumper heading correction atan(k e / v)
+    v_soft: float = 1.0  # [m/s] Stanley low-speed softening
+    preview_s: float = 0.0  # [s] path heading/curvature taken this far ahead (steering servo lag)
+    k_yaw: float = 0.05  # [s] yaw-rate damping: steer -= k_yaw * (r - r_ref) (rad per rad/s)
+    lad_min: float = 4.0  # [m] pure pursuit: minimum look-ahead distance (lateral = "pursuit")
+    lad_max: float = 10.0  # [m] pure pursuit: maximum look-ahead distance
+    k_lad: float = 0.6  # [s] pure pursuit: LAD = v * k_lad between the limits
+    pos_omega: float = 2.5  # [rad/s] along-path position loop natural frequency
+    pos_zeta: float = 1.0  # [1] along-path position loop damping ratio (critically damped)
+    k_int: float = 0.5  # [1/s^2 per m*s] integral of the along-path error (rolling losses, slopes)
+    int_limit: float = 1.0  # [m/s^2] integral term clamp
+    accel_max: float = 6.0  # [m/s^2] commanded acceleration limit
+    decel_max: float = 9.0  # [m/s^2] commanded deceleration limit
+    hold_speed: float = 0.2  # [m/s] below this reference speed a stopped agent holds its brakes
+    hold_brake: float = 0.3  # [1] hold brake as a fraction of max brake torque
+    ped_omega: float = 4.0  # [rad/s] pedestrian position-loop natural frequency
+    ped_zeta: float = 1.0  # [1] pedestrian position-loop damping ratio
+    bike_roll_kp: float = 1500.0  # [N*m/rad] roll stabiliser stiffness (bicycles, every preset)
+    bike_roll_kd: float = 250.0  # [N*m*s/rad] roll stabiliser damping
+
+    def validate(self) -> None:
+        if self.pos_omega <= 0 or self.pos_zeta <= 0:
+            raise ConfigError("control.default: pos_omega and pos_zeta must be > 0")
+        if self.lad_min <= 0 or self.lad_max < self.lad_min:
+            raise ConfigError("control.default: need 0 < lad_min <= lad_max")
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    paper: PaperControl = field(default_factory=PaperControl)
+    default: DefaultControl = field(default_factory=DefaultControl)
+
+
+@dataclass(frozen=True)
+class PhysicsSettings:
+    """Everything the physics side reads from a run config."""
+
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+
+
+def load_physics_config(data: dict[str, Any], base: Path | None = None, file: str = "") -> PhysicsSettings:
+    """Typed ``[physics]`` and ``[control.*]`` tables; raises ConfigError naming the key."""
+    phys = section(data, "physics", PhysicsConfig, base, file)
+    ctl = data.get("control", {})
+    if not isinstance(ctl, dict):
+        raise ConfigError(f"{file}: control: expected a table")
+    unknown = sorted(set(ctl) - {"paper", "default"})
+    if unknown:
+        raise ConfigError(f"{file}: control.{unknown[0]}: unknown table (expected paper, default)")
+    try:
+        paper = from_dict(PaperControl, _table(ctl, "paper"), "control.paper", base)
+        default = from_dict(DefaultControl, _table(ctl, "default"), "control.default", base)
+    except ConfigError as e:
+        raise ConfigError(f"{file}: {e}" if file else str(e)) from None
+    settings = PhysicsSettings(phys, ControlConfig(paper, default))
+    check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
+    return settings
+
+
+def _table(data: dict, name: str) -> dict:
+    raw = data.get(name, {})
+    if not isinstance(raw, dict):
+        raise ConfigError(f"control.{name}: expected a table, got {type(raw).__name__}")
+    return raw
+
+
+def _ratio(big: float, small: float) -> int | None:
+    """``big / small`` if it is a whole number (to 1e-6 relative), else None."""
+    r = big / small
+    n = round(r)
+    return n if n >= 1 and abs(r - n) <= 1e-6 * max(1.0, r) else None
+
+
+@dataclass(frozen=True)
+class Rates:
+    """Whole-number ratios between the three clocks."""
+
+    ticks_per_step: int
+    """Control ticks per SUMO step."""
+    substeps: int
+    """MuJoCo steps per control tick."""
+    control_dt: float
+    """[s]."""
+
+
+def check_rates(sumo_step_s: float, control_hz: float, timestep_s: float) -> Rates:
+    """Check SUMO step / control period / MuJoCo step are whole-number ratios.
+
+    Like dm_control's ``compute_n_steps``: raises ConfigError naming the number to change.
+    """
+    if sumo_step_s <= 0 or control_hz <= 0 or timestep_s <= 0:
+        raise ConfigError("rates: sumo_step_s, control_hz and timestep_s must be > 0")
+    dt = 1.0 / control_hz
+    substeps = _ratio(dt, timestep_s)
+    if substeps is None:
+        ok = [f"{dt / n:g}" for n in range(1, 9) if dt / n >= 1e-4]
+        raise ConfigError(
+            f"physics.timestep_s = {timestep_s:g} s does not divide the control period "
+            f"1/control_hz = {dt:g} s; change physics.timestep_s to one of {', '.join(ok)} "
+            f"(or change physics.control_hz)"
+        )
+    ticks = _ratio(sumo_step_s, dt)
+    if ticks is None:
+        hz = [f"{n / sumo_step_s:g}" for n in range(1, 11)]
+        raise ConfigError(
+            f"the SUMO step length {sumo_step_s:g} s is not a whole number of control periods "
+            f"(1/control_hz = {dt:g} s); change physics.control_hz to one of {', '.join(hz)} Hz "
+            f"(or the SUMO step length, physics.sumo_step_s)"
+        )
+    if timestep_s > 0.01 + 1e-12:
+        raise ConfigError(
+            f"physics.timestep_s = {timestep_s:g} s is too coarse: cars roll over at the friction "
+            f"limit above 0.01 s; change physics.timestep_s to 0.005"
+        )
+    return Rates(ticks_per_step=ticks, substeps=substeps, control_dt=dt)
+
+
+__all__ = [
+    "ControlConfig", "DefaultControl", "PaperControl", "PhysicsConfig", "PhysicsSettings",
+    "PRESETS", "Rates", "TYPES", "check_rates", "load_physics_config",
+]

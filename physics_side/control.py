@@ -1,0 +1,326 @@
+"""Controllers as pure functions over arrays: every function takes all agents at once.
+
+Building blocks (unit-tested on their own):
+
+- ``lad``: the paper's adaptive look-ahead distance.
+- ``pursuit_alpha`` / ``pure_pursuit_delta``: pure-pursuit geometry (Coulter 1992).
+- ``paper_steer``: P_steer = delta_ref[deg] * k_steer, clipped to +-100 % of max steer.
+- ``paper_pedal``: u_in = (K1 * e_pos + K2 * e_v) / 2, clipped to [-1, 1].
+- ``stanley_bumper``: Stanley's law with the guide point at the front bumper.
+- ``accel_command``: damped along-path position loop with feed-forward and integral.
+- ``accel_to_torques`` / ``pedal_to_torques``: wheel torques and brakes.
+- ``roll_stabiliser``: bicycle roll PD towards the steady-turn lean.
+- ``planar_force``: pedestrian force with a bounded norm.
+- ``ackermann``: left/right road-wheel angles for a bicycle-model angle.
+
+``control_vehicles`` / ``control_pedestrians`` compose them for one preset. Integrator
+state lives in ``ControlState`` (arrays aligned with the agents), nothing else is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from physics_side.config import DefaultControl, PaperControl
+from physics_side.reference import Reference, tracking_error
+from protocol.frames import wrap_pi
+
+G = 9.81  # [m/s^2]
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def lad(v_ref: np.ndarray, lad_min: float, lad_max: float, k_lad: float) -> np.ndarray:
+    """Paper eq. for the look-ahead distance [m] from the reference speed [m/s].
+
+    LAD = LAD_min if v_ref < LAD_min else min(v_ref * k_LAD, LAD_max). (The paper compares
+    a speed with a distance; with k_LAD = 1 s the two branches meet at v = LAD_min.)
+    """
+    v = np.asarray(v_ref, np.float64)
+    return np.where(v < lad_min, lad_min, np.minimum(v * k_lad, lad_max))
+
+
+def pursuit_alpha(bx, by, yaw, tx, ty) -> np.ndarray:
+    """Angle [rad, + left] between the heading and the line from base (bx, by) to target (tx, ty)."""
+    return wrap_pi(np.arctan2(np.asarray(ty) - by, np.asarray(tx) - bx) - yaw)
+
+
+def pure_pursuit_delta(alpha: np.ndarray, dist: np.ndarray, wheelbase: np.ndarray) -> np.ndarray:
+    """Classic pure pursuit: road-wheel angle [rad] of the arc from the rear axle through the target."""
+    return np.arctan2(2.0 * wheelbase * np.sin(alpha), np.maximum(dist, 1e-3))
+
+
+def paper_steer(alpha: np.ndarray, k_steer: float, max_steer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Paper eq. (1): P_steer = delta_ref[deg] * k_steer in [-1, 1]; angle = P_steer * max_steer.
+
+    ``alpha`` is delta_ref, the pure-pursuit angle [rad]; returns (P_steer [1], angle [rad]).
+    """
+    pct = np.clip(np.rad2deg(alpha) * k_steer, -1.0, 1.0)
+    return pct, pct * max_steer
+
+
+def paper_pedal(e_pos: np.ndarray, e_v: np.ndarray, k1: float, k2: float) -> tuple[np.ndarray, np.ndarray]:
+    """u1 = K1 * e_pos, u2 = K2 * e_v, u_in = (u1 + u2) / 2; returns (u_in, u_in clipped to [-1, 1])."""
+    u = 0.5 * (k1 * np.asarray(e_pos) + k2 * np.asarray(e_v))
+    return u, np.clip(u, -1.0, 1.0)
+
+
+def pedal_to_torques(u: np.ndarray, max_drive: np.ndarray, max_brake: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pedal in [-1, 1] -> (drive torque, brake torque) [N*m]: + throttle, - brake."""
+    return np.maximum(u, 0.0) * max_drive, np.maximum(-u, 0.0) * max_brake
+
+
+def stanley_bumper(
+    heading_err: np.ndarray, e_lat: np.ndarray, v: np.ndarray, k: float, v_soft: float,
+    d_bumper: np.ndarray, wheelbase: np.ndarray,
+) -> np.ndarray:
+    """Stanley's law for a guide point ``d_bumper`` ahead of the rear axle (the front bumper).
+
+    The guide point's velocity direction relative to the body is
+    beta = atan(d * tan(delta) / L). Stanley asks for beta = -heading_err - atan(k e / v),
+    with heading_err = vehicle yaw - path heading and e the lateral offset (+ left); so
+    tan(delta) = L * tan(beta) / d. With d = L it is the classic front-axle Stanley.
+    Returns the road-wheel angle [rad] (unclipped).
+    """
+    beta = -heading_err - np.arctan2(k * e_lat, np.abs(v) + v_soft)
+    beta = np.clip(beta, -1.2, 1.2)
+    return np.arctan(wheelbase * np.tan(beta) / d_bumper)
+
+
+def steady_state_delta(curvature: np.ndarray, d_bumper: np.ndarray, wheelbase: np.ndarray) -> np.ndarray:
+    """Road-wheel angle [rad] that keeps the front bumper on a circle of the given curvature.
+
+    The bumper's radius is sqrt(R^2 + d^2) with R the rear-axle radius: R = sqrt(1/k^2 - d^2).
+    """
+    k = np.asarray(curvature, np.float64)
+    kd = np.clip(np.abs(k) * d_bumper, 0.0, 0.95)
+    with np.errstate(divide="ignore"):
+        tan_d = wheelbase * np.abs(k) / np.sqrt(1.0 - kd * kd)
+    return np.sign(k) * np.arctan(tan_d)
+
+
+def accel_command(
+    e_s: np.ndarray, e_v: np.ndarray, a_ref: np.ndarray, integ: np.ndarray, omega: float, zeta: float,
+    k_int: float,
+) -> np.ndarray:
+    """Damped position loop with feed-forward: a = a_ref + w^2 e_s + 2 zeta w e_v + k_i * integral [m/s^2]."""
+    return a_ref + omega * omega * e_s + 2.0 * zeta * omega * e_v + k_int * integ
+
+
+def accel_to_torques(
+    a_cmd: np.ndarray, m_eff: np.ndarray, r_wheel: np.ndarray, max_drive: np.ndarray, max_brake: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Wheel torque for an acceleration: + on the drive motor, - as brake torque [N*m]."""
+    t = a_cmd * m_eff * r_wheel
+    return np.clip(t, 0.0, max_drive), np.clip(-t, 0.0, max_brake)
+
+
+def roll_stabiliser(
+    roll: np.ndarray, roll_rate: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, kp: float, kd: float,
+    limit: np.ndarray,
+) -> np.ndarray:
+    """Bicycle stabiliser torque about the frame's forward axis [N*m].
+
+    Target lean: the steady-turn equilibrium tan(phi) = v * r / g, into the turn (a left
+    turn, r > 0, needs the left side down, i.e. negative roll about +x).
+    """
+    target = -np.arctan(np.clip(speed * yaw_rate / G, -0.6, 0.6))
+    return np.clip(-kp * (roll - target) - kd * roll_rate, -limit, limit)
+
+
+def planar_force(
+    ex: np.ndarray, ey: np.ndarray, evx: np.ndarray, evy: np.ndarray, ax: np.ndarray, ay: np.ndarray,
+    mass: np.ndarray, omega: float, zeta: float, fmax: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pedestrian PD + feed-forward force (x, y) [N], its norm clipped to ``fmax``."""
+    k, c = omega * omega, 2.0 * zeta * omega
+    fx = mass * (ax + k * ex + c * evx)
+    fy = mass * (ay + k * ey + c * evy)
+    norm = np.hypot(fx, fy)
+    scale = np.where(norm > fmax, fmax / np.maximum(norm, 1e-9), 1.0)
+    return fx * scale, fy * scale
+
+
+def ackermann(delta: np.ndarray, wheelbase: np.ndarray, track: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) road-wheel angles [rad] sharing the turn centre of a bicycle-model angle."""
+    t = np.tan(delta)
+    half = 0.5 * track * t
+    left = np.arctan2(wheelbase * t, wheelbase - half)
+    right = np.arctan2(wheelbase * t, wheelbase + half)
+    # atan2 keeps the sign of t through the numerator; denominators stay > 0 for sane tracks
+    return left, right
+
+
+# --------------------------------------------------------------------------- composed laws
+
+
+@dataclass
+class ControlState:
+    """Per-agent controller memory (arrays aligned with the agents of the current step)."""
+
+    integ: np.ndarray
+    """Integral of the along-path position error [m*s]."""
+
+    @classmethod
+    def zeros(cls, n: int) -> "ControlState":
+        return cls(integ=np.zeros(n))
+
+    def take(self, index: np.ndarray) -> "ControlState":
+        """State re-aligned to a new agent order; index -1 = new agent (zeros)."""
+        index = np.asarray(index, np.int64)
+        integ = np.where(index >= 0, self.integ[np.maximum(index, 0)] if len(self.integ) else 0.0, 0.0)
+        return ControlState(integ=np.asarray(integ, np.float64))
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Per-agent model parameters the controllers need (arrays of length n)."""
+
+    wheelbase: np.ndarray
+    """[m]."""
+    d_bumper: np.ndarray
+    """Rear axle -> front bumper [m]."""
+    rear_axle: np.ndarray
+    """Body origin -> rear axle along the heading [m] (negative)."""
+    front_offset: np.ndarray
+    """Body origin -> front bumper [m]."""
+    m_eff: np.ndarray
+    """[kg]."""
+    r_wheel: np.ndarray
+    """[m]."""
+    max_steer: np.ndarray
+    """[rad]."""
+    max_drive: np.ndarray
+    """[N*m]."""
+    max_brake: np.ndarray
+    """[N*m]."""
+
+
+@dataclass(frozen=True)
+class VehicleObs:
+    """Measured vehicle state (arrays of length n)."""
+
+    fx: np.ndarray
+    """Front bumper x [m]."""
+    fy: np.ndarray
+    """Front bumper y [m]."""
+    cx: np.ndarray
+    """Body origin x [m]."""
+    cy: np.ndarray
+    """Body origin y [m]."""
+    yaw: np.ndarray
+    """[rad]."""
+    speed: np.ndarray
+    """Forward speed [m/s]."""
+    yaw_rate: np.ndarray
+    """[rad/s]."""
+    fvx: np.ndarray
+    """Front-bumper velocity x [m/s]."""
+    fvy: np.ndarray
+    """Front-bumper velocity y [m/s]."""
+
+    def bumper_speed_along(self, heading: np.ndarray) -> np.ndarray:
+        """Front-bumper speed along a direction [m/s] (the path's, for the speed error)."""
+        return self.fvx * np.cos(heading) + self.fvy * np.sin(heading)
+
+
+@dataclass(frozen=True)
+class VehicleCommand:
+    steer: np.ndarray
+    """Bicycle-model road-wheel angle [rad, + left]."""
+    drive: np.ndarray
+    """Total drive torque [N*m]."""
+    brake: np.ndarray
+    """Total brake torque [N*m]."""
+    aux: np.ndarray
+    """Diagnostics: u_in (paper) or commanded acceleration [m/s^2] (default)."""
+
+
+def control_paper(
+    obs: VehicleObs, p: VehicleParams, ref: Reference, cfg: PaperControl,
+) -> VehicleCommand:
+    """The seed's controller: held sample, P+P pedal, pure pursuit on the SUMO look-ahead point."""
+    held = ref.held()
+    # position error along the path: reference minus actual, on the reference heading
+    e_lon, _ = tracking_error(obs.fx, obs.fy, held)
+    e_pos = -e_lon
+    u_raw, u = paper_pedal(e_pos, held.speed - obs.speed, cfg.k1, cfg.k2)
+    drive, brake = pedal_to_torques(u, p.max_drive, p.max_brake)
+    if cfg.lookahead == "message":
+        tx, ty = ref.la_x, ref.la_y
+    else:
+        la = ref.point_at(lad(held.speed, cfg.lad_min, cfg.lad_max, cfg.k_lad))
+        tx, ty = la.x, la.y
+    # base of the pursuit: the rear axle of the actual vehicle
+    c, s = np.cos(obs.yaw), np.sin(obs.yaw)
+    bx, by = obs.cx + p.rear_axle * c, obs.cy + p.rear_axle * s
+    alpha = pursuit_alpha(bx, by, obs.yaw, tx, ty)
+    _, steer = paper_steer(alpha, cfg.k_steer, p.max_steer)
+    return VehicleCommand(steer, drive, brake, u_raw)
+
+
+def control_default(
+    obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, dt: float, cfg: DefaultControl,
+    state: ControlState, stopping: np.ndarray | None = None, stop_decel: float = 3.0,
+    stop_speed: np.ndarray | None = None, s_guess: np.ndarray | None = None,
+) -> VehicleCommand:
+    """Ours: extrapolated reference, front-bumper lateral law, damped longitudinal loop.
+
+    ``stopping`` (bool mask) switches agents to a braking-to-rest speed profile
+    (``stop_speed`` [m/s] is their target speed now) while still following the path.
+    ``s_guess`` is where the bumper was along the path [m] (for the projection).
+    """
+    r = ref.at(tau)
+    s_act, e_lat, pp = ref.project(obs.fx, obs.fy, r.s if s_guess is None else s_guess)
+    e_s = r.s - s_act  # + = behind the reference
+    v_ref, a_ref = r.speed, r.accel
+    if stopping is not None and np.any(stopping):
+        v_ref = np.where(stopping, stop_speed, v_ref)
+        a_ref = np.where(stopping, np.where(stop_speed > 0, -stop_decel, 0.0), a_ref)
+        e_s = np.where(stopping, 0.0, e_s)
+    # the bumper's speed along the path: in a turn it exceeds the body's forward speed
+    e_v = v_ref - obs.bumper_speed_along(pp.heading)
+    # integral only while tracking (not while stopping or standing)
+    live = (v_ref > cfg.hold_speed) if stopping is None else (v_ref > cfg.hold_speed) & ~stopping
+    state.integ = np.where(live, np.clip(state.integ + e_s * dt, -cfg.int_limit / max(cfg.k_int, 1e-9),
+                                         cfg.int_limit / max(cfg.k_int, 1e-9)), 0.0)
+    a_cmd = accel_command(e_s, e_v, a_ref, state.integ, cfg.pos_omega, cfg.pos_zeta, cfg.k_int)
+    a_cmd = np.clip(a_cmd, -cfg.decel_max, cfg.accel_max)
+    drive, brake = accel_to_torques(a_cmd, p.m_eff, p.r_wheel, p.max_drive, p.max_brake)
+    hold = (v_ref <= cfg.hold_speed) & (a_cmd <= 0.5)
+    brake = np.where(hold, np.maximum(brake, cfg.hold_brake * p.max_brake), brake)
+    drive = np.where(hold, 0.0, drive)
+
+    if cfg.lateral == "stanley":
+        # heading of the path where the bumper will be after the steering lag
+        ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s)
+        # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
+        # leads the body by beta_ss = asin(kappa * d) in a steady turn
+        heading_err = wrap_pi(obs.yaw - ahead.heading)
+        steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase)
+        if cfg.k_yaw:
+            r_ref = obs.speed * ahead.curvature
+            steer = steer - cfg.k_yaw * (obs.yaw_rate - r_ref)
+    else:
+        # front-axle pure pursuit: target LAD ahead of the bumper's projection on the path
+        L = lad(obs.speed, cfg.lad_min, cfg.lad_max, cfg.k_lad)
+        tgt = ref.point_at(s_act + L)
+        c, s = np.cos(obs.yaw), np.sin(obs.yaw)
+        ax_x = obs.cx + (p.rear_axle + p.wheelbase) * c
+        ax_y = obs.cy + (p.rear_axle + p.wheelbase) * s
+        alpha = pursuit_alpha(ax_x, ax_y, obs.yaw, tgt.x, tgt.y)
+        # arc from the front axle: steer the front wheels towards the target point
+        steer = alpha
+    steer = np.clip(steer, -p.max_steer, p.max_steer)
+    return VehicleCommand(steer, drive, brake, a_cmd)
+
+
+__all__ = [
+    "ControlState", "VehicleCommand", "VehicleObs", "VehicleParams", "accel_command", "accel_to_torques",
+    "ackermann", "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
+    "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
+    "steady_state_delta",
+]

@@ -1,0 +1,380 @@
+"""The physics side daemon: SUMO steps in, physics state out, over Zenoh.
+
+``PhysicsDaemon`` is a thin orchestrator (like dm_control's ``Environment.step``): it
+receives its Zenoh session, keys and a ``Fleet`` (world + controllers) from outside and
+runs, per control tick: apply the latest SUMO step -> controllers -> MuJoCo substeps ->
+publish. Timing:
+
+- ``lockstep``: every step is processed in order; the daemon simulates through the
+  step's length (``ticks_per_step`` control ticks), publishes, then acknowledges the
+  step on ``Keys.ack`` (the SUMO side waits for it before the next step).
+- ``realtime``: control ticks are paced by the wall clock; each tick uses the newest
+  step received (older queued steps are skipped).
+
+Liveliness: the daemon declares ``Keys.physics_alive`` and watches ``Keys.sumo_alive``.
+When the SUMO side disappears every agent brakes to rest (mode STOPPING) and the daemon
+waits; when it returns, the next step resynchronises the agent set (a step index that
+goes backwards, e.g. a restarted SUMO at step 0, is a resync too).
+
+Zenoh callbacks run on Zenoh's threads; they only append to bounded deques and set an
+event. MuJoCo runs on the main thread only.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import signal
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+import zenoh
+
+from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config
+from physics_side.fleet import Fleet
+from physics_side.models import TYPE_NAMES
+from physics_side.world import PhysicsWorld
+from protocol.codec import decode_as, encode
+from protocol.errors import ConfigError, ProtocolError
+from protocol.keys import Keys
+from protocol.messages import PhysicsState, StepAck, StepMessage
+from sumoco.config import RunConfig
+
+log = logging.getLogger("physics")
+
+REJECT_LOG_PERIOD_S = 2.0  # [s] at most one log line per period about rejected messages
+IDLE_WAIT_S = 0.05  # [s] wait for messages when there is nothing to simulate
+REST_SPEED = 0.05  # [m/s] below this every stopping agent counts as at rest
+
+
+class PhysicsDaemon:
+    """Runs the physics side on an open Zenoh session (see module docstring)."""
+
+    def __init__(
+        self, session: zenoh.Session, keys: Keys, fleet: Fleet, settings: PhysicsSettings, run: RunConfig,
+    ):
+        self.session = session
+        self.keys = keys
+        self.fleet = fleet
+        self.settings = settings
+        self.cfg = settings.physics
+        self.run_cfg = run
+        self.lockstep = run.timing == "lockstep"
+        self.rates = fleet.rates
+        self._steps: collections.deque[bytes] = collections.deque(maxlen=self.cfg.step_queue)
+        self._alive_events: collections.deque[bool] = collections.deque(maxlen=64)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self.counters: dict[str, int] = {"rejected": 0, "dropped_steps": 0, "acks": 0, "states": 0}
+        self.sumo_present = False
+        self._seen_sumo = False
+        self._resync = False
+        self._last_step = -1
+        self._rate_cache: dict[float, Rates] = {}
+        self._reject_log_t = 0.0
+        self._reject_since_log = 0
+        self._status = _Status()
+        self.time = 0.0  # [s] physics time aligned with SUMO time
+        self._declared: list = []
+        self._finished = False
+
+    # ------------------------------------------------------------------ zenoh plumbing
+
+    def _on_step(self, sample: zenoh.Sample) -> None:
+        if len(self._steps) == self._steps.maxlen:
+            self.counters["dropped_steps"] += 1
+        self._steps.append(sample.payload.to_bytes())
+        self._wake.set()
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        self._alive_events.append(sample.kind == zenoh.SampleKind.PUT)
+        self._wake.set()
+
+    def start(self) -> "PhysicsDaemon":
+        s = self.session
+        cc = zenoh.CongestionControl.BLOCK if self.lockstep else zenoh.CongestionControl.DROP
+        self._pub_state = s.declare_publisher(self.keys.physics_state, congestion_control=cc)
+        self._pub_ack = s.declare_publisher(self.keys.ack, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._sub_step = s.declare_subscriber(self.keys.step, self._on_step)
+        self._sub_alive = s.liveliness().declare_subscriber(self.keys.sumo_alive, self._on_alive, history=True)
+        self._token = s.liveliness().declare_token(self.keys.physics_alive)
+        self._declared = [self._token, self._sub_alive, self._sub_step, self._pub_ack, self._pub_state]
+        log.info(
+            "physics %s/%s: %s, preset %s%s, control %g Hz, %d substeps of %g s, %d shard(s)",
+            self.keys.run, self.keys.physics, self.run_cfg.timing, self.cfg.preset,
+            f" {self.cfg.presets}" if self.cfg.presets else "", self.cfg.control_hz, self.rates.substeps,
+            self.cfg.timestep_s, self.fleet.world.shards,
+        )
+        return self
+
+    def close(self) -> None:
+        for d in self._declared:
+            try:
+                d.undeclare()
+            except Exception:  # already gone with the session
+                pass
+        self._declared = []
+
+    def stop(self) -> None:
+        """Ask the run loop to return (thread- and signal-safe)."""
+        self._stop.set()
+        self._wake.set()
+
+    # ------------------------------------------------------------------ messages
+
+    def _reject(self, why: str) -> None:
+        self.counters["rejected"] += 1
+        self._reject_since_log += 1
+        now = time.monotonic()
+        if now - self._reject_log_t >= REJECT_LOG_PERIOD_S:
+            log.warning("rejected %d message(s); latest: %s", self._reject_since_log, why)
+            self._reject_log_t = now
+            self._reject_since_log = 0
+
+    def _decode(self, data: bytes) -> StepMessage | None:
+        try:
+            msg = decode_as(data, StepMessage)
+        except ProtocolError as e:
+            self._reject(str(e))
+            return None
+        rates = self._rate_cache.get(msg.step_length)
+        if rates is None:
+            try:
+                rates = check_rates(msg.step_length, self.cfg.control_hz, self.cfg.timestep_s)
+            except ConfigError as e:
+                self._reject(f"step {msg.step}: {e}")
+                return None
+            if abs(msg.step_length - self.cfg.sumo_step_s) > 1e-9:
+                log.warning("SUMO step length %g s differs from physics.sumo_step_s = %g s; following SUMO",
+                            msg.step_length, self.cfg.sumo_step_s)
+            self._rate_cache[msg.step_length] = rates
+        return msg
+
+    def _handle_alive(self) -> None:
+        while self._alive_events:
+            up = self._alive_events.popleft()
+            if up and not self.sumo_present:
+                log.info("SUMO side is up%s", " again: resynchronising" if self._seen_sumo else "")
+                self._resync = self._seen_sumo
+                self._seen_sumo = True
+                self.sumo_present = True
+            elif not up and self.sumo_present:
+                log.warning("SUMO side is gone: bringing %d agents to a safe stop", self.fleet.n)
+                self.sumo_present = False
+                self.fleet.begin_stop()
+
+    def _apply(self, msg: StepMessage) -> bool:
+        """Apply one step; False if it was a duplicate and ignored."""
+        resync = self._resync
+        if msg.step <= self._last_step and not resync:
+            if msg.step == self._last_step:
+                return False
+            log.warning("SUMO step went back from %d to %d: resynchronising", self._last_step, msg.step)
+            resync = True
+        try:
+            stats = self.fleet.apply_step(msg, resync=resync)
+        except (ValueError, IndexError, KeyError) as e:
+            self._reject(f"step {msg.step}: {type(e).__name__}: {e}")
+            return False
+        self._resync = False
+        self._last_step = msg.step
+        self.time = msg.time
+        self.fleet.rates = self._rate_cache[msg.step_length]
+        if stats.spawned or stats.parked:
+            log.debug("step %d: +%d -%d agents (%d)", msg.step, stats.spawned, stats.parked, self.fleet.n)
+        return True
+
+    # ------------------------------------------------------------------ tick
+
+    def _tick(self) -> None:
+        t0 = time.perf_counter()
+        m0 = self.fleet.world.mujoco_s
+        self.fleet.tick()
+        self.time += self.fleet.dt
+        if self.fleet.tick_count % self.cfg.state_every == 0:
+            self._publish_state()
+        self._status.tick(time.perf_counter() - t0, self.fleet.world.mujoco_s - m0)
+
+    def all_counters(self) -> dict[str, int]:
+        c = dict(self.fleet.world.counters)
+        c.update(self.fleet.counters)
+        c.update(self.counters)
+        c.update(self.fleet.mode_counts())
+        return c
+
+    def _publish_state(self) -> None:
+        msg = PhysicsState(
+            run=self.keys.run, tick=self.fleet.tick_count, time=self.time, sumo_step=self._last_step,
+            agents=self.fleet.snapshot(), counters=self.all_counters(),
+        )
+        self._pub_state.put(encode(msg))
+        self.counters["states"] += 1
+
+    def _ack(self, step: int) -> None:
+        self._pub_ack.put(encode(StepAck(self.keys.run, step, self.fleet.tick_count)))
+        self.counters["acks"] += 1
+
+    def _at_rest(self) -> bool:
+        if self.fleet.n == 0:
+            return True
+        snap_speed = self.fleet.world.observe(self.fleet.slots).speed
+        return bool(np.all(np.abs(snap_speed) < REST_SPEED))
+
+    def _duration_done(self) -> bool:
+        d = self.run_cfg.duration_s
+        return bool(d) and self.time >= d - 1e-9
+
+    # ------------------------------------------------------------------ loops
+
+    def run(self, max_wall_s: float | None = None) -> int:
+        """Run until stopped (signal, ``stop()``), the run's duration, or ``max_wall_s``."""
+        t_end = None if max_wall_s is None else time.monotonic() + max_wall_s
+        next_tick = time.monotonic()
+        while not self._stop.is_set():
+            if t_end is not None and time.monotonic() > t_end:
+                break
+            self._handle_alive()
+            self._status.maybe_log(self.fleet, self.all_counters())
+            if not self.sumo_present and self.fleet.stopping and self.fleet.n and not self._at_rest():
+                # SUMO gone: keep simulating at the control rate until every agent is at rest
+                next_tick = self._pace(next_tick)
+                self._tick()
+                continue
+            if self.lockstep:
+                if not self._steps:
+                    self._wake.wait(IDLE_WAIT_S)
+                    self._wake.clear()
+                    continue
+                msg = self._decode(self._steps.popleft())
+                if msg is None or not self._apply(msg):
+                    continue
+                for _ in range(self.fleet.rates.ticks_per_step):
+                    self._tick()
+                self._ack(msg.step)
+                if self._duration_done():
+                    log.info("duration %.1f s reached", self.run_cfg.duration_s)
+                    break
+            else:
+                newest = None
+                while self._steps:
+                    m = self._decode(self._steps.popleft())
+                    if m is not None:
+                        newest = m
+                if newest is not None and self._apply(newest):
+                    self._ack(newest.step)
+                if self.fleet.ref is None and not self.fleet.n:
+                    self._wake.wait(IDLE_WAIT_S)
+                    self._wake.clear()
+                    next_tick = time.monotonic()
+                    continue
+                next_tick = self._pace(next_tick)
+                self._tick()
+                if self._duration_done():
+                    log.info("duration %.1f s reached", self.run_cfg.duration_s)
+                    break
+        self._status.maybe_log(self.fleet, self.all_counters(), force=True)
+        return 0
+
+    def _pace(self, next_tick: float) -> float:
+        """Sleep until the next control tick (wall clock); skip ahead when far behind."""
+        now = time.monotonic()
+        if next_tick > now:
+            # wake early for messages only in realtime; steps are applied at tick boundaries
+            self._stop.wait(next_tick - now)
+        elif now - next_tick > 0.25:
+            self._status.overruns += 1
+            next_tick = now
+        return next_tick + self.fleet.dt
+
+
+class _Status:
+    """Once-per-second INFO status line."""
+
+    def __init__(self) -> None:
+        self.t0 = time.monotonic()
+        self.ticks = 0
+        self.tick_s = 0.0
+        self.mujoco_s = 0.0
+        self.overruns = 0
+
+    def tick(self, dt: float, mj: float) -> None:
+        self.ticks += 1
+        self.tick_s += dt
+        self.mujoco_s += mj
+
+    def maybe_log(self, fleet: Fleet, counters: dict, force: bool = False, period: float = 1.0) -> None:
+        now = time.monotonic()
+        el = now - self.t0
+        if el < period and not force:
+            return
+        if self.ticks or force:
+            n = max(self.ticks, 1)
+            log.info(
+                "%.0f ticks/s | agents %d (phys %d kin %d ext %d stop %d) | tick %.2f ms (mujoco %.2f, "
+                "overhead %.2f) | step %d | collisions %d placements %d rejected %d%s",
+                self.ticks / max(el, 1e-9), fleet.n, counters.get("physical", 0), counters.get("kinematic", 0),
+                counters.get("external", 0), counters.get("stopping", 0), 1e3 * self.tick_s / n,
+                1e3 * self.mujoco_s / n, 1e3 * (self.tick_s - self.mujoco_s) / n, fleet.sumo_step,
+                counters.get("collisions", 0), counters.get("placements", 0), counters.get("rejected", 0),
+                f" | overruns {self.overruns}" if self.overruns else "",
+            )
+        self.t0 = now
+        self.ticks = 0
+        self.tick_s = 0.0
+        self.mujoco_s = 0.0
+
+
+def build_fleet(settings: PhysicsSettings) -> Fleet:
+    """World (pre-allocated pools) + fleet for a config."""
+    cfg = settings.physics
+    rates = check_rates(cfg.sumo_step_s, cfg.control_hz, cfg.timestep_s)
+    initial = {TYPE_NAMES[k]: v for k, v in cfg.initial_slots.items()}
+    awd = frozenset(TYPE_NAMES[k] for k in cfg.all_wheel_drive)
+    world = PhysicsWorld(
+        cfg.timestep_s, rates.substeps, shards=cfg.shards, threads=cfg.threads, initial=initial,
+        pool_chunk=cfg.pool_chunk, awd=awd,
+    )
+    return Fleet(world, settings, rates)
+
+
+def cli_main(args) -> int:
+    """``sumoco physics --config X.toml [--preset P] [--instance I] [--listen ...] [--timing ...]``."""
+    from sumoco.config import apply_cli, load_common
+    from sumoco.transport import open_session
+
+    if not args.config:
+        raise ConfigError("sumoco physics: --config is required")
+    common, data, base = load_common(args.config)
+    common = apply_cli(common, args)
+    settings = load_physics_config(data, base, str(args.config))
+    phys = settings.physics
+    if getattr(args, "preset", None):
+        if args.preset not in ("paper", "default", "kinematic"):
+            raise ConfigError(f"--preset: expected paper, default or kinematic, got {args.preset!r}")
+        phys = replace(phys, preset=args.preset, presets={})
+    if getattr(args, "instance", None):
+        phys = replace(phys, instance=args.instance)
+    settings = replace(settings, physics=phys)
+    keys = Keys(common.zenoh.root, common.run.id, phys.instance)
+    fleet = build_fleet(settings)
+    with open_session(common.zenoh) as session:
+        daemon = PhysicsDaemon(session, keys, fleet, settings, common.run).start()
+        old = {}
+
+        def _handler(signum, frame):
+            log.info("signal %d: shutting down", signum)
+            daemon.stop()
+
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            old[sig] = signal.signal(sig, _handler)
+        try:
+            return daemon.run()
+        finally:
+            daemon.close()
+            for sig, h in old.items():
+                signal.signal(sig, h)
+
+
+__all__ = ["PhysicsDaemon", "build_fleet", "cli_main"]

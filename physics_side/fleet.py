@@ -1,0 +1,396 @@
+"""``Fleet``: the agents of the current SUMO step, aligned arrays, one control tick at a time.
+
+One object between the transport (``daemon``) and the world (``world``):
+
+- ``apply_step(msg)``: sync the agent set with a ``StepMessage`` - spawn new agents at
+  their SUMO pose and speed, park agents that left, place agents that SUMO teleported
+  (JUMPED) or that diverged/flipped (each placement counted), rebuild the references.
+- ``tick()``: controllers for every agent at once (``control``), commands into the
+  world, ``substeps`` MuJoCo steps, then tracking errors and contacts.
+- ``snapshot()``: the ``PhysicsAgents`` columns for ``PhysicsState``.
+- ``begin_stop()``: SUMO is gone: every agent brakes to rest along its last path.
+
+Tracking errors (``err_lon``/``err_lat``) are measured for every mode against the same
+reference: the front bumper of the SUMO trajectory extrapolated to the physics time
+(``Reference.at``), so presets are comparable.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from physics_side import control as C
+from physics_side import models as M
+from physics_side.config import PhysicsSettings, Rates
+from physics_side.reference import Reference, tracking_error
+from physics_side.world import PhysicsWorld
+from protocol.frames import sumo_angle_to_yaw, wrap_pi, yaw_to_sumo_angle
+from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsAgents, StepMessage
+
+log = logging.getLogger(__name__)
+
+P_PAPER, P_DEFAULT, P_KINEMATIC = 0, 1, 2
+_PRESET_CODE = {"paper": P_PAPER, "default": P_DEFAULT, "kinematic": P_KINEMATIC}
+_TYPE_NAME = {
+    AgentClass.PASSENGER: "passenger", AgentClass.TAXI: "taxi", AgentClass.BUS: "bus",
+    AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian", AgentClass.OTHER: "other",
+}
+A_LAT_MAX = 7.5  # [m/s^2] lateral acceleration the steering limit allows (0.75 g, tyre mu = 1)
+PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
+PED_YAW_KD = 15.0  # [N*m*s/rad]
+
+
+@dataclass
+class StepStats:
+    """What ``apply_step`` did."""
+
+    spawned: int = 0
+    parked: int = 0
+    jumped: int = 0
+    diverged: int = 0
+    flipped: int = 0
+    skipped: int = 0
+
+
+class Fleet:
+    """Agents of the newest SUMO step, aligned arrays (see module docstring)."""
+
+    def __init__(self, world: PhysicsWorld, settings: PhysicsSettings, rates: Rates):
+        self.world = world
+        self.cfg = settings.physics
+        self.ctl = settings.control
+        self.rates = rates
+        self.dt = rates.control_dt
+        self._warned_vclass: set[str] = set()
+        self.counters: dict[str, int] = {
+            "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
+            "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
+        }
+        self._empty()
+        self.sumo_step = -1
+        self.tick_count = 0
+        self.stopping = False
+
+    def _empty(self) -> None:
+        n = 0
+        self.ids: list[str] = []
+        self._index: dict[str, int] = {}
+        self.slots = np.zeros(n, np.int64)
+        self.wire_cls = np.zeros(n, np.uint8)
+        self.preset = np.zeros(n, np.int8)
+        self.mode = np.zeros(n, np.uint8)
+        self.kind = np.zeros(n, np.int8)
+        self.ref: Reference | None = None
+        self.tau = 0.0
+        self.state = C.ControlState.zeros(0)
+        self.s_act = np.zeros(0)
+        self.drive = np.zeros(0)
+        self.brake = np.zeros(0)
+        self.aux = np.zeros(0)
+        self.err_lon = np.zeros(0)
+        self.err_lat = np.zeros(0)
+        self.stop_v0 = np.zeros(0)
+        self.stop_t = 0.0
+        self._gen = -1
+
+    @property
+    def n(self) -> int:
+        return len(self.ids)
+
+    # ------------------------------------------------------------------ step sync
+
+    def _model_class(self, cls: np.ndarray, vtype: np.ndarray, length: np.ndarray, vtypes) -> np.ndarray:
+        out = cls.astype(np.int64).copy()
+        other = np.flatnonzero(cls == AgentClass.OTHER)
+        for i in other:
+            vclass = vtypes[int(vtype[i])].vclass if int(vtype[i]) < len(vtypes) else "?"
+            c = M.model_class_for(vclass, float(length[i]))
+            if vclass not in self._warned_vclass:
+                self._warned_vclass.add(vclass)
+                log.warning("vClass %r has no model of its own: using the %s model", vclass, c.name.lower())
+            out[i] = int(c)
+        return out
+
+    def apply_step(self, msg: StepMessage, resync: bool = False) -> StepStats:
+        """Sync with a SUMO step (see module docstring). ``resync`` after a SUMO restart."""
+        w = self.world
+        a = msg.agents
+        st = StepStats()
+        rows = np.flatnonzero((a.flags & AgentFlag.INSIDE_VEHICLE) == 0)
+        st.skipped = a.n - len(rows)
+        self.counters["skipped_inside_vehicle"] += st.skipped
+        ids = [a.ids[i] for i in rows]
+        cls = a.cls[rows]
+        flags = a.flags[rows]
+        model_cls = self._model_class(cls, a.vtype[rows], a.length[rows], msg.vtypes)
+        type_names = [_TYPE_NAME[AgentClass(int(c))] for c in cls]
+        preset = np.fromiter((_PRESET_CODE[self.cfg.preset_for(t)] for t in type_names), np.int8, len(ids))
+        ego = (flags & AgentFlag.EGO) != 0
+
+        # leave: agents of the previous step missing now
+        new_set = set(ids)
+        gone = [aid for aid in self.ids if aid not in new_set]
+        if gone:
+            w.park(w.slot_of(gone))
+            st.parked = len(gone)
+        # previous position of each agent (for yaw rate and controller state)
+        prev = np.fromiter((self._index.get(aid, -1) for aid in ids), np.int64, len(ids))
+        x, y = a.x[rows], a.y[rows]
+        yaw = sumo_angle_to_yaw(a.angle[rows])
+        yaw_rate = np.zeros(len(ids))
+        if self.ref is not None and len(ids):
+            had = prev >= 0
+            dt_s = max(msg.time - self.ref.t_k, 1e-3)
+            yaw_rate[had] = wrap_pi(yaw[had] - self.ref.yaw[prev[had]]) / dt_s if dt_s < 1.0 else 0.0
+        ref = Reference.from_batch(msg.time, a, rows, yaw_rate)
+
+        slots = w.slot_of(ids)
+        new = np.flatnonzero(slots < 0)
+        if len(new):
+            pools = np.array([w.pool_for(AgentClass(int(model_cls[i])), float(a.length[rows[i]])) for i in new])
+            gen = w.generation
+            new_slots = w.allocate([ids[i] for i in new], pools, x[new], y[new])
+            if w.generation != gen:  # the model grew: every slot number changed
+                slots = w.slot_of(ids)
+            else:
+                slots[new] = new_slots
+            st.spawned = len(new)
+        self.ids = ids
+        self._index = {aid: i for i, aid in enumerate(ids)}
+        self.slots = slots
+        self.wire_cls = cls.astype(np.uint8)
+        self.kind = w.tables.kind[slots].astype(np.int8)
+        self.preset = preset
+        mode = np.where(preset == P_KINEMATIC, AgentMode.KINEMATIC, AgentMode.PHYSICAL)
+        self.mode = np.where(ego, AgentMode.EXTERNAL, mode).astype(np.uint8)
+        self.ref = ref
+        self.tau = 0.0
+        self.state = self.state.take(prev)
+        self.stopping = False
+        self._params()
+
+        # placements: new agents, teleported agents, diverged or flipped physical agents
+        obs = w.observe(slots)
+        held = ref.held()
+        e_lon, e_lat = tracking_error(obs.fx, obs.fy, held)
+        dist = np.hypot(e_lon, e_lat)
+        physical = self.mode == AgentMode.PHYSICAL
+        is_new = np.zeros(len(ids), bool)
+        is_new[new] = True
+        jumped = ((flags & AgentFlag.JUMPED) != 0) & ~is_new & physical
+        flip = math.radians(self.cfg.flip_deg)
+        flipped = ~is_new & ~jumped & physical & ((np.abs(obs.roll) > flip) | (np.abs(obs.pitch) > flip))
+        diverged = ~is_new & ~jumped & ~flipped & physical & (dist > self.cfg.divergence_m)
+        place = is_new | jumped | flipped | diverged
+        if place.any():
+            idx = np.flatnonzero(place)
+            self._place(idx, held, count=True)
+            self.state.integ[idx] = 0.0
+            e_lon[idx] = 0.0
+        st.jumped, st.diverged, st.flipped = int(jumped.sum()), int(diverged.sum()), int(flipped.sum())
+        self.counters["placements_spawn"] += len(new)
+        self.counters["placements_jump"] += st.jumped
+        self.counters["placements_divergence"] += st.diverged
+        self.counters["placements_flip"] += st.flipped
+        if st.diverged or st.flipped:
+            log.info("step %d: placed %d diverged and %d flipped agents", msg.step, st.diverged, st.flipped)
+        # along-path position of each bumper on the new path (guess for the projection)
+        self.s_act = e_lon.copy()
+        n = len(ids)
+        self.drive = np.zeros(n)
+        self.brake = np.zeros(n)
+        self.aux = np.zeros(n)
+        self.err_lon = np.where(place, 0.0, e_lon)
+        self.err_lat = np.where(place, 0.0, e_lat)
+        self.sumo_step = msg.step
+        self.counters["steps"] += 1
+        if resync:
+            self.counters["resyncs"] += 1
+        return st
+
+    def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True) -> None:
+        """Place agents ``idx`` at reference point ``at`` (full-length arrays)."""
+        self.world.place(
+            self.slots[idx], at.x[idx], at.y[idx], at.yaw[idx], at.speed[idx], at.curvature[idx],
+            steady_turn=steady_turn, count=count,
+        )
+
+    def _params(self) -> None:
+        t = self.world.tables
+        s = self.slots
+        ped = self.kind == M.KIND_PED
+        wb = np.where(ped, 1.0, t.wheelbase[s])
+        self.params = C.VehicleParams(
+            wheelbase=wb, d_bumper=np.where(ped, 1.0, t.front[s] - t.rear_axle[s]),
+            rear_axle=t.rear_axle[s], front_offset=t.front[s], m_eff=t.m_eff[s],
+            r_wheel=np.where(ped, 1.0, t.r_wheel[s]), max_steer=t.max_steer[s],
+            max_drive=t.max_drive[s], max_brake=t.max_brake[s],
+        )
+        self.mass = t.mass[s]
+        self.stab_max = t.stab_max[s]
+        self._gen = self.world.generation
+
+    # ------------------------------------------------------------------ control tick
+
+    def begin_stop(self) -> None:
+        """SUMO side gone: every agent brakes to rest (mode STOPPING) along its last path."""
+        if self.stopping or self.n == 0:
+            self.stopping = True
+            return
+        obs = self.world.observe(self.slots)
+        self.stop_v0 = np.maximum(obs.speed, 0.0)
+        self.stop_t = 0.0
+        self.mode = np.full(self.n, AgentMode.STOPPING, np.uint8)
+        self.stopping = True
+
+    def tick(self) -> None:
+        """One control tick: controllers -> commands -> MuJoCo substeps -> errors, contacts."""
+        w = self.world
+        n = self.n
+        if n == 0 or self.ref is None:
+            w.step()
+            self.tick_count += 1
+            return
+        if self._gen != w.generation:
+            self.slots = w.slot_of(self.ids)
+            self._params()
+        obs = w.observe(self.slots)
+        ref = self.ref
+        tau = min(self.tau, self.cfg.max_extrapolation_s)
+        p = self.params
+        veh = self.kind != M.KIND_PED
+        ped = ~veh
+        kin = (self.mode == AgentMode.KINEMATIC) | (self.mode == AgentMode.EXTERNAL)
+        steer = np.zeros(n)
+        drive = np.zeros(n)
+        brake = np.zeros(n)
+        aux = np.zeros(n)
+        stop_speed = None
+        stopping = None
+        if self.stopping:
+            stopping = np.ones(n, bool)
+            stop_speed = np.maximum(self.stop_v0 - self.cfg.stop_decel * self.stop_t, 0.0)
+            kin = np.zeros(n, bool)
+        vobs = C.VehicleObs(obs.fx, obs.fy, obs.cx, obs.cy, obs.yaw, obs.speed, obs.yaw_rate, obs.fvx, obs.fvy)
+        use_default = veh & ~kin & ((self.preset == P_DEFAULT) | self.stopping)
+        use_paper = veh & ~kin & (self.preset == P_PAPER) & (not self.stopping)
+        if use_default.any():
+            cmd = C.control_default(
+                vobs, p, ref, tau, self.dt, self.ctl.default, self.state, stopping, self.cfg.stop_decel,
+                stop_speed, s_guess=self.s_act,
+            )
+            steer = np.where(use_default, cmd.steer, steer)
+            drive = np.where(use_default, cmd.drive, drive)
+            brake = np.where(use_default, cmd.brake, brake)
+            aux = np.where(use_default, cmd.aux, aux)
+        if use_paper.any():
+            cmd = C.control_paper(vobs, p, ref, self.ctl.paper)
+            steer = np.where(use_paper, cmd.steer, steer)
+            drive = np.where(use_paper, cmd.drive, drive)
+            brake = np.where(use_paper, cmd.brake, brake)
+            aux = np.where(use_paper, cmd.aux, aux)
+        if kin.any():
+            idx = np.flatnonzero(kin)
+            r = ref.at(tau)
+            self._place(idx, r, count=False, steady_turn=False)
+            steer[idx] = np.arctan(p.wheelbase[idx] * r.curvature[idx])
+        # vehicle property (as the paper's Unity car controller's speed-dependent steering
+        # limit): never steer beyond the friction circle at the current speed
+        lim = np.minimum(p.max_steer, np.arctan(p.wheelbase * A_LAT_MAX / np.maximum(obs.speed, 0.1) ** 2))
+        steer = np.clip(steer, -lim, lim)
+        vi = np.flatnonzero(veh)
+        if len(vi):
+            stab = C.roll_stabiliser(
+                obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], obs.yaw_rate[vi],
+                self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
+            )
+            w.command_vehicles(self.slots[vi], steer[vi], drive[vi], brake[vi], stab)
+        pi = np.flatnonzero(ped & ~kin)
+        if len(pi):
+            drive[pi] = self._pedestrians(pi, obs, tau, stopping, stop_speed)
+        w.step()
+        self.tick_count += 1
+        self.tau += self.dt
+        if self.stopping:
+            self.stop_t += self.dt
+        # tracking error at the end of the tick, against the extrapolated reference
+        obs2 = w.observe(self.slots)
+        r2 = ref.at(min(self.tau, self.cfg.max_extrapolation_s))
+        s2, lat2, _ = ref.project(obs2.fx, obs2.fy, self.s_act + np.maximum(obs.speed, 0.0) * self.dt)
+        self.s_act = s2
+        self.err_lon = s2 - r2.s
+        self.err_lat = lat2
+        self.drive = drive
+        self.brake = brake
+        self.aux = aux
+        flip = math.radians(self.cfg.flip_deg)
+        upright = (np.abs(obs2.roll) < flip) & (np.abs(obs2.pitch) < flip)
+        w.contacts(self.slots, upright)
+        self._last_obs = obs2
+
+    def _pedestrians(self, pi: np.ndarray, obs, tau: float, stopping, stop_speed) -> np.ndarray:
+        """Planar force control of pedestrians ``pi``; returns the force magnitudes [N]."""
+        ref = self.ref
+        paper = (self.preset[pi] == P_PAPER) & (not self.stopping)
+        r = ref.at(tau)
+        h = ref.held()
+        tx = np.where(paper, h.x[pi], r.x[pi])
+        ty = np.where(paper, h.y[pi], r.y[pi])
+        tyaw = np.where(paper, h.yaw[pi], r.yaw[pi])
+        v = np.where(paper, h.speed[pi], r.speed[pi])
+        if stopping is not None:
+            v = stop_speed[pi]
+            tx, ty = obs.fx[pi], obs.fy[pi]
+        c, s = np.cos(tyaw), np.sin(tyaw)
+        acc = np.where(paper, 0.0, r.accel[pi])
+        # feed-forward: along-path acceleration plus centripetal v^2 * kappa
+        cen = np.where(paper, 0.0, v * v * r.curvature[pi])
+        ax = acc * c - cen * s
+        ay = acc * s + cen * c
+        om = np.where(paper, self.ctl.paper.ped_omega, self.ctl.default.ped_omega)
+        ze = np.where(paper, self.ctl.paper.ped_zeta, self.ctl.default.ped_zeta)
+        k, cd = om * om, 2.0 * ze * om
+        m = self.mass[pi]
+        fx = m * (ax + k * (tx - obs.fx[pi]) + cd * (v * c - obs.vx[pi]))
+        fy = m * (ay + k * (ty - obs.fy[pi]) + cd * (v * s - obs.vy[pi]))
+        fmax = self.params.max_drive[pi]
+        nrm = np.hypot(fx, fy)
+        sc = np.where(nrm > fmax, fmax / np.maximum(nrm, 1e-9), 1.0)
+        tz = np.clip(PED_YAW_KP * wrap_pi(tyaw - obs.yaw[pi]) - PED_YAW_KD * obs.yaw_rate[pi], -150.0, 150.0)
+        self.world.command_pedestrians(self.slots[pi], fx * sc, fy * sc, tz)
+        return nrm * sc
+
+    # ------------------------------------------------------------------ output
+
+    def snapshot(self) -> PhysicsAgents:
+        """Per-agent actual state for ``PhysicsState``."""
+        obs = getattr(self, "_last_obs", None)
+        if obs is None or len(obs.fx) != self.n or self._gen != self.world.generation:
+            if self._gen != self.world.generation:
+                self.slots = self.world.slot_of(self.ids)
+                self._params()
+            obs = self.world.observe(self.slots)
+        f32 = np.float32
+        return PhysicsAgents(
+            ids=list(self.ids), cls=self.wire_cls.astype(np.uint8), mode=self.mode.astype(np.uint8),
+            x=obs.fx.astype(np.float64), y=obs.fy.astype(np.float64), z=obs.z.astype(f32),
+            heading=yaw_to_sumo_angle(obs.yaw).astype(f32), roll=np.rad2deg(obs.roll).astype(f32),
+            pitch=np.rad2deg(obs.pitch).astype(f32), speed=obs.speed.astype(f32),
+            steer=np.rad2deg(obs.steer).astype(f32), drive=np.asarray(self.drive, f32),
+            brake=np.asarray(self.brake, f32), err_lon=np.asarray(self.err_lon, f32),
+            err_lat=np.asarray(self.err_lat, f32),
+        )
+
+    def mode_counts(self) -> dict[str, int]:
+        m = self.mode
+        return {
+            "physical": int((m == AgentMode.PHYSICAL).sum()), "kinematic": int((m == AgentMode.KINEMATIC).sum()),
+            "external": int((m == AgentMode.EXTERNAL).sum()), "stopping": int((m == AgentMode.STOPPING).sum()),
+        }
+
+
+__all__ = ["Fleet", "StepStats", "P_DEFAULT", "P_KINEMATIC", "P_PAPER"]

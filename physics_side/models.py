@@ -1,0 +1,470 @@
+"""MuJoCo models of every agent type, built with ``MjSpec``, and the pooled world spec.
+
+Every agent is one kinematic tree rooted at a body named ``agent``:
+
+- **car-like** (passenger, taxi, bus): freejoint chassis, four sphere wheels; the front
+  wheels have a steer hinge (z) and a spin hinge (y) in one body, the rear wheels a spin
+  hinge. Steering: one position servo per front wheel, so the controller can set Ackermann
+  angles. Drive: one motor on a fixed tendon over the driven spin joints with
+  coefficients summing to 1, i.e. an open differential whose ``ctrl`` is the total wheel
+  torque [N*m]. Brakes: ``dof_frictionloss`` [N*m] of the spin joints, written every
+  control tick (Coulomb friction never pushes backwards, unlike reverse torque, which
+  flips cars: see FIELD-NOTES).
+- **bicycle**: freejoint frame+rider, a steered front wheel, a driven rear wheel, and a
+  *roll stabiliser*: a motor on a site transmission that applies a torque about the
+  frame's longitudinal axis. The controller drives it with a PD law towards the
+  steady-turn lean angle ``atan(v * yaw_rate / g)``, so the bicycle leans into curves like
+  a rider would and never falls over; it stands in for the rider's balancing.
+- **pedestrian**: a capsule on two world-aligned slide joints (x, y) and a yaw hinge,
+  moved by three motors with bounded force/torque; no wheels, no gravity load.
+
+Sizes: agents are sized from the message's length by *buckets* (one pool per bucket);
+the model's own length is the nearest bucket's, and the physics side reports the
+model's own front bumper. Wheels are spheres (one contact each, the cheapest collision
+pair) because the ground is a plane.
+
+Collision filter bits (contype / conaffinity):
+ground 1/0, wheels 0/1 (ground only), chassis and bicycle frames 2/3 (ground, chassis,
+pedestrians), pedestrians 4/2 (chassis only; SUMO lets pedestrians overlap each other).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, replace
+
+import mujoco
+import numpy as np
+
+from protocol.messages import AgentClass
+
+# Kinds of model layout, for the world's index tables.
+KIND_CAR = 0
+KIND_BIKE = 1
+KIND_PED = 2
+
+#: Agent types by name (config keys) -> AgentClass.
+TYPE_NAMES: dict[str, AgentClass] = {
+    "passenger": AgentClass.PASSENGER,
+    "taxi": AgentClass.TAXI,
+    "bus": AgentClass.BUS,
+    "bicycle": AgentClass.BICYCLE,
+    "pedestrian": AgentClass.PEDESTRIAN,
+}
+
+# Template spacing of the parking lot where unused slots sleep [m]. Far from any SUMO
+# network (whose coordinates are >= 0 after netconvert's offset) and in a grid so
+# parked agents never touch.
+PARK_ORIGIN = (-50_000.0, -50_000.0)
+PARK_SPACING = 25.0  # [m] > the longest bucket (18 m bus)
+PARK_ROW = 200  # slots per parking row
+
+GROUND_FRICTION = (1.0, 0.005, 0.0001)  # sliding, torsional, rolling
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """Physical parameters of one model bucket (all SI units)."""
+
+    name: str
+    """Pool name, e.g. ``passenger_5.0`` (unique per bucket)."""
+    kind: int
+    """KIND_CAR, KIND_BIKE or KIND_PED."""
+    cls: AgentClass
+    length: float
+    """Overall length [m]; the body origin is at its middle."""
+    width: float
+    """Overall width [m]."""
+    height: float
+    """Body height [m]."""
+    mass: float
+    """Chassis (plus rider) mass [kg], wheels excluded."""
+    com_height: float = 0.55
+    """Centre of mass above the ground [m]."""
+    wheelbase: float = 0.0
+    """Distance front to rear axle [m] (0 for pedestrians)."""
+    track: float = 0.0
+    """Distance between left and right wheel centres [m] (0 for single track)."""
+    wheel_radius: float = 0.3
+    """[m]."""
+    wheel_mass: float = 20.0
+    """Per wheel [kg]."""
+    clearance: float = 0.25
+    """Chassis box bottom above the ground [m]."""
+    max_steer_deg: float = 35.0
+    """Road-wheel steering limit [deg]."""
+    max_drive: float = 2500.0
+    """Total drive torque limit [N*m] (pedestrians: force [N])."""
+    max_brake: float = 5000.0
+    """Total brake torque limit [N*m]."""
+    awd: bool = False
+    """All-wheel drive (default rear-wheel drive)."""
+    steer_kp: float = 3000.0
+    """Steering servo stiffness [N*m/rad]."""
+    steer_kv: float = 150.0
+    """Steering servo damping [N*m*s/rad]."""
+    stab_max: float = 1500.0
+    """Bicycle roll stabiliser torque limit [N*m]."""
+    ped_max_force: float = 300.0
+    """Pedestrian planar force limit [N] (~0.4 g for 70 kg)."""
+    brake_front: float = 0.6
+    """Share of brake torque on the front axle."""
+
+    @property
+    def front_offset(self) -> float:
+        """Body origin -> front bumper along the heading [m]."""
+        return 0.5 * self.length
+
+    @property
+    def rear_axle(self) -> float:
+        """Body origin -> rear axle along the heading [m] (negative = behind)."""
+        return -0.5 * self.wheelbase
+
+    @property
+    def wheel_inertia(self) -> float:
+        """Spin inertia of one sphere wheel [kg*m^2]."""
+        return 0.4 * self.wheel_mass * self.wheel_radius**2
+
+    @property
+    def n_wheels(self) -> int:
+        return {KIND_CAR: 4, KIND_BIKE: 2, KIND_PED: 0}[self.kind]
+
+    @property
+    def total_mass(self) -> float:
+        return self.mass + self.n_wheels * self.wheel_mass
+
+    @property
+    def effective_mass(self) -> float:
+        """Mass seen by the drive: body plus wheel spin inertia / r^2 [kg]."""
+        if self.kind == KIND_PED:
+            return self.mass
+        return self.total_mass + self.n_wheels * self.wheel_inertia / self.wheel_radius**2
+
+
+def _car(cls: AgentClass, length: float, width: float, **kw) -> AgentSpec:
+    name = f"{cls.name.lower()}_{length:g}"
+    # Wheelbase ~0.6 of the length, front overhang = rear overhang (symmetric body).
+    return AgentSpec(
+        name=name, kind=KIND_CAR, cls=cls, length=length, width=width,
+        height=kw.pop("height", 1.5), mass=kw.pop("mass", 1300.0 * length * width / 9.0),
+        wheelbase=kw.pop("wheelbase", 0.6 * length), track=kw.pop("track", width - 0.25),
+        wheel_radius=kw.pop("wheel_radius", 0.32), **kw,
+    )
+
+
+def _bus(length: float) -> AgentSpec:
+    mass = 11_000.0 * length / 12.0
+    return _car(
+        AgentClass.BUS, length, 2.5, height=3.0, mass=mass, com_height=1.0,
+        wheelbase=0.5 * length, track=2.1, wheel_radius=0.5, wheel_mass=120.0,
+        clearance=0.35, max_steer_deg=40.0,
+        # ~2 m/s^2 of drive and ~9 m/s^2 of braking for the mass at 0.5 m radius.
+        max_drive=2.0 * mass * 0.5 * 1.3, max_brake=9.0 * mass * 0.5 * 1.2,
+        steer_kp=20_000.0, steer_kv=1_500.0,
+    )
+
+
+def _bike(length: float) -> AgentSpec:
+    return AgentSpec(
+        name=f"bicycle_{length:g}", kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length,
+        width=0.65, height=1.7, mass=85.0, com_height=1.0, wheelbase=0.62 * length,
+        wheel_radius=0.34, wheel_mass=2.0, clearance=0.3, max_steer_deg=35.0,
+        # COM 1 m high over a 1 m wheelbase: beyond ~4.9 m/s^2 a bicycle lifts a wheel,
+        # so drive (~3 m/s^2) and brakes (~4 m/s^2, half on each wheel) stay below that.
+        max_drive=100.0, max_brake=130.0, brake_front=0.5, steer_kp=300.0, steer_kv=15.0,
+        stab_max=1500.0,
+    )
+
+
+def _ped() -> AgentSpec:
+    return AgentSpec(
+        name="pedestrian_0.3", kind=KIND_PED, cls=AgentClass.PEDESTRIAN, length=0.3,
+        width=0.5, height=1.75, mass=70.0, com_height=0.95, wheel_radius=0.0,
+        wheel_mass=0.0, max_drive=300.0, max_brake=0.0, ped_max_force=300.0,
+    )
+
+
+#: Size buckets per agent class: the spec whose length is nearest the agent's is used.
+BUCKETS: dict[AgentClass, tuple[AgentSpec, ...]] = {
+    AgentClass.PASSENGER: tuple(
+        _car(AgentClass.PASSENGER, L, W) for L, W in ((4.0, 1.7), (4.5, 1.75), (5.0, 1.8), (5.5, 1.9))
+    ),
+    AgentClass.TAXI: tuple(_car(AgentClass.TAXI, L, 1.8) for L in (4.5, 5.0)),
+    AgentClass.BUS: tuple(_bus(L) for L in (10.0, 12.0, 15.0, 18.0)),
+    AgentClass.BICYCLE: tuple(_bike(L) for L in (1.6, 2.2)),
+    AgentClass.PEDESTRIAN: (_ped(),),
+}
+
+#: The bucket a type's pre-allocated slots go to (SUMO's default lengths).
+DEFAULT_BUCKET: dict[AgentClass, int] = {
+    AgentClass.PASSENGER: 2, AgentClass.TAXI: 1, AgentClass.BUS: 1,
+    AgentClass.BICYCLE: 0, AgentClass.PEDESTRIAN: 0,
+}
+
+#: Nearest model for SUMO vClasses without their own model (AgentClass.OTHER).
+OTHER_VCLASS_MODEL: dict[str, AgentClass] = {
+    "truck": AgentClass.BUS, "trailer": AgentClass.BUS, "coach": AgentClass.BUS,
+    "tram": AgentClass.BUS, "rail_urban": AgentClass.BUS, "rail": AgentClass.BUS,
+    "army": AgentClass.BUS, "delivery": AgentClass.PASSENGER, "emergency": AgentClass.PASSENGER,
+    "authority": AgentClass.PASSENGER, "vip": AgentClass.PASSENGER, "hov": AgentClass.PASSENGER,
+    "custom1": AgentClass.PASSENGER, "custom2": AgentClass.PASSENGER,
+    "motorcycle": AgentClass.BICYCLE, "moped": AgentClass.BICYCLE, "scooter": AgentClass.BICYCLE,
+    "e_scooter": AgentClass.BICYCLE, "wheelchair": AgentClass.PEDESTRIAN,
+}
+
+
+def model_class_for(vclass: str, length: float) -> AgentClass:
+    """Nearest modelled class for an OTHER vClass: by name, else by length."""
+    c = OTHER_VCLASS_MODEL.get(vclass)
+    if c is not None:
+        return c
+    if length >= 7.5:
+        return AgentClass.BUS
+    if length <= 2.5:
+        return AgentClass.BICYCLE
+    return AgentClass.PASSENGER
+
+
+def bucket_index(cls: AgentClass, length: np.ndarray) -> np.ndarray:
+    """Nearest bucket (by length) of class ``cls`` for each length [m] (vectorised)."""
+    lens = np.array([s.length for s in BUCKETS[cls]])
+    return np.abs(np.asarray(length, float)[:, None] - lens[None, :]).argmin(axis=1)
+
+
+# --------------------------------------------------------------------------- templates
+
+
+def _box_inertia(m: float, a: float, b: float, c: float) -> list[float]:
+    return [m * (b * b + c * c) / 12.0, m * (a * a + c * c) / 12.0, m * (a * a + b * b) / 12.0]
+
+
+def _wheel(parent, name: str, pos, spec: AgentSpec, steer: bool):
+    w = parent.add_body(name=f"w{name}", pos=list(pos))
+    if steer:
+        lim = math.radians(spec.max_steer_deg)
+        w.add_joint(
+            name=f"steer_{name}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1],
+            range=[-lim, lim], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+            armature=0.05 * spec.wheel_mass, damping=0.0,
+        )
+    w.add_joint(name=f"spin_{name}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0])
+    w.add_geom(
+        name=f"g{name}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[spec.wheel_radius, 0, 0],
+        mass=spec.wheel_mass, contype=0, conaffinity=1, condim=3,
+        friction=list(GROUND_FRICTION), rgba=[0.1, 0.1, 0.1, 1],
+    )
+
+
+def _chassis(b, spec: AgentSpec) -> None:
+    r = spec.wheel_radius
+    h = spec.height - spec.clearance
+    b.add_geom(
+        name="chassis", type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[spec.length / 2, spec.width / 2, h / 2],
+        pos=[0, 0, spec.clearance + h / 2 - r], density=0.0, contype=2, conaffinity=3,
+        condim=3, rgba=[0.6, 0.6, 0.7, 1],
+    )
+    # Explicit inertia: the COM height matters for load transfer and roll-over, and a
+    # uniform box would put it too high.
+    b.explicitinertial = True
+    b.mass = spec.mass
+    b.ipos = [0.0, 0.0, spec.com_height - r]
+    b.inertia = _box_inertia(spec.mass, spec.length, spec.width, h)
+
+
+def car_template(spec: AgentSpec) -> mujoco.MjSpec:
+    """Four-wheel Ackermann vehicle; body origin at the footprint centre, axle height."""
+    s = mujoco.MjSpec()
+    s.compiler.degree = False
+    r = spec.wheel_radius
+    b = s.worldbody.add_body(name="agent", pos=[0, 0, r])
+    b.add_freejoint(name="free")
+    _chassis(b, spec)
+    xf, xr, y = spec.wheelbase / 2, -spec.wheelbase / 2, spec.track / 2
+    _wheel(b, "fl", (xf, y, 0), spec, True)
+    _wheel(b, "fr", (xf, -y, 0), spec, True)
+    _wheel(b, "rl", (xr, y, 0), spec, False)
+    _wheel(b, "rr", (xr, -y, 0), spec, False)
+    for w in ("fl", "fr"):
+        a = s.add_actuator(name=f"steer_{w}", target=f"steer_{w}", trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        a.set_to_position(kp=spec.steer_kp, kv=spec.steer_kv)
+    t = s.add_tendon(name="drive")
+    driven = ("fl", "fr", "rl", "rr") if spec.awd else ("rl", "rr")
+    for w in driven:
+        t.wrap_joint(f"spin_{w}", 1.0 / len(driven))
+    a = s.add_actuator(name="drive", target="drive", trntype=mujoco.mjtTrn.mjTRN_TENDON)
+    a.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+    a.ctrlrange = [-spec.max_drive, spec.max_drive]
+    return s
+
+
+def bike_template(spec: AgentSpec) -> mujoco.MjSpec:
+    """Single-track vehicle with a roll stabiliser (see module docstring)."""
+    s = mujoco.MjSpec()
+    s.compiler.degree = False
+    r = spec.wheel_radius
+    b = s.worldbody.add_body(name="agent", pos=[0, 0, r])
+    b.add_freejoint(name="free")
+    _chassis(b, spec)
+    b.add_site(name="stab", pos=[0, 0, 0])
+    _wheel(b, "f", (spec.wheelbase / 2, 0, 0), spec, True)
+    _wheel(b, "r", (-spec.wheelbase / 2, 0, 0), spec, False)
+    a = s.add_actuator(name="steer", target="steer_f", trntype=mujoco.mjtTrn.mjTRN_JOINT)
+    a.set_to_position(kp=spec.steer_kp, kv=spec.steer_kv)
+    a = s.add_actuator(name="drive", target="spin_r", trntype=mujoco.mjtTrn.mjTRN_JOINT)
+    a.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+    a.ctrlrange = [-spec.max_drive, spec.max_drive]
+    a = s.add_actuator(name="stab", target="stab", trntype=mujoco.mjtTrn.mjTRN_SITE)
+    a.gear = [0, 0, 0, 1, 0, 0]  # torque about the frame's x (forward) axis
+    a.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+    a.ctrlrange = [-spec.stab_max, spec.stab_max]
+    return s
+
+
+def ped_template(spec: AgentSpec) -> mujoco.MjSpec:
+    """Planar pedestrian: slide x, slide y (world axes), yaw hinge, bounded motors."""
+    s = mujoco.MjSpec()
+    s.compiler.degree = False
+    b = s.worldbody.add_body(name="agent", pos=[0, 0, 0])
+    b.add_joint(name="px", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1, 0, 0])
+    b.add_joint(name="py", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 1, 0])
+    b.add_joint(name="yaw", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], damping=2.0, armature=1.0)
+    rad = 0.5 * spec.width
+    b.add_geom(
+        name="chassis", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[rad, 0, 0],
+        fromto=[0, 0, rad, 0, 0, spec.height - rad], mass=spec.mass, contype=4, conaffinity=2,
+        condim=3, rgba=[0.8, 0.5, 0.3, 1],
+    )
+    for name, j, lim in (("fx", "px", spec.ped_max_force), ("fy", "py", spec.ped_max_force), ("tz", "yaw", 150.0)):
+        a = s.add_actuator(name=name, target=j, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        a.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        a.ctrlrange = [-lim, lim]
+    return s
+
+
+def template(spec: AgentSpec) -> mujoco.MjSpec:
+    return {KIND_CAR: car_template, KIND_BIKE: bike_template, KIND_PED: ped_template}[spec.kind](spec)
+
+
+def _set_options(s: mujoco.MjSpec, timestep: float) -> None:
+    s.compiler.degree = False  # every angle in these specs is in radians
+    s.option.timestep = timestep
+    # implicitfast at 5 ms is stable at the friction limit (FIELD-NOTES); 20 ms rolled cars.
+    s.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    s.option.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+
+
+def _ground(s: mujoco.MjSpec) -> None:
+    s.worldbody.add_geom(
+        name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], contype=1, conaffinity=0,
+        friction=list(GROUND_FRICTION),
+    )
+    # One acceleration-stage sensor makes MuJoCo compute cfrc_ext (per-body contact
+    # forces) in one O(ncon) pass; the world reads it to count agent-agent contacts.
+    s.worldbody.add_site(name="probe")
+    s.add_sensor(
+        name="probe", type=mujoco.mjtSensor.mjSENS_FRAMELINACC,
+        objtype=mujoco.mjtObj.mjOBJ_SITE, objname="probe",
+    )
+
+
+def park_position(pool_index: int, slot: int) -> tuple[float, float]:
+    """Parking spot of slot ``slot`` of pool ``pool_index`` (stable when pools grow)."""
+    row = pool_index * 1000 + slot // PARK_ROW
+    return (PARK_ORIGIN[0] + (slot % PARK_ROW) * PARK_SPACING, PARK_ORIGIN[1] + row * PARK_SPACING)
+
+
+@dataclass(frozen=True)
+class Pool:
+    """One bucket's slots in every shard's model."""
+
+    index: int
+    """Stable pool number (parking row block)."""
+    spec: AgentSpec
+    capacity: int
+    """Slots per shard."""
+
+
+def build_world_spec(pools: list[Pool], timestep: float) -> mujoco.MjSpec:
+    """The world spec: ground plus ``capacity`` parked, initially sleeping copies per pool.
+
+    Slot ``i`` of pool ``p`` is the subtree with prefix ``f"{p.spec.name}#{i}/"``.
+    """
+    s = mujoco.MjSpec()
+    s.copy_during_attach = True
+    _set_options(s, timestep)
+    _ground(s)
+    for p in pools:
+        if p.capacity == 0:
+            continue
+        t = template(p.spec)
+        root = t.body("agent")
+        # Parked slots start asleep: no cost until spawned (the world wakes them by
+        # switching their tree's sleep policy to "never").
+        root.sleep = mujoco.mjtSleepPolicy.mjSLEEP_INIT
+        for i in range(p.capacity):
+            x, y = park_position(p.index, i)
+            f = s.worldbody.add_frame(pos=[x, y, 0.0])
+            f.attach_body(root, slot_prefix(p.spec.name, i))
+    return s
+
+
+def slot_prefix(pool_name: str, i: int) -> str:
+    return f"{pool_name}#{i}/"
+
+
+# --------------------------------------------------------------------------- rest pose
+
+
+@dataclass(frozen=True)
+class RestPose:
+    """Settled pose of a template on flat ground (spawning there avoids a transient)."""
+
+    z: float
+    """Body origin height [m]."""
+    pitch: float
+    """[rad]."""
+
+
+@functools.lru_cache(maxsize=None)
+def rest_pose(spec: AgentSpec, timestep: float = 0.005) -> RestPose:
+    """Settle one agent on the ground for 1 s and record its body height and pitch."""
+    if spec.kind == KIND_PED:
+        return RestPose(0.0, 0.0)
+    s = mujoco.MjSpec()
+    s.copy_during_attach = True
+    _set_options(s, timestep)
+    s.option.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+    _ground(s)
+    f = s.worldbody.add_frame(pos=[0, 0, 0])
+    f.attach_body(template(spec).body("agent"), "a/")
+    m = s.compile()
+    d = mujoco.MjData(m)
+    # Hold the wheels with the brakes so the settle does not roll.
+    m.dof_frictionloss[6:] = 50.0
+    for _ in range(int(1.0 / timestep)):
+        if spec.kind == KIND_BIKE:
+            # keep the bike upright while it settles
+            q = d.qpos[3:7]
+            roll = math.atan2(2 * (q[0] * q[1] + q[2] * q[3]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
+            d.ctrl[m.actuator("a/stab").id] = -2000.0 * roll - 200.0 * d.qvel[3]
+        mujoco.mj_step(m, d)
+    q = d.qpos[3:7]
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (q[0] * q[2] - q[3] * q[1]))))
+    return RestPose(float(d.qpos[2]), float(pitch))
+
+
+def spec_for(cls: AgentClass, bucket: int) -> AgentSpec:
+    return BUCKETS[cls][bucket]
+
+
+def with_awd(spec: AgentSpec, awd: bool) -> AgentSpec:
+    return spec if spec.awd == awd else replace(spec, awd=awd, name=spec.name + ("_awd" if awd else ""))
+
+
+__all__ = [
+    "AgentSpec", "BUCKETS", "DEFAULT_BUCKET", "KIND_BIKE", "KIND_CAR", "KIND_PED", "Pool",
+    "RestPose", "TYPE_NAMES", "bucket_index", "build_world_spec", "model_class_for",
+    "park_position", "rest_pose", "slot_prefix", "spec_for", "template", "with_awd",
+]

@@ -1,0 +1,691 @@
+"""``PhysicsWorld``: the one owner of MuJoCo indices.
+
+The world is ``shards`` MuJoCo simulations of one model (``mujoco.batch.Batch``, stepped
+on a thread pool; persistent because sleeping needs it). The model holds *pools* of
+pre-allocated slots, one pool per size bucket (``models.BUCKETS``). Unused slots sit
+asleep in a parking lot far from the network; spawning wakes a slot and places it,
+parking puts it back. A pool that runs out grows by at least ``pool_chunk`` slots per
+shard with one recompile (off the hot path); live agents keep their exact state.
+
+Nothing outside this module indexes ``qpos``/``qvel``/``ctrl``: callers get named,
+vectorised reads (``observe``) and writes (``command_vehicles``, ``command_pedestrians``,
+``place``, ``park``) over arrays of *slot numbers*. Slot numbers change when the model
+grows; ``generation`` increments then, and ``slot_of`` maps agent ids to current slots.
+
+Agents in different shards do not touch each other (they are in different
+simulations); a new agent goes to the shard of the nearest live agent within
+``NEIGHBOUR_M`` (vehicles that follow each other share a shard) unless that shard is
+over its share, else to the least-loaded shard.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import mujoco
+import mujoco.batch
+import numpy as np
+
+from physics_side import models as M
+from protocol.frames import wrap_pi
+from protocol.messages import AgentClass
+
+log = logging.getLogger(__name__)
+
+SLEEP_NEVER = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
+SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
+NEIGHBOUR_M = 40.0  # [m] a new agent joins the shard of a live agent this close
+CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Measured state of a set of slots (arrays of length n), SUMO/MuJoCo world frame."""
+
+    cx: np.ndarray
+    """Body origin x [m]."""
+    cy: np.ndarray
+    """Body origin y [m]."""
+    z: np.ndarray
+    """Body origin height [m]."""
+    fx: np.ndarray
+    """Front bumper x [m]."""
+    fy: np.ndarray
+    """Front bumper y [m]."""
+    yaw: np.ndarray
+    """Heading [rad ccw from east]."""
+    roll: np.ndarray
+    """[rad], + = right side down."""
+    pitch: np.ndarray
+    """[rad], + = nose up."""
+    speed: np.ndarray
+    """Forward speed [m/s]."""
+    vx: np.ndarray
+    """World velocity x [m/s]."""
+    vy: np.ndarray
+    """World velocity y [m/s]."""
+    yaw_rate: np.ndarray
+    """[rad/s]."""
+    roll_rate: np.ndarray
+    """[rad/s]."""
+    steer: np.ndarray
+    """Road-wheel steering angle [rad, + left] (mean of the steered wheels)."""
+    fvx: np.ndarray
+    """Front-bumper velocity x [m/s] (body velocity plus yaw rate x lever)."""
+    fvy: np.ndarray
+    """Front-bumper velocity y [m/s]."""
+
+
+@dataclass
+class _Tables:
+    """Per-slot index tables of one compiled layout (length G = total slots)."""
+
+    pool: np.ndarray
+    shard: np.ndarray
+    index: np.ndarray
+    kind: np.ndarray
+    cls: np.ndarray
+    qpos: np.ndarray  # flat state index of the slot's first qpos
+    nq: np.ndarray
+    qvel: np.ndarray  # flat state index of the first dof
+    nv: np.ndarray
+    ctrl: np.ndarray  # flat state index of the first actuator
+    nu: np.ndarray
+    qpos0: np.ndarray  # model index of the first qpos (for qpos0)
+    dof: np.ndarray  # model dof address of the first dof
+    steer_q: np.ndarray  # (G, 2) flat qpos index of left/right steer (bike: same twice; ped: -1)
+    steer_u: np.ndarray  # (G, 2) flat ctrl index
+    drive_u: np.ndarray  # flat ctrl index (ped: fx)
+    aux_u: np.ndarray  # (G, 2) bike: stab; ped: fy, tz
+    spin_fl: np.ndarray  # (G, 4) flat index into expanded dof_frictionloss
+    spin_v: np.ndarray  # (G, 4) flat qvel index of spin dofs
+    brake_share: np.ndarray  # (G, 4) share of total brake torque per column
+    tree: np.ndarray  # flat index into expanded tree_sleep_policy
+    body: np.ndarray  # flat index of the root body's cfrc_ext force (first of 3)
+    park_x: np.ndarray
+    park_y: np.ndarray
+    # physical parameters
+    length: np.ndarray
+    front: np.ndarray
+    wheelbase: np.ndarray
+    rear_axle: np.ndarray
+    track: np.ndarray
+    r_wheel: np.ndarray
+    m_eff: np.ndarray
+    mass: np.ndarray
+    max_steer: np.ndarray
+    max_drive: np.ndarray
+    max_brake: np.ndarray
+    stab_max: np.ndarray
+    rest_z: np.ndarray
+    rest_pitch: np.ndarray
+
+
+class PhysicsWorld:
+    """Pooled multi-agent MuJoCo world (see module docstring)."""
+
+    def __init__(
+        self, timestep: float = 0.005, substeps: int = 4, shards: int = 1, threads: int = 0,
+        initial: dict[AgentClass, int] | None = None, pool_chunk: int = 32,
+        awd: frozenset[AgentClass] = frozenset(),
+    ):
+        self.timestep = float(timestep)
+        self.substeps = int(substeps)
+        self.shards = int(shards)
+        self.threads = int(threads) or self.shards
+        self.pool_chunk = int(pool_chunk)
+        self.awd = frozenset(awd)
+        self._pools: list[M.Pool] = []
+        self._pool_key: dict[tuple[int, int], int] = {}
+        initial = initial or {}
+        for cls, n in initial.items():
+            if n > 0:
+                self._add_pool(AgentClass(cls), M.DEFAULT_BUCKET[AgentClass(cls)], n)
+        self.generation = 0
+        self.agent_slot: dict[str, int] = {}
+        self.slot_agent: list[str | None] = []
+        self.counters = {"placements": 0, "spawned": 0, "parked": 0, "collisions": 0, "pool_grows": 0}
+        self.mujoco_s = 0.0  # [s] wall time spent in MuJoCo steps (cumulative)
+        self.build_s = 0.0  # [s] wall time spent compiling (cumulative)
+        self.time = 0.0  # [s] simulated time
+        self._batch: mujoco.batch.Batch | None = None
+        self._compile(previous=None)
+
+    # ------------------------------------------------------------------ pools / compile
+
+    def _spec_of(self, cls: AgentClass, bucket: int) -> M.AgentSpec:
+        return M.with_awd(M.spec_for(cls, bucket), cls in self.awd)
+
+    def _add_pool(self, cls: AgentClass, bucket: int, capacity: int) -> int:
+        key = (int(cls), int(bucket))
+        if key in self._pool_key:
+            p = self._pool_key[key]
+            old = self._pools[p]
+            self._pools[p] = M.Pool(old.index, old.spec, old.capacity + capacity)
+            return p
+        p = len(self._pools)
+        self._pools.append(M.Pool(p, self._spec_of(cls, bucket), capacity))
+        self._pool_key[key] = p
+        return p
+
+    @property
+    def capacity(self) -> int:
+        """Total slots over all pools and shards."""
+        return self.shards * sum(p.capacity for p in self._pools)
+
+    def _compile(self, previous: tuple | None) -> None:
+        t0 = time.perf_counter()
+        spec = M.build_world_spec(self._pools, self.timestep)
+        model = spec.compile()
+        batch = mujoco.batch.Batch(model, self.shards, nthread=min(self.threads, self.shards), persistent=True)
+        batch.reset()
+        self.model = model
+        self._batch = batch
+        self._state = batch.state.reshape(-1)  # (shards * nstate,) view: every state write goes here
+        base = batch.state.ctypes.data
+        item = batch.state.itemsize
+
+        def off(name: str) -> int:
+            return (batch.bind(name).ctypes.data - base) // item
+
+        self._off_qpos, self._off_qvel, self._off_ctrl = off("qpos"), off("qvel"), off("ctrl")
+        self._nstate = batch.nstate
+        self._fl = batch.expand("dof_frictionloss").reshape(-1)
+        self._policy = batch.expand("tree_sleep_policy").reshape(-1)
+        self._cfrc = batch.bind("cfrc_ext")
+        self._tables = self._build_tables(model)
+        G = len(self._tables.pool)
+        old_tables, old_state, old_fl, old_live, old_agents = previous or (None, None, None, None, None)
+        self.live = np.zeros(G, bool)
+        self.in_contact = np.zeros(G, bool)
+        self.slot_agent = [None] * G
+        self.agent_slot = {}
+        self._free: dict[tuple[int, int], list[int]] = {}
+        t = self._tables
+        for g in range(G - 1, -1, -1):  # popped from the end: lowest index first
+            self._free.setdefault((int(t.pool[g]), int(t.shard[g])), []).append(g)
+        if old_tables is not None:
+            self._restore(old_tables, old_state, old_fl, old_live, old_agents)
+        self.generation += 1
+        dt = time.perf_counter() - t0
+        self.build_s += dt
+        log.info(
+            "physics world: %d slots in %d pools x %d shards (nq=%d nv=%d) compiled in %.2f s",
+            G, len(self._pools), self.shards, model.nq, model.nv, dt,
+        )
+
+    def _build_tables(self, m: mujoco.MjModel) -> _Tables:
+        rows: dict[str, list] = {k: [] for k in _Tables.__dataclass_fields__}
+        S = self.shards
+        nst = self._nstate
+        nv, ntree, nbody = m.nv, m.ntree, m.nbody
+        for pool in self._pools:
+            spec = pool.spec
+            rest = M.rest_pose(spec, self.timestep)
+            if pool.capacity == 0:
+                continue
+            pre0 = M.slot_prefix(spec.name, 0)
+            b0 = m.body(pre0 + "agent").id
+            j0 = m.body_jntadr[b0]
+            q0, d0 = m.jnt_qposadr[j0], m.jnt_dofadr[j0]
+            tree0 = m.body_treeid[b0]
+            ndof = m.tree_dofnum[tree0]
+            act_names = {
+                M.KIND_CAR: ("steer_fl", "steer_fr", "drive"),
+                M.KIND_BIKE: ("steer", "drive", "stab"),
+                M.KIND_PED: ("fx", "fy", "tz"),
+            }[spec.kind]
+            a_first = m.actuator(pre0 + act_names[0]).id
+            rel_act = {n: m.actuator(pre0 + n).id - a_first for n in act_names}
+            nu_slot = len(act_names)
+            # joints relative to the slot's first qpos / dof
+            if spec.kind == M.KIND_CAR:
+                steer_j, spin_j = ("steer_fl", "steer_fr"), ("spin_fl", "spin_fr", "spin_rl", "spin_rr")
+                share = [spec.brake_front / 2] * 2 + [(1 - spec.brake_front) / 2] * 2
+            elif spec.kind == M.KIND_BIKE:
+                steer_j, spin_j = ("steer_f", "steer_f"), ("spin_f", "spin_f", "spin_r", "spin_r")
+                share = [spec.brake_front] * 2 + [1 - spec.brake_front] * 2
+            else:
+                steer_j, spin_j, share = (), (), [0.0] * 4
+            rel_sq = [m.jnt_qposadr[m.joint(pre0 + j).id] - q0 for j in steer_j]
+            rel_sd = [m.jnt_dofadr[m.joint(pre0 + j).id] - d0 for j in spin_j]
+            nq_slot = (m.jnt_qposadr[m.body_jntadr[b0] + 0] - q0)  # 0, placeholder
+            # qpos block length: the tree's joints are consecutive
+            jn = [j for j in range(m.njnt) if m.body_treeid[m.jnt_bodyid[j]] == tree0]
+            nq_slot = sum({0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])] for j in jn)
+            for i in range(pool.capacity):
+                pre = M.slot_prefix(spec.name, i)
+                b = m.body(pre + "agent").id if i else b0
+                j = m.body_jntadr[b]
+                q, d = int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])
+                a = m.actuator(pre + act_names[0]).id if i else a_first
+                tree = int(m.body_treeid[b])
+                px, py = M.park_position(pool.index, i)
+                for s in range(S):
+                    rows["pool"].append(pool.index)
+                    rows["shard"].append(s)
+                    rows["index"].append(i)
+                    rows["kind"].append(spec.kind)
+                    rows["cls"].append(int(spec.cls))
+                    rows["qpos"].append(s * nst + self._off_qpos + q)
+                    rows["nq"].append(nq_slot)
+                    rows["qvel"].append(s * nst + self._off_qvel + d)
+                    rows["nv"].append(ndof)
+                    rows["ctrl"].append(s * nst + self._off_ctrl + a)
+                    rows["nu"].append(nu_slot)
+                    rows["qpos0"].append(q)
+                    rows["dof"].append(d)
+                    qb = s * nst + self._off_qpos + q
+                    ub = s * nst + self._off_ctrl + a
+                    vb = s * nst + self._off_qvel + d
+                    if spec.kind == M.KIND_CAR:
+                        rows["steer_q"].append([qb + rel_sq[0], qb + rel_sq[1]])
+                        rows["steer_u"].append([ub + rel_act["steer_fl"], ub + rel_act["steer_fr"]])
+                        rows["drive_u"].append(ub + rel_act["drive"])
+                        rows["aux_u"].append([-1, -1])
+                    elif spec.kind == M.KIND_BIKE:
+                        rows["steer_q"].append([qb + rel_sq[0]] * 2)
+                        rows["steer_u"].append([ub + rel_act["steer"]] * 2)
+                        rows["drive_u"].append(ub + rel_act["drive"])
+                        rows["aux_u"].append([ub + rel_act["stab"], -1])
+                    else:
+                        rows["steer_q"].append([-1, -1])
+                        rows["steer_u"].append([-1, -1])
+                        rows["drive_u"].append(ub + rel_act["fx"])
+                        rows["aux_u"].append([ub + rel_act["fy"], ub + rel_act["tz"]])
+                    if rel_sd:
+                        rows["spin_fl"].append([s * nv + d + r for r in rel_sd])
+                        rows["spin_v"].append([vb + r for r in rel_sd])
+                    else:
+                        rows["spin_fl"].append([-1] * 4)
+                        rows["spin_v"].append([-1] * 4)
+                    rows["brake_share"].append(share)
+                    rows["tree"].append(s * ntree + tree)
+                    rows["body"].append((s * nbody + b) * 6 + 3)
+                    rows["park_x"].append(px)
+                    rows["park_y"].append(py)
+                    rows["length"].append(spec.length)
+                    rows["front"].append(spec.front_offset)
+                    rows["wheelbase"].append(spec.wheelbase)
+                    rows["rear_axle"].append(spec.rear_axle)
+                    rows["track"].append(spec.track)
+                    rows["r_wheel"].append(spec.wheel_radius)
+                    rows["m_eff"].append(spec.effective_mass)
+                    rows["mass"].append(spec.total_mass)
+                    rows["max_steer"].append(math.radians(spec.max_steer_deg))
+                    rows["max_drive"].append(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force)
+                    rows["max_brake"].append(spec.max_brake)
+                    rows["stab_max"].append(spec.stab_max)
+                    rows["rest_z"].append(rest.z)
+                    rows["rest_pitch"].append(rest.pitch)
+        ints = {"pool", "shard", "index", "kind", "cls", "qpos", "nq", "qvel", "nv", "ctrl", "nu", "qpos0", "dof",
+                "steer_q", "steer_u", "drive_u", "aux_u", "spin_fl", "spin_v", "tree", "body"}
+        out = {}
+        for k, v in rows.items():
+            if k in ints:
+                a = np.asarray(v, np.int64)
+                if k in ("steer_q", "steer_u", "aux_u") and a.size == 0:
+                    a = a.reshape(0, 2)
+                if k in ("spin_fl", "spin_v") and a.size == 0:
+                    a = a.reshape(0, 4)
+                out[k] = a
+            else:
+                a = np.asarray(v, np.float64)
+                if k == "brake_share" and a.size == 0:
+                    a = a.reshape(0, 4)
+                out[k] = a
+        return _Tables(**out)
+
+    def _restore(self, old: _Tables, state: np.ndarray, fl: np.ndarray, live: np.ndarray, agents: list) -> None:
+        """Copy live agents from the previous layout (same pool/shard/index) into this one."""
+        new = self._tables
+        key_new = {(int(p), int(s), int(i)): g for g, (p, s, i) in enumerate(zip(new.pool, new.shard, new.index))}
+        olds = np.flatnonzero(live)
+        news = np.array([key_new[(int(old.pool[g]), int(old.shard[g]), int(old.index[g]))] for g in olds], np.int64)
+        if len(olds) == 0:
+            return
+        for a_old, n_old, a_new in (("qpos", "nq", "qpos"), ("qvel", "nv", "qvel"), ("ctrl", "nu", "ctrl")):
+            src = _ranges(getattr(old, a_old)[olds], getattr(old, n_old)[olds])
+            dst = _ranges(getattr(new, a_new)[news], getattr(new, n_old)[news])
+            self._state[dst] = state[src]
+        ok = old.spin_fl[olds] >= 0
+        self._fl[new.spin_fl[news][ok]] = fl[old.spin_fl[olds][ok]]
+        self._policy[new.tree[news]] = SLEEP_NEVER
+        self.live[news] = True
+        for g_old, g_new in zip(olds, news):
+            aid = agents[g_old]
+            self.slot_agent[g_new] = aid
+            self.agent_slot[aid] = int(g_new)
+        for g in news:
+            lst = self._free[(int(new.pool[g]), int(new.shard[g]))]
+            lst.remove(int(g))
+
+    def _grow(self, needs: dict[int, int]) -> None:
+        """Grow pools (pool index -> extra slots per shard) with one recompile."""
+        for p, extra in needs.items():
+            old = self._pools[p]
+            self._pools[p] = M.Pool(old.index, old.spec, old.capacity + max(extra, self.pool_chunk))
+        prev = (self._tables, self._state.copy(), self._fl.copy(), self.live.copy(), list(self.slot_agent))
+        log.warning(
+            "physics world: pools exhausted (%s), recompiling with more slots",
+            ", ".join(f"{self._pools[p].spec.name} +{max(e, self.pool_chunk)}" for p, e in needs.items()),
+        )
+        self._compile(prev)
+        self.counters["pool_grows"] += 1
+
+    # ------------------------------------------------------------------ agent set
+
+    def pool_for(self, cls: AgentClass, length: float) -> int:
+        """Pool index for an agent of class ``cls`` (PASSENGER..PEDESTRIAN) and length [m]."""
+        b = int(M.bucket_index(cls, np.array([length]))[0])
+        key = (int(cls), b)
+        p = self._pool_key.get(key)
+        if p is None:
+            p = self._add_pool(cls, b, 0)
+        return p
+
+    def allocate(self, ids: list[str], pools: np.ndarray, near_x: np.ndarray, near_y: np.ndarray) -> np.ndarray:
+        """Take a slot for each new agent (growing pools if needed); returns slot numbers.
+
+        The slot is woken but not placed: call ``place`` next.
+        """
+        pools = np.asarray(pools, np.int64)
+        # how many per pool, and do the pools have room in some shard?
+        needs: dict[int, int] = {}
+        for p in np.unique(pools):
+            want = int((pools == p).sum())
+            have = sum(len(self._free.get((int(p), s), [])) for s in range(self.shards))
+            if self._pools[int(p)].capacity == 0 or have < want:
+                needs[int(p)] = -(-(want - have) // self.shards) + 1
+        if needs:
+            self._grow(needs)
+        t = self._tables
+        load = np.bincount(t.shard[self.live], minlength=self.shards).astype(np.float64)
+        live = np.flatnonzero(self.live)
+        obs = self.observe(live) if len(live) else None
+        out = np.empty(len(ids), np.int64)
+        for k, (aid, p) in enumerate(zip(ids, pools)):
+            shard = -1
+            share = (load.sum() + 1) / self.shards * 1.1 + 2
+            if obs is not None and len(live):
+                d2 = (obs.fx - near_x[k]) ** 2 + (obs.fy - near_y[k]) ** 2
+                j = int(np.argmin(d2))
+                if d2[j] < NEIGHBOUR_M**2:
+                    s = int(t.shard[live[j]])
+                    if load[s] < share and self._free.get((int(p), s)):
+                        shard = s
+            if shard < 0:
+                order = np.argsort(load, kind="stable")
+                shard = next(int(s) for s in order if self._free.get((int(p), int(s))))
+            g = self._free[(int(p), shard)].pop()
+            load[shard] += 1
+            out[k] = g
+            self.live[g] = True
+            self.slot_agent[g] = aid
+            self.agent_slot[aid] = g
+        self._policy[t.tree[out]] = SLEEP_NEVER
+        self.counters["spawned"] += len(ids)
+        return out
+
+    def park(self, slots: np.ndarray) -> None:
+        """Send slots back to the parking lot (zero velocity, brakes on) and let them sleep."""
+        slots = np.asarray(slots, np.int64)
+        if len(slots) == 0:
+            return
+        t = self._tables
+        q0 = self.model.qpos0
+        src = _ranges(t.qpos0[slots], t.nq[slots])
+        self._state[_ranges(t.qpos[slots], t.nq[slots])] = q0[src]
+        self._state[_ranges(t.qvel[slots], t.nv[slots])] = 0.0
+        self._state[_ranges(t.ctrl[slots], t.nu[slots])] = 0.0
+        fl = t.spin_fl[slots]
+        self._fl[fl[fl >= 0]] = 100.0
+        self._policy[t.tree[slots]] = SLEEP_ALLOWED
+        for g in slots:
+            aid = self.slot_agent[g]
+            if aid is not None:
+                self.agent_slot.pop(aid, None)
+            self.slot_agent[g] = None
+            self._free[(int(t.pool[g]), int(t.shard[g]))].append(int(g))
+        self.live[slots] = False
+        self.in_contact[slots] = False
+        self.counters["parked"] += len(slots)
+
+    def slot_of(self, ids: list[str]) -> np.ndarray:
+        """Current slot of each agent id, -1 when not in the world."""
+        get = self.agent_slot.get
+        return np.fromiter((get(a, -1) for a in ids), np.int64, len(ids))
+
+    # ------------------------------------------------------------------ reads
+
+    def params(self, slots: np.ndarray) -> _Tables:
+        """The per-slot tables (use attributes indexed by ``slots``)."""
+        return self._tables
+
+    def kind(self, slots: np.ndarray) -> np.ndarray:
+        return self._tables.kind[slots]
+
+    def observe(self, slots: np.ndarray) -> Observation:
+        """Vectorised state of ``slots`` (any mix of kinds)."""
+        slots = np.asarray(slots, np.int64)
+        t = self._tables
+        st = self._state
+        n = len(slots)
+        kind = t.kind[slots]
+        ped = kind == M.KIND_PED
+        veh = ~ped
+        cx = np.empty(n)
+        cy = np.empty(n)
+        z = np.zeros(n)
+        yaw = np.empty(n)
+        roll = np.zeros(n)
+        pitch = np.zeros(n)
+        vx = np.empty(n)
+        vy = np.empty(n)
+        wz = np.empty(n)
+        wx = np.zeros(n)
+        steer = np.zeros(n)
+        if veh.any():
+            sv = slots[veh]
+            q = st[t.qpos[sv][:, None] + np.arange(7)]
+            v = st[t.qvel[sv][:, None] + np.arange(6)]
+            qw, qx, qy, qz = q[:, 3], q[:, 4], q[:, 5], q[:, 6]
+            cx[veh], cy[veh], z[veh] = q[:, 0], q[:, 1], q[:, 2]
+            yaw[veh] = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+            roll[veh] = np.arctan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx * qx + qy * qy))
+            pitch[veh] = -np.arcsin(np.clip(2 * (qw * qy - qz * qx), -1, 1))
+            vx[veh], vy[veh] = v[:, 0], v[:, 1]
+            # freejoint angular velocity is in the body frame: world z = third row of R
+            r20 = 2 * (qx * qz - qw * qy)
+            r21 = 2 * (qy * qz + qw * qx)
+            r22 = 1 - 2 * (qx * qx + qy * qy)
+            wz[veh] = r20 * v[:, 3] + r21 * v[:, 4] + r22 * v[:, 5]
+            wx[veh] = v[:, 3]
+            sq = t.steer_q[sv]
+            steer[veh] = 0.5 * (st[sq[:, 0]] + st[sq[:, 1]])
+        if ped.any():
+            sp = slots[ped]
+            q = st[t.qpos[sp][:, None] + np.arange(3)]
+            v = st[t.qvel[sp][:, None] + np.arange(3)]
+            cx[ped] = t.park_x[sp] + q[:, 0]
+            cy[ped] = t.park_y[sp] + q[:, 1]
+            yaw[ped] = wrap_pi(q[:, 2])
+            vx[ped], vy[ped], wz[ped] = v[:, 0], v[:, 1], v[:, 2]
+        c, s = np.cos(yaw), np.sin(yaw)
+        front = t.front[slots]
+        return Observation(
+            cx=cx, cy=cy, z=z, fx=cx + front * c, fy=cy + front * s, yaw=yaw, roll=roll, pitch=pitch,
+            speed=vx * c + vy * s, vx=vx, vy=vy, yaw_rate=wz, roll_rate=wx, steer=steer,
+            fvx=vx - wz * front * s, fvy=vy + wz * front * c,
+        )
+
+    # ------------------------------------------------------------------ writes
+
+    def place(
+        self, slots: np.ndarray, fx: np.ndarray, fy: np.ndarray, yaw: np.ndarray, speed: np.ndarray,
+        curvature: np.ndarray | None = None, steady_turn: bool = True, count: bool = True,
+    ) -> None:
+        """Put agents with their *front bumper* at (fx, fy), moving along a path of heading
+        ``yaw`` [rad] and ``curvature`` [1/m] at ``speed`` [m/s], wheels rolling.
+
+        ``steady_turn``: the body takes the pose of a vehicle in a steady turn whose bumper
+        follows the path (yaw lags the path heading by asin(kappa * d), rear axle without
+        side slip, steering at the matching angle) - a spawn without a transient. Else the
+        body yaw is the path heading (the SUMO angle: kinematic/external agents), still
+        moving so that the bumper follows the path. Counted as placements unless ``count``
+        is False (kinematic and external agents are placed every tick, counted apart).
+        """
+        from physics_side.control import steady_state_delta
+
+        slots = np.asarray(slots, np.int64)
+        n = len(slots)
+        if n == 0:
+            return
+        t = self._tables
+        st = self._state
+        yaw = np.asarray(yaw, np.float64) * np.ones(n)
+        speed = np.asarray(speed, np.float64) * np.ones(n)
+        kappa = np.zeros(n) if curvature is None else np.asarray(curvature, np.float64) * np.ones(n)
+        kind = t.kind[slots]
+        ped = kind == M.KIND_PED
+        veh = ~ped
+        front = t.front[slots]
+        rear = t.rear_axle[slots]
+        d = np.where(veh, front - rear, 1.0)
+        omega = speed * kappa  # bumper on a circle of radius 1/kappa at speed v
+        if steady_turn:
+            beta = np.where(veh, np.arcsin(np.clip(kappa * d, -0.95, 0.95)), 0.0)
+            steer = np.where(veh, steady_state_delta(kappa, d, np.where(veh, t.wheelbase[slots], 1.0)), 0.0)
+        else:
+            beta = np.zeros(n)
+            steer = np.where(veh, np.arctan(t.wheelbase[slots] * kappa), 0.0)
+        body_yaw = yaw - beta
+        c, s = np.cos(body_yaw), np.sin(body_yaw)
+        cx, cy = fx - front * c, fy - front * s
+        # centre velocity = bumper velocity - omega x (bumper - centre)
+        vbx, vby = speed * np.cos(yaw), speed * np.sin(yaw)
+        vcx = vbx + omega * front * s
+        vcy = vby - omega * front * c
+        if veh.any():
+            sv = slots[veh]
+            self._state[_ranges(t.qvel[sv], t.nv[sv])] = 0.0
+            qb = t.qpos[sv]
+            hp = 0.5 * t.rest_pitch[sv]
+            hy = 0.5 * body_yaw[veh]
+            # yaw then (small) pitch quaternion: q = q_yaw * q_pitch
+            cw, sw, cp, sp_ = np.cos(hy), np.sin(hy), np.cos(hp), np.sin(hp)
+            st[qb] = cx[veh]
+            st[qb + 1] = cy[veh]
+            st[qb + 2] = t.rest_z[sv]
+            st[qb + 3] = cw * cp
+            st[qb + 4] = -sw * sp_
+            st[qb + 5] = cw * sp_
+            st[qb + 6] = sw * cp
+            vb = t.qvel[sv]
+            st[vb] = vcx[veh]
+            st[vb + 1] = vcy[veh]
+            st[vb + 5] = omega[veh]
+            from physics_side.control import ackermann
+
+            left, right = ackermann(steer[veh], t.wheelbase[sv], t.track[sv])
+            sq = t.steer_q[sv]
+            st[sq[:, 0]] = left
+            st[sq[:, 1]] = right
+            su = t.steer_u[sv]
+            st[su[:, 0]] = left
+            st[su[:, 1]] = right
+            # wheels rolling at the forward speed of the axle they are on (rear axle speed)
+            v_r = vcx[veh] * c[veh] + vcy[veh] * s[veh]
+            st[t.spin_v[sv]] = (v_r / t.r_wheel[sv])[:, None]
+        if ped.any():
+            sp = slots[ped]
+            qb = t.qpos[sp]
+            st[qb] = cx[ped] - t.park_x[sp]
+            st[qb + 1] = cy[ped] - t.park_y[sp]
+            st[qb + 2] = body_yaw[ped]
+            vb = t.qvel[sp]
+            st[vb] = vcx[ped]
+            st[vb + 1] = vcy[ped]
+            st[vb + 2] = omega[ped]
+        self._policy[t.tree[slots]] = SLEEP_NEVER
+        if count:
+            self.counters["placements"] += n
+
+    def command_vehicles(
+        self, slots: np.ndarray, steer: np.ndarray, drive: np.ndarray, brake: np.ndarray,
+        stab: np.ndarray | None = None,
+    ) -> None:
+        """Steer (bicycle-model angle [rad], split by Ackermann), drive and brake torques [N*m]."""
+        from physics_side.control import ackermann
+
+        slots = np.asarray(slots, np.int64)
+        if len(slots) == 0:
+            return
+        t = self._tables
+        st = self._state
+        left, right = ackermann(steer, t.wheelbase[slots], t.track[slots])
+        su = t.steer_u[slots]
+        st[su[:, 0]] = left
+        st[su[:, 1]] = right
+        st[t.drive_u[slots]] = drive
+        self._fl[t.spin_fl[slots]] = brake[:, None] * t.brake_share[slots]
+        if stab is not None:
+            au = t.aux_u[slots][:, 0]
+            ok = au >= 0
+            st[au[ok]] = np.asarray(stab)[ok]
+
+    def command_pedestrians(self, slots: np.ndarray, fx: np.ndarray, fy: np.ndarray, tz: np.ndarray) -> None:
+        """Planar force [N] and yaw torque [N*m] of pedestrians."""
+        slots = np.asarray(slots, np.int64)
+        if len(slots) == 0:
+            return
+        t = self._tables
+        st = self._state
+        st[t.drive_u[slots]] = fx
+        au = t.aux_u[slots]
+        st[au[:, 0]] = fy
+        st[au[:, 1]] = tz
+
+    def step(self) -> None:
+        """Advance every shard by one control tick (``substeps`` MuJoCo steps)."""
+        t0 = time.perf_counter()
+        self._batch.step(nstep=self.substeps)
+        self.mujoco_s += time.perf_counter() - t0
+        self.time += self.substeps * self.timestep
+
+    def contacts(self, slots: np.ndarray, upright: np.ndarray) -> tuple[np.ndarray, int]:
+        """Agents of ``slots`` touching another agent now, and how many contacts just began.
+
+        From cfrc_ext of each agent's root body (chassis, bicycle frame or pedestrian):
+        wheels are separate bodies, so ground contact only shows when an agent is not
+        ``upright`` (then it is excluded). Parked slots sleep and never touch.
+        """
+        slots = np.asarray(slots, np.int64)
+        f = self._cfrc.reshape(-1)
+        b = self._tables.body[slots]
+        mag = np.abs(f[b]) + np.abs(f[b + 1]) + np.abs(f[b + 2])
+        touching = (mag > CONTACT_N) & upright
+        began = int((touching & ~self.in_contact[slots]).sum())
+        self.in_contact[slots] = touching
+        self.counters["collisions"] += began
+        return touching, began
+
+    @property
+    def tables(self) -> _Tables:
+        return self._tables
+
+
+def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Concatenated ``arange(start, start + count)`` for every pair (vectorised)."""
+    counts = np.asarray(counts, np.int64)
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    rep = np.repeat(np.asarray(starts, np.int64) - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
+    return rep + np.arange(total)
+
+
+__all__ = ["Observation", "PhysicsWorld"]
