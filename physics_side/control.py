@@ -265,16 +265,19 @@ def control_paper(
 def control_default(
     obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, dt: float, cfg: DefaultControl,
     state: ControlState, stopping: np.ndarray | None = None, stop_decel: float = 3.0,
-    stop_speed: np.ndarray | None = None, s_guess: np.ndarray | None = None,
+    stop_speed: np.ndarray | None = None, s_guess: np.ndarray | None = None, proj=None,
 ) -> VehicleCommand:
     """Ours: extrapolated reference, front-bumper lateral law, damped longitudinal loop.
 
     ``stopping`` (bool mask) switches agents to a braking-to-rest speed profile
     (``stop_speed`` [m/s] is their target speed now) while still following the path.
-    ``s_guess`` is where the bumper was along the path [m] (for the projection).
+    ``s_guess`` is where the bumper was along the path [m] (for the projection);
+    ``proj`` = (s, lateral offset, path point) of the bumper when already known.
     """
     r = ref.at(tau)
-    s_act, e_lat, pp = ref.project(obs.fx, obs.fy, r.s if s_guess is None else s_guess)
+    if proj is None:
+        proj = ref.project(obs.fx, obs.fy, r.s if s_guess is None else s_guess)
+    s_act, e_lat, pp = proj
     e_s = r.s - s_act  # + = behind the reference
     v_ref, a_ref = r.speed, r.accel
     if stopping is not None and np.any(stopping):

@@ -96,6 +96,8 @@ class Fleet:
         self.stop_v0 = np.zeros(0)
         self.stop_t = 0.0
         self._gen = -1
+        self._cache = None
+        self._last_obs = None
 
     @property
     def n(self) -> int:
@@ -117,6 +119,8 @@ class Fleet:
 
     def apply_step(self, msg: StepMessage, resync: bool = False) -> StepStats:
         """Sync with a SUMO step (see module docstring). ``resync`` after a SUMO restart."""
+        self._cache = None
+        self._last_obs = None
         w = self.world
         a = msg.agents
         st = StepStats()
@@ -241,6 +245,7 @@ class Fleet:
         if self.stopping or self.n == 0:
             self.stopping = True
             return
+        self._cache = None
         obs = self.world.observe(self.slots)
         self.stop_v0 = np.maximum(obs.speed, 0.0)
         self.stop_t = 0.0
@@ -258,7 +263,13 @@ class Fleet:
         if self._gen != w.generation:
             self.slots = w.slot_of(self.ids)
             self._params()
-        obs = w.observe(self.slots)
+            self._cache = None
+        # the previous tick's end state is this tick's start state unless a step or a
+        # placement happened in between (then the cache was dropped)
+        if self._cache is not None:
+            obs, proj = self._cache
+        else:
+            obs, proj = w.observe(self.slots), None
         ref = self.ref
         tau = min(self.tau, self.cfg.max_extrapolation_s)
         p = self.params
@@ -281,7 +292,7 @@ class Fleet:
         if use_default.any():
             cmd = C.control_default(
                 vobs, p, ref, tau, self.dt, self.ctl.default, self.state, stopping, self.cfg.stop_decel,
-                stop_speed, s_guess=self.s_act,
+                stop_speed, s_guess=self.s_act, proj=proj,
             )
             steer = np.where(use_default, cmd.steer, steer)
             drive = np.where(use_default, cmd.drive, drive)
@@ -320,7 +331,7 @@ class Fleet:
         # tracking error at the end of the tick, against the extrapolated reference
         obs2 = w.observe(self.slots)
         r2 = ref.at(min(self.tau, self.cfg.max_extrapolation_s))
-        s2, lat2, _ = ref.project(obs2.fx, obs2.fy, self.s_act + np.maximum(obs.speed, 0.0) * self.dt)
+        s2, lat2, pp2 = ref.project(obs2.fx, obs2.fy, self.s_act + np.maximum(obs.speed, 0.0) * self.dt)
         self.s_act = s2
         self.err_lon = s2 - r2.s
         self.err_lat = lat2
@@ -331,6 +342,7 @@ class Fleet:
         upright = (np.abs(obs2.roll) < flip) & (np.abs(obs2.pitch) < flip)
         w.contacts(self.slots, upright)
         self._last_obs = obs2
+        self._cache = (obs2, (s2, lat2, pp2))
 
     def _pedestrians(self, pi: np.ndarray, obs, tau: float, stopping, stop_speed) -> np.ndarray:
         """Planar force control of pedestrians ``pi``; returns the force magnitudes [N]."""
@@ -368,7 +380,7 @@ class Fleet:
 
     def snapshot(self) -> PhysicsAgents:
         """Per-agent actual state for ``PhysicsState``."""
-        obs = getattr(self, "_last_obs", None)
+        obs = self._last_obs
         if obs is None or len(obs.fx) != self.n or self._gen != self.world.generation:
             if self._gen != self.world.generation:
                 self.slots = self.world.slot_of(self.ids)

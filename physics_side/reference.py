@@ -297,15 +297,14 @@ class Reference:
     def project(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray) -> tuple[np.ndarray, np.ndarray, PathPoint]:
         """Project points on the path near ``s_guess``: returns (s, lateral offset + left, path point).
 
-        Two tangent-line refinements from the guess; exact on straight segments and within
-        O(e^2 * curvature) on curves, which is all the controllers need (errors << radius).
+        One tangent-line refinement from the guess (the guess is within centimetres of the
+        answer on the hot path): exact on straight segments and within O(d^2 * curvature)
+        on curves for a guess d off, which is all the controllers need.
         """
         s = np.asarray(s_guess, np.float64)
-        for _ in range(2):
-            p = self.point_at(s)
-            c, sn = np.cos(p.heading), np.sin(p.heading)
-            dx, dy = px - p.x, py - p.y
-            s = s + dx * c + dy * sn
+        p = self.point_at(s)
+        c, sn = np.cos(p.heading), np.sin(p.heading)
+        s = s + (px - p.x) * c + (py - p.y) * sn
         p = self.point_at(s)
         c, sn = np.cos(p.heading), np.sin(p.heading)
         lat = -(px - p.x) * sn + (py - p.y) * c

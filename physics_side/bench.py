@@ -1,0 +1,170 @@
+"""``run_physics_bench``: cost of one 20 ms control tick for many driving agents.
+
+Synthetic SUMO traffic (``circle_traffic``): cars on concentric circular lanes, spaced
+along them, at lane speed, with the path ahead and look-ahead points a SUMO side would
+send. Per SUMO step the bench encodes the step (the SUMO side's cost, not counted),
+then - counted - decodes it and applies it to the fleet; per control tick it runs the
+controllers and MuJoCo substeps, then encodes and publishes ``PhysicsState`` on a real
+loopback Zenoh session. A row:
+
+- ``agents``; ``tick_ms``: mean wall time of a control tick including the per-step work
+  amortised over the step's ticks; ``tick_p95_ms``;
+- ``mujoco_ms``: the MuJoCo substeps of a tick; ``overhead_ms`` = tick_ms - mujoco_ms;
+- ``rtf``: 20 ms / tick_ms (real-time factor of the control loop); ``shards``, ``threads``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from physics_side.config import PhysicsSettings, check_rates
+from physics_side.daemon import build_fleet
+from protocol.codec import decode_as, encode
+from protocol.frames import yaw_to_sumo_angle
+from protocol.messages import AgentBatch, AgentClass, PhysicsState, StepMessage, TrafficLights, VType
+
+log = logging.getLogger(__name__)
+
+LANE_R0 = 300.0  # [m] radius of the innermost circular lane
+LANE_GAP = 4.0  # [m] between lanes
+CAR_GAP = 22.0  # [m] arc length between cars on a lane
+PATH_POINTS = 12  # vertices of each path ahead
+PATH_LENGTH = 25.0  # [m] path ahead (LAD_max + margin)
+
+
+def _lanes(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lane and position index of each of n cars: lanes filled in turn, CAR_GAP apart."""
+    lane = np.zeros(n, np.int64)
+    slot = np.zeros(n, np.int64)
+    i, k = 0, 0
+    while i < n:
+        cap = int(2 * np.pi * (LANE_R0 + LANE_GAP * k) // CAR_GAP)
+        m = min(cap, n - i)
+        lane[i:i + m] = k
+        slot[i:i + m] = np.arange(m)
+        i += m
+        k += 1
+    return lane, slot
+
+
+def circle_traffic(n: int, step: int, step_s: float = 0.1, speed: float = 10.0,
+                   cls: AgentClass = AgentClass.PASSENGER, run: str = "bench", id_prefix: str = "veh",
+                   centre: tuple[float, float] = (1000.0, 1000.0)) -> StepMessage:
+    """Step ``step`` of ``n`` agents driving counter-clockwise on concentric circular lanes.
+
+    Lanes (radius LANE_R0 + k * LANE_GAP) are filled with cars CAR_GAP apart; every agent
+    keeps constant speed ``speed`` [m/s].
+    """
+    lane, slot = _lanes(n)
+    R = LANE_R0 + LANE_GAP * lane
+    t = step * step_s
+    th = (slot * CAR_GAP + speed * t) / R  # angle on the circle (ccw)
+    x = centre[0] + R * np.cos(th)
+    y = centre[1] + R * np.sin(th)
+    yaw = th + np.pi / 2
+    ds = np.linspace(0.0, PATH_LENGTH, PATH_POINTS)
+    pth = th[:, None] + ds[None, :] / R[:, None]
+    pxy = np.stack([centre[0] + R[:, None] * np.cos(pth), centre[1] + R[:, None] * np.sin(pth)], axis=-1)
+    la = th + 7.0 / R
+    f32 = np.float32
+    batch = AgentBatch(
+        ids=[f"{id_prefix}{k}" for k in range(n)], cls=np.full(n, int(cls), np.uint8), vtype=np.zeros(n, np.uint16),
+        x=x, y=y, angle=yaw_to_sumo_angle(yaw).astype(f32), speed=np.full(n, speed, f32), accel=np.zeros(n, f32),
+        signals=np.zeros(n, np.uint16), la_x=(centre[0] + R * np.cos(la)).astype(f32),
+        la_y=(centre[1] + R * np.sin(la)).astype(f32), length=np.full(n, 5.0, f32), width=np.full(n, 1.8, f32),
+        lane=lane.astype(np.int32), flags=np.full(n, 8 if step == 0 else 0, np.uint8),
+        path_offsets=(np.arange(n + 1) * PATH_POINTS).astype(np.uint32), path_xy=pxy.reshape(-1, 2).astype(f32),
+    )
+    vt = [VType("car", "passenger")]
+    return StepMessage(run, step, t, step_s, batch, TrafficLights.empty(), vt)
+
+
+def _settings(n: int, base: PhysicsSettings | None) -> PhysicsSettings:
+    s = base or PhysicsSettings()
+    per_shard = int(np.ceil(n / s.physics.shards)) + 8
+    return replace(s, physics=replace(s.physics, initial_slots={"passenger": per_shard}, preset="default",
+                                      presets={}))
+
+
+def bench_one(n: int, seconds: float = 2.0, warmup_s: float = 0.4, settings: PhysicsSettings | None = None,
+              session=None) -> dict:
+    """One row (see module docstring) for ``n`` cars."""
+    import zenoh
+
+    from protocol.keys import Keys
+    from sumoco.config import ZenohConfig
+    from sumoco.transport import open_session
+
+    settings = _settings(n, settings)
+    cfg = settings.physics
+    rates = check_rates(cfg.sumo_step_s, cfg.control_hz, cfg.timestep_s)
+    fleet = build_fleet(settings)
+    own = session is None
+    if own:
+        session = open_session(ZenohConfig(mode="peer", listen=("tcp/127.0.0.1:0",)))
+    keys = Keys("sumoco", "bench", "bench")
+    pub = session.declare_publisher(keys.physics_state, congestion_control=zenoh.CongestionControl.DROP)
+    steps = int(round((warmup_s + seconds) / cfg.sumo_step_s))
+    warm = int(round(warmup_s / cfg.sumo_step_s))
+    tick_times: list[float] = []
+    mj_times: list[float] = []
+    step_cost = 0.0
+    try:
+        for k in range(steps):
+            data = encode(circle_traffic(n, k, cfg.sumo_step_s))
+            t0 = time.perf_counter()
+            msg = decode_as(data, StepMessage)
+            fleet.apply_step(msg)
+            step_cost = time.perf_counter() - t0
+            for j in range(rates.ticks_per_step):
+                t1 = time.perf_counter()
+                m0 = fleet.world.mujoco_s
+                fleet.tick()
+                if fleet.tick_count % cfg.state_every == 0:
+                    state = PhysicsState("bench", fleet.tick_count, msg.time + (j + 1) * rates.control_dt, msg.step,
+                                         fleet.snapshot(), dict(fleet.world.counters))
+                    pub.put(encode(state))
+                dt = time.perf_counter() - t1
+                if k >= warm:
+                    # the step's decode + sync is spread over its ticks
+                    tick_times.append(dt + step_cost / rates.ticks_per_step)
+                    mj_times.append(fleet.world.mujoco_s - m0)
+    finally:
+        pub.undeclare()
+        if own:
+            session.close()
+    tick = np.asarray(tick_times) * 1e3
+    mj = np.asarray(mj_times) * 1e3
+    tick_ms = float(tick.mean())
+    mujoco_ms = float(mj.mean())
+    w = fleet.world
+    return {
+        "agents": n,
+        "tick_ms": round(tick_ms, 3),
+        "tick_p95_ms": round(float(np.percentile(tick, 95)), 3),
+        "mujoco_ms": round(mujoco_ms, 3),
+        "overhead_ms": round(tick_ms - mujoco_ms, 3),
+        "overhead_share": round((tick_ms - mujoco_ms) / tick_ms, 3),
+        "rtf": round(rates.control_dt * 1e3 / tick_ms, 2),
+        "shards": w.shards,
+        "threads": w.threads,
+        "substeps": rates.substeps,
+        "collisions": int(w.counters["collisions"]),
+        "placements": int(w.counters["placements"]),
+        "max_err_m": round(float(np.max(np.hypot(fleet.err_lon, fleet.err_lat))) if fleet.n else 0.0, 3),
+    }
+
+
+def run_physics_bench(sizes=(100, 500, 1000), quick: bool = False, settings: PhysicsSettings | None = None) -> list[dict]:
+    """Rows for each size (``quick``: 50 and 100 agents, short runs)."""
+    if quick:
+        sizes = tuple(s for s in sizes if s <= 100) or (50,)
+    seconds = 0.6 if quick else 2.0
+    return [bench_one(n, seconds=seconds, warmup_s=0.2 if quick else 0.4, settings=settings) for n in sizes]
+
+
+__all__ = ["bench_one", "circle_traffic", "run_physics_bench"]
