@@ -39,6 +39,7 @@ class SumoConfig:
     ego_jump_m: float = 5.0  # [m] a pose further than this from the previous one flags the ego JUMPED
 
     lockstep_instances: tuple[str, ...] = ("main",)  # physics instances whose acks lockstep waits for
+    lockstep_start_timeout_s: float = 60.0  # [s] lockstep: wait this long for them to come up before step 0
     max_lag_s: float = 1.0  # [s] realtime: when this far behind the wall clock, re-anchor (no catch-up burst)
     status_period_s: float = 1.0  # [s] wall time between INFO status lines
 

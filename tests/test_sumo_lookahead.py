@@ -34,8 +34,7 @@ def make_graph(lanes: dict[str, tuple[str, np.ndarray, float]], links: dict[str,
 def run_one(planner, lane, pos, speed, route=("e",), ri=0, x=0.0, y=0.0, angle=90.0, mode=MODE_LANES):
     ids = ["a"]
     lane = np.array([lane])
-    seq = planner.update_sequences(ids, lane, np.array([ri]), np.array([mode == MODE_LANES]),
-                                   lambda _id: route)
+    seq = planner.update_sequences(ids, lane, np.array([mode == MODE_LANES]), lambda _id: (route, ri))
     return planner.compute(seq, lane, np.array([pos], float), np.array([x]), np.array([y]),
                            np.array([angle]), np.array([speed], float), np.array([mode]))
 
@@ -182,7 +181,7 @@ def test_straight_and_none_modes():
     p = PathPlanner(g, 7, 10, 1, path_length=25)
     ids = ["walker", "rider", "noroad"]
     lane = np.array([-1, 0, -1])
-    seq = p.update_sequences(ids, lane, np.zeros(3, int), np.array([False, False, True]), lambda _: ("e",))
+    seq = p.update_sequences(ids, lane, np.array([False, False, True]), lambda _: (("e",), 0))
     assert (seq == -1).all()
     r = p.compute(seq, lane, np.zeros(3), np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]),
                   np.array([90.0, 0.0, 0.0]), np.array([1.0, 5.0, 20.0]),
@@ -199,21 +198,20 @@ def test_sequences_are_cached_and_only_changed_agents_resolved():
 
     def route(aid):
         calls.append(aid)
-        return ("a", "b")
+        return ("a", "b"), 0
 
     a = g.index["a_0"]
     ids = ["v1", "v2"]
     lane = np.array([a, a])
-    ri = np.zeros(2, int)
     use = np.ones(2, bool)
-    s1 = p.update_sequences(ids, lane, ri, use, route)
+    s1 = p.update_sequences(ids, lane, use, route)
     assert sorted(calls) == ["v1", "v2"] and s1[0] == s1[1] and p.store.n == 1
     calls.clear()
-    s2 = p.update_sequences(ids, lane, ri, use, route)
+    s2 = p.update_sequences(ids, lane, use, route)
     assert calls == [] and (s2 == s1).all()
     # v0 departs (ids shift), v1 moves into the junction
     j0 = g.index[":j_0_0"]
-    s3 = p.update_sequences(["v0", "v1", "v2"], np.array([a, j0, a]), np.zeros(3, int), np.ones(3, bool), route)
+    s3 = p.update_sequences(["v0", "v1", "v2"], np.array([a, j0, a]), np.ones(3, bool), route)
     assert sorted(calls) == ["v0", "v1"]
     assert s3[2] == s1[1] and s3[0] == s1[0] and s3[1] != s1[0]
 
