@@ -383,7 +383,8 @@ class SumoSim:
         prev_index = self._align(ids)
         # Acceleration from consecutive speeds: SUMO defines it exactly so ((v - v_prev) /
         # step length, checked against getAcceleration), and it saves a subscribed
-        # variable (~0.5 ms per step at 2,500 vehicles). 0 in an agent's first step.
+        # variable (~0.5 ms per step at 2,500 vehicles). 0 in an agent's first step and
+        # when it teleports.
         dt = now - self._prev_time if now > self._prev_time else self.step_length
         known = prev_index >= 0
         accel = np.zeros(n)
@@ -399,7 +400,9 @@ class SumoSim:
         if new:
             flags[np.fromiter(map(new.__contains__, ids), bool, n)] |= np.uint8(AgentFlag.NEW)
         if tele:
-            flags[np.fromiter(map(tele.__contains__, ids), bool, n)] |= np.uint8(AgentFlag.JUMPED)
+            jumped = np.fromiter(map(tele.__contains__, ids), bool, n)
+            flags[jumped] |= np.uint8(AgentFlag.JUMPED)
+            accel[jumped] = 0.0  # SUMO, too, reports 0 when a teleport changes the speed
         mode = np.full(n, MODE_LANES, np.uint8)
         mode[nv:] = np.where(riding, MODE_NONE, MODE_STRAIGHT)
         xy = np.concatenate([vxy, pxy])
