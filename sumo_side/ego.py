@@ -43,7 +43,6 @@ class _Ego:
     requested: tuple[float, float] | None = None  # pose asked for this step
     requested_prev: tuple[float, float] | None = None  # pose asked for in the step before
     jumped: bool = False  # created or jumped this step
-    route_serial: int = 0
 
 
 class EgoManager:
@@ -67,6 +66,7 @@ class EgoManager:
         self._drift_sum = 0.0
         self._drift_n = 0
         self._last_error_log = -math.inf
+        self._route_serial = 0  # route ids must be unique for the whole run
 
     # ------------------------------------------------------------------ input
 
@@ -141,8 +141,8 @@ class EgoManager:
         if edge is None:
             self._error(f"ego {e.id!r}: no edge for vClass {vclass!r} in the network")
             return False
-        e.route_serial += 1
-        route_id = f"!sumoco_ego!{e.id}!{e.route_serial}"
+        self._route_serial += 1
+        route_id = f"!sumoco_ego!{e.id}!{self._route_serial}"
         try:
             api.route.add(route_id, [edge])
             api.vehicle.add(e.id, route_id, typeID=vtype, depart="now", departSpeed="0")
@@ -184,6 +184,9 @@ class EgoManager:
     def _remove(self, e: _Ego, why: str) -> None:
         if e.in_sumo:
             try:
+                # libsumo raises in the next simulationStep for a removed vehicle that
+                # still has a subscription: drop it first.
+                self.api.vehicle.unsubscribe(e.id)
                 self.api.vehicle.remove(e.id)
             except Exception as exc:
                 log.debug("removing ego %r: %s", e.id, exc)
@@ -229,10 +232,12 @@ class EgoManager:
         return flags
 
     def close(self) -> None:
+        """Remove every ego from SUMO (daemon shutdown)."""
         for e in self.egos.values():
             if e.in_sumo:
                 try:
+                    self.api.vehicle.unsubscribe(e.id)
                     self.api.vehicle.remove(e.id)
-                except Exception:
-                    pass
+                except Exception as exc:  # SUMO already closed or the ego gone
+                    log.debug("removing ego %r at close: %s", e.id, exc)
         self.egos.clear()
