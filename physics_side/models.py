@@ -249,9 +249,14 @@ def _wheel(parent, name: str, pos, spec: AgentSpec, steer: bool):
             armature=0.05 * spec.wheel_mass, damping=0.0,
         )
     w.add_joint(name=f"spin_{name}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0])
+    if spec.kind == KIND_BIKE:
+        # A thin ellipsoid: when the bicycle leans, the contact stays in the wheel plane
+        # (a sphere's contact would slide under the hub and shift the lean equilibrium).
+        shape = dict(type=mujoco.mjtGeom.mjGEOM_ELLIPSOID, size=[spec.wheel_radius, 0.03, spec.wheel_radius])
+    else:
+        shape = dict(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[spec.wheel_radius, 0, 0])
     w.add_geom(
-        name=f"g{name}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[spec.wheel_radius, 0, 0],
-        mass=spec.wheel_mass, contype=0, conaffinity=1, condim=3,
+        name=f"g{name}", **shape, mass=spec.wheel_mass, contype=0, conaffinity=1, condim=3,
         friction=list(GROUND_FRICTION), rgba=[0.1, 0.1, 0.1, 1],
     )
 

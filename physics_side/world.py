@@ -39,6 +39,7 @@ SLEEP_NEVER = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
 SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
 NEIGHBOUR_M = 40.0  # [m] a new agent joins the shard of a live agent this close
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
+CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
 
 
 @dataclass(frozen=True)
@@ -201,6 +202,7 @@ class PhysicsWorld:
         old_tables, old_state, old_fl, old_live, old_agents = previous or (None, None, None, None, None)
         self.live = np.zeros(G, bool)
         self.in_contact = np.zeros(G, bool)
+        self.last_touch = np.full(G, -np.inf)
         self.slot_agent = [None] * G
         self.agent_slot = {}
         self._free: dict[tuple[int, int], list[int]] = {}
@@ -452,6 +454,7 @@ class PhysicsWorld:
             self._free[(int(t.pool[g]), int(t.shard[g]))].append(int(g))
         self.live[slots] = False
         self.in_contact[slots] = False
+        self.last_touch[slots] = -np.inf
         self.counters["parked"] += len(slots)
 
     def slot_of(self, ids: list[str]) -> np.ndarray:
@@ -573,17 +576,17 @@ class PhysicsWorld:
             sv = slots[veh]
             self._state[_ranges(t.qvel[sv], t.nv[sv])] = 0.0
             qb = t.qpos[sv]
-            hp = 0.5 * t.rest_pitch[sv]
-            hy = 0.5 * body_yaw[veh]
-            # yaw then (small) pitch quaternion: q = q_yaw * q_pitch
-            cw, sw, cp, sp_ = np.cos(hy), np.sin(hy), np.cos(hp), np.sin(hp)
+            # bicycles lean into the turn at the steady-turn angle (roll about +x, left side
+            # down in a left turn); cars stand level
+            bike = t.kind[sv] == M.KIND_BIKE
+            roll = np.where(bike, -np.arctan(np.clip(speed[veh] * omega[veh] / 9.81, -0.6, 0.6)), 0.0)
+            quat = _quat_zyx(body_yaw[veh], t.rest_pitch[sv], roll)
+            h = np.where(bike, t.rest_z[sv] * np.cos(roll), t.rest_z[sv])
             st[qb] = cx[veh]
             st[qb + 1] = cy[veh]
-            st[qb + 2] = t.rest_z[sv]
-            st[qb + 3] = cw * cp
-            st[qb + 4] = -sw * sp_
-            st[qb + 5] = cw * sp_
-            st[qb + 6] = sw * cp
+            st[qb + 2] = h
+            for k in range(4):
+                st[qb + 3 + k] = quat[:, k]
             vb = t.qvel[sv]
             st[vb] = vcx[veh]
             st[vb + 1] = vcy[veh]
@@ -657,18 +660,22 @@ class PhysicsWorld:
         self.time += self.substeps * self.timestep
 
     def contacts(self, slots: np.ndarray, upright: np.ndarray) -> tuple[np.ndarray, int]:
-        """Agents of ``slots`` touching another agent now, and how many contacts just began.
+        """Agents of ``slots`` touching another agent now, and how many collisions began.
 
         From cfrc_ext of each agent's root body (chassis, bicycle frame or pedestrian):
         wheels are separate bodies, so ground contact only shows when an agent is not
-        ``upright`` (then it is excluded). Parked slots sleep and never touch.
+        ``upright`` (then it is excluded). Parked slots sleep and never touch. A collision
+        begins when an agent touches after ``CONTACT_GAP_S`` without touching, so one
+        crash with bounces counts once per agent involved.
         """
         slots = np.asarray(slots, np.int64)
         f = self._cfrc.reshape(-1)
         b = self._tables.body[slots]
         mag = np.abs(f[b]) + np.abs(f[b + 1]) + np.abs(f[b + 2])
         touching = (mag > CONTACT_N) & upright
-        began = int((touching & ~self.in_contact[slots]).sum())
+        began_mask = touching & ((self.time - self.last_touch[slots]) > CONTACT_GAP_S)
+        self.last_touch[slots[touching]] = self.time
+        began = int(began_mask.sum())
         self.in_contact[slots] = touching
         self.counters["collisions"] += began
         return touching, began
@@ -676,6 +683,19 @@ class PhysicsWorld:
     @property
     def tables(self) -> _Tables:
         return self._tables
+
+
+def _quat_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Quaternion (w, x, y, z) of yaw about z, then pitch about y, then roll about x (n, 4)."""
+    cy, sy = np.cos(0.5 * yaw), np.sin(0.5 * yaw)
+    cp, sp = np.cos(0.5 * pitch), np.sin(0.5 * pitch)
+    cr, sr = np.cos(0.5 * roll), np.sin(0.5 * roll)
+    return np.stack([
+        cy * cp * cr + sy * sp * sr,
+        cy * cp * sr - sy * sp * cr,
+        cy * sp * cr + sy * cp * sr,
+        sy * cp * cr - cy * sp * sr,
+    ], axis=-1)
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -1,0 +1,198 @@
+"""Controllers and references as pure functions over arrays (no MuJoCo)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from physics_side import control as C
+from physics_side.reference import PathSet, Reference, stopping_distance, tracking_error
+
+
+# --------------------------------------------------------------------------- LAD
+
+
+def test_lad_formula_matches_the_paper():
+    v = np.array([0.0, 5.0, 6.99, 7.0, 8.5, 10.0, 30.0])
+    got = C.lad(v, lad_min=7.0, lad_max=10.0, k_lad=1.0)
+    # LAD_min below LAD_min, v * k in between, capped at LAD_max
+    assert np.allclose(got, [7.0, 7.0, 7.0, 7.0, 8.5, 10.0, 10.0])
+    assert np.allclose(C.lad(np.array([9.0]), 5.0, 20.0, 2.0), [18.0])
+
+
+# --------------------------------------------------------------------------- pure pursuit
+
+
+def test_pursuit_alpha_signs_and_geometry():
+    # heading east; targets ahead-left, ahead-right, straight ahead, behind-left
+    a = C.pursuit_alpha(np.zeros(4), np.zeros(4), np.zeros(4), np.array([10, 10, 10, -1.0]), np.array([10, -10, 0, 1.0]))
+    assert np.allclose(a[:3], [math.pi / 4, -math.pi / 4, 0.0])
+    assert a[3] == pytest.approx(math.pi - math.atan(1.0))
+    # the same geometry rotated: heading north, target to the west is a left turn
+    assert C.pursuit_alpha(0.0, 0.0, math.pi / 2, -5.0, 5.0) == pytest.approx(math.pi / 4)
+
+
+def test_pure_pursuit_arc_passes_through_the_target():
+    # target on a circle of radius R through the rear axle (tangent to the heading)
+    L, R = 2.8, 15.0
+    th = np.array([0.3, 0.6, 1.0])
+    tx, ty = R * np.sin(th), R * (1 - np.cos(th))
+    alpha = C.pursuit_alpha(0.0, 0.0, 0.0, tx, ty)
+    delta = C.pure_pursuit_delta(alpha, np.hypot(tx, ty), np.full(3, L))
+    assert np.allclose(delta, math.atan(L / R))
+
+
+def test_paper_steer_percentage_and_clip():
+    max_steer = np.full(4, math.radians(35))
+    alpha = np.radians([0.0, 10.0, -10.0, 45.0])
+    pct, ang = C.paper_steer(alpha, 0.05, max_steer)
+    assert np.allclose(pct, [0.0, 0.5, -0.5, 1.0])  # 10 deg * 0.05 = 50 %; 45 deg clips to 100 %
+    assert np.allclose(ang, pct * max_steer)
+
+
+# --------------------------------------------------------------------------- longitudinal
+
+
+def test_paper_pedal_terms():
+    u, uc = C.paper_pedal(np.array([0.1, -0.1, 0.0, 2.0]), np.array([0.0, 0.0, 1.0, 0.0]), 15.0, 1.0)
+    assert np.allclose(u, [0.75, -0.75, 0.5, 15.0])  # (K1 e + K2 de) / 2
+    assert np.allclose(uc, [0.75, -0.75, 0.5, 1.0])
+    drive, brake = C.pedal_to_torques(uc, np.full(4, 2000.0), np.full(4, 4000.0))
+    assert np.allclose(drive, [1500, 0, 1000, 2000]) and np.allclose(brake, [0, 3000, 0, 0])
+
+
+def test_accel_command_pd_ff_and_integral():
+    a = C.accel_command(np.array([0.5, 0.0]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), np.array([0.0, 2.0]),
+                        omega=2.0, zeta=1.0, k_int=0.5)
+    assert np.allclose(a, [1.0 + 4.0 * 0.5, -4.0 * 1.0 + 0.5 * 2.0])
+
+
+def test_accel_to_torques_splits_drive_and_brake():
+    d, b = C.accel_to_torques(np.array([2.0, -3.0, 100.0]), np.full(3, 1000.0), np.full(3, 0.3),
+                              np.full(3, 2500.0), np.full(3, 5000.0))
+    assert np.allclose(d, [600.0, 0.0, 2500.0]) and np.allclose(b, [0.0, 900.0, 0.0])
+
+
+# --------------------------------------------------------------------------- lateral
+
+
+def test_stanley_bumper_reduces_to_stanley_at_the_front_axle():
+    he = np.array([0.1, -0.05, 0.0])
+    e = np.array([0.0, 0.3, -0.4])
+    v = np.array([10.0, 5.0, 2.0])
+    L = np.full(3, 2.7)
+    got = C.stanley_bumper(he, e, v, 2.0, 1.0, L, L)
+    classic = -he - np.arctan2(2.0 * e, v + 1.0)
+    assert np.allclose(got, classic)
+    # guide point ahead of the front axle: same sign, smaller wheel angle for the same beta
+    far = C.stanley_bumper(he, e, v, 2.0, 1.0, L + 1.0, L)
+    assert np.all(np.sign(far) == np.sign(classic)) and np.all(np.abs(far) < np.abs(classic))
+    # left of the path (e > 0) steers right
+    assert C.stanley_bumper(np.zeros(1), np.ones(1), np.full(1, 5.0), 2.0, 1.0, np.full(1, 3.5), np.full(1, 2.7))[0] < 0
+
+
+def test_steady_state_delta_keeps_the_bumper_on_the_circle():
+    L, d, R = 2.8, 3.8, 12.0
+    delta = C.steady_state_delta(np.array([1 / R, -1 / R, 0.0]), np.full(3, d), np.full(3, L))
+    r_rear = L / np.tan(abs(delta[0]))
+    assert math.hypot(r_rear, d) == pytest.approx(R)
+    assert delta[1] == pytest.approx(-delta[0]) and delta[2] == 0.0
+
+
+def test_ackermann_inner_wheel_turns_more_about_one_centre():
+    L, T = np.full(2, 2.8), np.full(2, 1.6)
+    left, right = C.ackermann(np.array([0.3, -0.3]), L, T)
+    assert left[0] > 0.3 > right[0] > 0  # left turn: left wheel inner
+    assert right[1] < -0.3 < left[1] < 0
+    # both wheel axes meet the rear-axle line at the same point
+    R = 2.8 / math.tan(0.3)
+    assert 2.8 / math.tan(left[0]) == pytest.approx(R - 0.8)
+    assert 2.8 / math.tan(right[0]) == pytest.approx(R + 0.8)
+
+
+def test_roll_stabiliser_targets_the_lean_into_the_turn():
+    # upright bicycle in a steady left turn: target lean is negative roll (left side down)
+    t = C.roll_stabiliser(np.zeros(1), np.zeros(1), np.full(1, 6.0), np.full(1, 0.6), 1000.0, 100.0, np.full(1, 1e4))
+    lean = math.atan(6.0 * 0.6 / 9.81)
+    assert t[0] == pytest.approx(-1000.0 * lean)
+    # at the target lean and not rolling: no torque; torque clipped to the limit
+    assert C.roll_stabiliser(np.full(1, -lean), np.zeros(1), np.full(1, 6.0), np.full(1, 0.6), 1000.0, 100.0,
+                             np.full(1, 1e4))[0] == pytest.approx(0.0, abs=1e-9)
+    assert C.roll_stabiliser(np.full(1, 1.0), np.zeros(1), np.zeros(1), np.zeros(1), 1000.0, 100.0, np.full(1, 50.0))[0] == -50.0
+
+
+def test_planar_force_is_bounded_in_norm():
+    fx, fy = C.planar_force(np.array([10.0, 0.01]), np.array([10.0, 0.0]), np.zeros(2), np.zeros(2), np.zeros(2),
+                            np.zeros(2), np.full(2, 70.0), 3.0, 1.0, np.full(2, 300.0))
+    assert math.hypot(fx[0], fy[0]) == pytest.approx(300.0)
+    assert fx[0] == pytest.approx(fy[0])  # direction kept
+    assert fx[1] == pytest.approx(70.0 * 9.0 * 0.01)  # unclipped PD term
+
+
+def test_control_state_take_realigns():
+    s = C.ControlState(integ=np.array([1.0, 2.0, 3.0]))
+    t = s.take(np.array([2, -1, 0]))
+    assert np.allclose(t.integ, [3.0, 0.0, 1.0])
+
+
+# --------------------------------------------------------------------------- references
+
+
+def _arc(R: float, n: int, x0=0.0, y0=0.0):
+    th = np.linspace(0, np.pi / 2, n)
+    return np.c_[x0 + R * np.sin(th), y0 + R * (1 - np.cos(th))]
+
+
+def test_pathset_evaluates_ragged_polylines_and_extrapolates():
+    line = np.c_[np.linspace(0, 30, 4), np.full(4, 5.0)]
+    arc = _arc(10.0, 41)
+    ps = PathSet(np.array([0, 4, 45]), np.vstack([line, arc]))
+    assert np.allclose(ps.total, [30.0, 10 * np.pi / 2], rtol=1e-3)
+    p = ps.at(np.array([12.0, 10 * np.pi / 4]))
+    assert (p.x[0], p.y[0], p.heading[0], p.curvature[0]) == pytest.approx((12.0, 5.0, 0.0, 0.0))
+    assert math.hypot(p.x[1], p.y[1] - 10.0) == pytest.approx(10.0, abs=2e-3)  # on the circle
+    assert p.heading[1] == pytest.approx(math.pi / 4, abs=1e-3) and p.curvature[1] == pytest.approx(0.1, rel=1e-2)
+    # before the start / past the end: along the first / last segment
+    q = ps.at(np.array([-2.0, 100.0]))
+    assert (q.x[0], q.y[0]) == pytest.approx((-2.0, 5.0))
+    end = arc[-1]
+    assert math.hypot(q.x[1] - end[0], q.y[1] - end[1]) == pytest.approx(100.0 - ps.total[1])
+    assert q.y[1] > 90.0 and abs(q.x[1] - end[0]) < 0.03 * (100.0 - ps.total[1])  # along the last chord
+
+
+def test_pathset_synthesises_arcs_without_a_path():
+    ps = PathSet.concat_fallback(np.zeros(0), np.zeros((0, 2)), np.array([0.0, 1.0]), np.array([0.0, 0.0]),
+                                 np.array([0.0, np.pi / 2]), np.array([0.0, 0.1]))
+    p = ps.at(np.array([10.0, 10 * np.pi / 2]))
+    assert (p.x[0], p.y[0]) == pytest.approx((10.0, 0.0))
+    assert (p.x[1], p.y[1]) == pytest.approx((-9.0, 10.0), abs=0.05)  # quarter circle of radius 10
+
+
+def test_stopping_distance_never_reverses():
+    s, v = stopping_distance(np.array([10.0, 10.0, 2.0]), np.array([2.0, -2.0, -4.0]), 1.0)
+    assert np.allclose(s, [11.0, 9.0, 0.5]) and np.allclose(v, [12.0, 8.0, 0.0])
+
+
+def test_reference_held_extrapolated_and_projection():
+    arc = _arc(20.0, 200).astype(np.float32)
+    ref = Reference(
+        t_k=3.0, x=np.array([0.0]), y=np.array([0.0]), angle_deg=np.array([90.0]), speed=np.array([5.0]),
+        accel=np.array([1.0]), la_x=np.array([7.0]), la_y=np.array([1.0]),
+        path_offsets=np.array([0, 200]), path_xy=arc,
+    )
+    h = ref.held()
+    assert (h.x[0], h.y[0], h.speed[0]) == (0.0, 0.0, 5.0)
+    r = ref.at(0.1)
+    s = 5.0 * 0.1 + 0.5 * 0.1**2
+    assert r.s[0] == pytest.approx(s) and r.speed[0] == pytest.approx(5.1)
+    assert math.hypot(r.x[0], r.y[0] - 20.0) == pytest.approx(20.0, abs=1e-3)
+    assert r.yaw[0] == pytest.approx(s / 20.0, abs=2e-3)
+    # a point 0.3 m left of the path at s = 2 m projects back to s = 2, lateral +0.3
+    p = ref.point_at(np.array([2.0]))
+    px, py = p.x - 0.3 * np.sin(p.heading), p.y + 0.3 * np.cos(p.heading)
+    s_p, lat, _ = ref.project(px, py, np.array([1.9]))
+    assert s_p[0] == pytest.approx(2.0, abs=5e-3) and lat[0] == pytest.approx(0.3, abs=5e-3)
+    lon, lat2 = tracking_error(np.array([1.0]), np.array([0.0]), h)  # heading east at the sample
+    assert lon[0] == pytest.approx(1.0) and lat2[0] == pytest.approx(0.0)
