@@ -1,0 +1,68 @@
+"""Physics config: typed tables, preset validation, whole-number rate checks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from physics_side.config import check_rates, load_physics_config
+from protocol.errors import ConfigError
+from sumoco.config import load_toml
+
+
+def _load(tmp_path: Path, text: str):
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    data, base = load_toml(p)
+    return load_physics_config(data, base, str(p))
+
+
+def test_defaults_are_the_documented_ones(tmp_path):
+    s = _load(tmp_path, "")
+    assert (s.physics.control_hz, s.physics.timestep_s, s.physics.sumo_step_s) == (50.0, 0.005, 0.1)
+    p = s.control.paper
+    assert (p.k1, p.k2, p.lad_min, p.lad_max, p.k_lad, p.k_steer) == (15.0, 1.0, 7.0, 10.0, 1.0, 0.05)
+    assert s.physics.preset_for("bus") == "default"
+
+
+def test_tables_are_typed_and_checked(tmp_path):
+    s = _load(tmp_path, """
+[physics]
+preset = "paper"
+presets = {pedestrian = "kinematic"}
+state_every = 5
+[control.paper]
+lad_min = 5
+[control.default]
+lateral = "pursuit"
+""")
+    assert s.physics.preset_for("pedestrian") == "kinematic" and s.physics.preset_for("taxi") == "paper"
+    assert s.control.paper.lad_min == 5.0 and s.control.default.lateral == "pursuit"
+    with pytest.raises(ConfigError, match=r"control\.paper\.k_1: unknown key"):
+        _load(tmp_path, "[control.paper]\nk_1 = 3\n")
+    with pytest.raises(ConfigError, match=r"physics\.presets\.truck: unknown agent type"):
+        _load(tmp_path, '[physics]\npresets = {truck = "paper"}\n')
+    with pytest.raises(ConfigError, match=r"physics\.presets\.bus: expected one of"):
+        _load(tmp_path, '[physics]\npresets = {bus = "fast"}\n')
+    with pytest.raises(ConfigError, match=r"k_lad: the paper requires >= 1"):
+        _load(tmp_path, "[control.paper]\nk_lad = 0.5\n")
+    with pytest.raises(ConfigError, match=r"physics\.preset: expected one of"):
+        _load(tmp_path, '[physics]\npreset = "fast"\n')
+
+
+def test_rates_are_whole_number_ratios():
+    r = check_rates(0.1, 50.0, 0.005)
+    assert (r.ticks_per_step, r.substeps, r.control_dt) == (5, 4, 0.02)
+    assert check_rates(0.05, 100.0, 0.0025).ticks_per_step == 5
+
+
+def test_rate_errors_name_the_number_to_change(tmp_path):
+    with pytest.raises(ConfigError, match=r"physics\.timestep_s = 0\.003 s does not divide .* 0\.02 s; change physics\.timestep_s to one of 0\.02, 0\.01"):
+        check_rates(0.1, 50.0, 0.003)
+    with pytest.raises(ConfigError, match=r"SUMO step length 0\.1 s is not a whole number .* change physics\.control_hz to one of 10, 20, 30"):
+        check_rates(0.1, 25.0, 0.005)
+    with pytest.raises(ConfigError, match=r"too coarse.*change physics\.timestep_s to 0\.005"):
+        check_rates(0.1, 50.0, 0.02)
+    with pytest.raises(ConfigError, match="control_hz"):
+        _load(tmp_path, "[physics]\ncontrol_hz = 25\n")

@@ -1,0 +1,150 @@
+"""Agent-set sync and modes (``Fleet``): spawn, leave, placements, classes, ego, safe stop."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from physics_side.bench import circle_traffic
+from physics_side.config import PhysicsConfig, PhysicsSettings
+from physics_side.daemon import build_fleet
+from protocol.messages import AgentClass, AgentFlag, AgentMode, VType
+
+
+def _fleet(**phys):
+    base = dict(shards=1, initial_slots={"passenger": 4, "bus": 1, "bicycle": 1, "pedestrian": 1})
+    base.update(phys)
+    return build_fleet(PhysicsSettings(physics=replace(PhysicsConfig(), **base)))
+
+
+def _with(msg, **cols):
+    return replace(msg, agents=replace(msg.agents, **cols))
+
+
+def _run_step(fleet, msg):
+    fleet.apply_step(msg)
+    for _ in range(fleet.rates.ticks_per_step):
+        fleet.tick()
+
+
+def test_spawn_leave_and_teleport_placements():
+    f = _fleet()
+    _run_step(f, circle_traffic(3, 0))
+    assert f.world.counters["placements"] == 3 and f.counters["placements_spawn"] == 3
+    snap = f.snapshot()
+    assert snap.ids == ["veh0", "veh1", "veh2"] and np.all(snap.mode == AgentMode.PHYSICAL)
+    # veh1 teleports (JUMPED): placed at its new pose, counted
+    msg = circle_traffic(3, 1)
+    x = msg.agents.x.copy()
+    x[1] += 30.0
+    flags = msg.agents.flags.copy()
+    flags[1] = AgentFlag.JUMPED
+    _run_step(f, _with(msg, x=x, flags=flags))
+    assert f.counters["placements_jump"] == 1 and f.world.counters["placements"] == 4
+    snap = f.snapshot()
+    moved = np.hypot(snap.x[1] - x[1], snap.y[1] - msg.agents.y[1])
+    assert moved == pytest.approx(1.0, abs=0.05)  # placed there, then 0.1 s at 10 m/s
+    # veh2 leaves: parked, its slot free again; ids follow the message order
+    m = circle_traffic(3, 2)
+    keep = [0, 1]
+    a = m.agents
+    _run_step(f, _with(m, ids=a.ids[:2], **{k: getattr(a, k)[keep] for k in (
+        "cls", "vtype", "x", "y", "angle", "speed", "accel", "signals", "la_x", "la_y", "length", "width", "lane",
+        "flags")}, path_offsets=a.path_offsets[:3], path_xy=a.path_xy[: int(a.path_offsets[2])]))
+    assert f.snapshot().ids == ["veh0", "veh1"] and f.world.counters["parked"] == 1
+    assert "veh2" not in f.world.agent_slot
+
+
+def test_divergence_and_flip_are_placed_and_counted():
+    f = _fleet(divergence_m=3.0)
+    _run_step(f, circle_traffic(2, 0))
+    # SUMO moves veh0 5 m sideways without a JUMPED flag: divergence -> placement
+    msg = circle_traffic(2, 1)
+    y = msg.agents.y.copy()
+    y[0] += 5.0
+    _run_step(f, _with(msg, y=y))
+    assert f.counters["placements_divergence"] == 1
+    # now 2 m beside where it was placed: within divergence_m, tracked, not placed
+    msg = circle_traffic(2, 2)
+    y = msg.agents.y.copy()
+    y[0] += 7.0
+    f.apply_step(_with(msg, y=y))
+    assert f.counters["placements_divergence"] == 1
+    # a car on its roof is placed upright again
+    slot = f.slots[1:2]
+    w = f.world
+    o = w.observe(slot)
+    w.place(slot, o.fx, o.fy, o.yaw, o.speed, count=False)
+    qb = w.tables.qpos[slot[0]]
+    w._state[qb + 3:qb + 7] = [0.0, 1.0, 0.0, 0.0]  # rolled 180 deg
+    f.apply_step(_with(circle_traffic(2, 3), y=circle_traffic(2, 3).agents.y + np.array([7.0, 0.0])))
+    assert f.counters["placements_flip"] == 1
+    assert abs(np.degrees(w.observe(slot).roll[0])) < 1.0
+
+
+def test_classes_modes_ego_and_riders(caplog):
+    f = _fleet(presets={"bicycle": "kinematic"})
+    msg = circle_traffic(6, 0)
+    cls = np.array([AgentClass.PASSENGER, AgentClass.OTHER, AgentClass.OTHER, AgentClass.BICYCLE,
+                    AgentClass.PEDESTRIAN, AgentClass.PEDESTRIAN], np.uint8)
+    vtype = np.array([0, 1, 1, 0, 0, 0], np.uint16)
+    flags = np.array([AgentFlag.EGO, 0, 0, 0, 0, AgentFlag.INSIDE_VEHICLE], np.uint8)
+    length = msg.agents.length.copy()
+    length[1:3] = 12.0  # trucks
+    vtypes = [VType("car", "passenger"), VType("lorry", "truck")]
+    with caplog.at_level(logging.WARNING, logger="physics_side.fleet"):
+        _run_step(f, replace(_with(msg, cls=cls, vtype=vtype, flags=flags, length=length), vtypes=vtypes))
+        _run_step(f, replace(_with(circle_traffic(6, 1), cls=cls, vtype=vtype, flags=flags, length=length),
+                             vtypes=vtypes))
+    warnings = [r for r in caplog.records if "truck" in r.getMessage()]
+    assert len(warnings) == 1  # one warning per unknown vClass, not per agent or step
+    snap = f.snapshot()
+    assert snap.ids == ["veh0", "veh1", "veh2", "veh3", "veh4"]  # the rider is not simulated
+    assert list(snap.mode) == [AgentMode.EXTERNAL, AgentMode.PHYSICAL, AgentMode.PHYSICAL, AgentMode.KINEMATIC,
+                               AgentMode.PHYSICAL]
+    assert list(snap.cls) == list(cls[:5])  # the wire class is reported, not the model's
+    from physics_side import models as M
+
+    kinds = f.world.tables.kind[f.slots]
+    assert list(kinds) == [M.KIND_CAR, M.KIND_CAR, M.KIND_CAR, M.KIND_BIKE, M.KIND_PED]
+    assert f.world.tables.length[f.slots[1]] == 12.0  # truck -> nearest model: the 12 m bus
+    assert f.counters["skipped_inside_vehicle"] == 2
+    counts = f.mode_counts()
+    assert counts == {"physical": 3, "kinematic": 1, "external": 1, "stopping": 0}
+    # external and kinematic agents follow their SUMO pose exactly
+    assert np.abs(snap.err_lon[[0, 3]]).max() < 0.05 and np.abs(snap.err_lat[[0, 3]]).max() < 0.05
+
+
+def test_safe_stop_brakes_every_agent_to_rest_along_its_path():
+    f = _fleet(stop_decel=4.0)
+    for k in range(3):
+        _run_step(f, circle_traffic(3, k))
+    f.begin_stop()
+    assert np.all(f.snapshot().mode == AgentMode.STOPPING)
+    v = []
+    for _ in range(int(4.0 / f.dt)):
+        f.tick()
+        v.append(f.snapshot().speed.copy())
+    v = np.array(v)
+    assert np.all(np.abs(v[-1]) < 0.05)
+    t_stop = np.argmax(v[:, 0] < 0.1) * f.dt
+    assert t_stop == pytest.approx(10.0 / 4.0, abs=0.4)  # 10 m/s at 4 m/s^2
+    # still on the circle (lateral error small) and upright
+    assert np.abs(f.snapshot().err_lat).max() < 0.3
+
+
+def test_many_spawns_grow_the_pools_and_spread_over_shards():
+    f = _fleet(shards=2, initial_slots={"passenger": 4}, pool_chunk=8)
+    _run_step(f, circle_traffic(4, 0))
+    before = f.snapshot()
+    _run_step(f, circle_traffic(40, 1))  # 36 new cars: the pool grows once
+    assert f.world.counters["pool_grows"] == 1
+    loads = np.bincount(f.world.tables.shard[f.world.live], minlength=2)
+    assert loads.sum() == 40 and abs(loads[0] - loads[1]) <= 8
+    snap = f.snapshot()
+    assert np.abs(snap.err_lon).max() < 0.05 and np.abs(snap.err_lat).max() < 0.05
+    assert f.world.counters["placements"] == 40  # the first four kept driving through the recompile
+    assert before.ids == snap.ids[:4]
