@@ -162,9 +162,20 @@ def read_net_location(net_file: Path) -> NetLocation:
     return NetLocation((0.0, 0.0), "!")
 
 
+def _junction_shape(api, junction_id: str) -> np.ndarray:
+    if junction_id.startswith(":"):
+        # Internal junctions have no outline (and TraCI cannot even parse their empty shape).
+        return np.zeros((0, 2), np.float32)
+    try:
+        return np.array(api.junction.getShape(junction_id), np.float32).reshape(-1, 2)
+    except Exception as e:  # a shape SUMO cannot serialise: leave it out, keep the id
+        log.debug("junction %s: no shape (%s)", junction_id, e)
+        return np.zeros((0, 2), np.float32)
+
+
 def junction_table(api) -> JunctionTable:
     ids = list(api.junction.getIDList())
-    shapes = [np.array(api.junction.getShape(j), np.float32).reshape(-1, 2) for j in ids]
+    shapes = [_junction_shape(api, j) for j in ids]
     counts = np.array([len(s) for s in shapes], np.int64)
     off = np.zeros(len(ids) + 1, np.uint32)
     np.cumsum(counts, out=off[1:])
