@@ -77,6 +77,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")
 
+    p = sub.add_parser("view", help="live top-down view of a run in the browser")
+    _add_common(p)
+    p.add_argument("--host", help="address to serve the page on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="TCP port of the page and its WebSocket (default 8765)")
+    p.add_argument("--max-hz", dest="max_hz", type=float, help="frames per second to each browser at most")
+
     p = sub.add_parser("router", help="a Zenoh router (Python session in router mode)")
     p.add_argument("--listen", action="append", default=None)
     p.add_argument("--quiet", action="store_true")
@@ -106,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
             from sumoco.record import record_cli as cli_main
         elif args.cmd == "report":
             from sumoco.report import cli_main
+        elif args.cmd == "view":
+            from sumoco.viewer.server import cli_main
         elif args.cmd == "router":
             from sumoco.router import cli_main
         else:  # pragma: no cover - argparse enforces the choices

@@ -1,0 +1,551 @@
+"""``sumoco view``: a live top-down viewer of a run in the browser.
+
+One process, three parts:
+
+- ``ZenohFeed`` subscribes to the SUMO step key and to every physics instance's state
+  key and keeps only the **newest** payload per key (``LatestStore``). It fetches the
+  static data with one query at start-up, again whenever a SUMO liveliness token
+  appears (SUMO (re)started) and when steps arrive but no static data is known yet.
+- ``ViewerServer`` serves the page (``static/``) over plain HTTP and a WebSocket on
+  ``/ws`` from the same port (websockets' ``process_request`` answers the non-upgrade
+  GETs), on 127.0.0.1 by default.
+- Each browser gets a ``Mailbox``: a frame is built at most ``max_hz`` times a second from
+  the newest step + newest physics state per instance and *replaces* whatever frame the
+  client has not taken yet. A slow browser therefore skips frames; nothing queues up.
+
+WebSocket messages (server -> page), each one msgpack map (binary WebSocket frame).
+Protocol messages are forwarded **as their raw msgpack bytes** inside a ``bin`` so the
+server never decodes the hot path; the page decodes them with its own msgpack reader:
+
+- ``{"type": "hello", "run", "root", "max_hz"}`` once on connect;
+- ``{"type": "static", "static": bin}``: the static-data message (SPEC 3.2), on connect
+  when known and again when it changes;
+- ``{"type": "frame", "seq": int, "wall": float [s, server clock], "sumo_alive": bool|nil,
+  "step": bin|nil (SPEC 3.1), "physics": {instance: bin (SPEC 3.3)}}``.
+
+``GET /status`` returns JSON counters (clients, frames built/sent/dropped, static known),
+for tests and for checking a deployment with curl.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import json
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import msgpack
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+
+from protocol.codec import decode_as
+from protocol.errors import ProtocolError
+from protocol.keys import Keys
+from protocol.messages import StaticData
+
+log = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+_CONTENT_TYPES = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".css": "text/css; charset=utf-8",
+}
+
+
+@dataclass(frozen=True)
+class ViewerConfig:
+    """``[viewer]`` table of a run config."""
+
+    host: str = "127.0.0.1"  # HTTP/WebSocket bind address (keep it on loopback)
+    port: int = 8765  # TCP port of the page and the WebSocket (0 = any free port)
+    max_hz: float = 15.0  # [Hz] at most this many frames per second to each browser
+    stale_s: float = 5.0  # [s] forget a physics instance that has been silent this long
+    static_timeout_s: float = 2.0  # [s] wait per static-data query
+    static_attempts: int = 10  # queries per fetch round before waiting for a SUMO token
+
+    def validate(self) -> None:
+        from protocol.errors import ConfigError
+
+        if not 0 <= self.port <= 65535:
+            raise ConfigError(f"viewer.port: expected 0..65535, got {self.port}")
+        if not 0.5 <= self.max_hz <= 120:
+            raise ConfigError(f"viewer.max_hz: expected 0.5..120 Hz, got {self.max_hz}")
+        if self.stale_s <= 0 or self.static_timeout_s <= 0 or self.static_attempts < 1:
+            raise ConfigError("viewer: stale_s and static_timeout_s must be > 0, static_attempts >= 1")
+
+
+# --------------------------------------------------------------------------- newest-only state
+
+
+class LatestStore:
+    """Newest payload per key, written from Zenoh's threads, read by the asyncio loop.
+
+    Only references are swapped under the lock: a callback never waits for the loop.
+    ``version`` increases on every change, so the broadcaster can tell "nothing new".
+    """
+
+    def __init__(self, stale_s: float = 5.0) -> None:
+        self._lock = threading.Lock()
+        self.stale_s = stale_s
+        self.step: bytes | None = None
+        self.physics: dict[str, tuple[bytes, float]] = {}  # instance -> (payload, rx monotonic)
+        self.static: bytes | None = None
+        self.sumo_alive: bool | None = None  # None: no liveliness information yet
+        self.version = 0
+        self.static_version = 0
+        self.steps_received = 0
+        self.physics_received = 0
+        self._listeners: list[Callable[[], None]] = []
+
+    def add_listener(self, fn: Callable[[], None]) -> None:
+        """``fn()`` is called (from any thread) after every change."""
+        self._listeners.append(fn)
+
+    def _changed(self) -> None:
+        for fn in self._listeners:
+            fn()
+
+    def put_step(self, payload: bytes) -> None:
+        with self._lock:
+            self.step = payload
+            self.steps_received += 1
+            self.version += 1
+        self._changed()
+
+    def put_physics(self, instance: str, payload: bytes) -> None:
+        with self._lock:
+            self.physics[instance] = (payload, time.monotonic())
+            self.physics_received += 1
+            self.version += 1
+        self._changed()
+
+    def drop_physics(self, instance: str) -> None:
+        with self._lock:
+            if self.physics.pop(instance, None) is None:
+                return
+            self.version += 1
+        self._changed()
+
+    def put_static(self, payload: bytes) -> None:
+        with self._lock:
+            if payload == self.static:
+                return
+            self.static = payload
+            self.static_version += 1
+            self.version += 1
+        self._changed()
+
+    def set_sumo_alive(self, alive: bool) -> None:
+        with self._lock:
+            if self.sumo_alive == alive:
+                return
+            self.sumo_alive = alive
+            self.version += 1
+        self._changed()
+
+    def snapshot(self) -> tuple[int, bytes | None, dict[str, bytes], bool | None]:
+        """(version, newest step, newest state per live physics instance, SUMO alive)."""
+        now = time.monotonic()
+        with self._lock:
+            stale = [k for k, (_, t) in self.physics.items() if now - t > self.stale_s]
+            for k in stale:  # a silent instance (killed without its token going) fades out
+                del self.physics[k]
+            if stale:
+                self.version += 1
+            return (self.version, self.step,
+                    {k: p for k, (p, _) in sorted(self.physics.items())}, self.sumo_alive)
+
+
+class Mailbox:
+    """Per-client outbox holding at most ONE pending frame (and one pending static).
+
+    ``put_frame`` replaces an untaken frame (counted in ``dropped``), so a browser that
+    cannot keep up sees the newest frame next and never a backlog. Static data has its own
+    slot and is taken first, so it is never lost behind frames. Used on the event loop only.
+    """
+
+    def __init__(self) -> None:
+        self._frame: bytes | None = None
+        self._static: bytes | None = None
+        self._event = asyncio.Event()
+        self.offered = 0
+        self.dropped = 0
+        self.taken = 0
+        self.max_pending = 0
+
+    @property
+    def pending(self) -> int:
+        return (self._frame is not None) + (self._static is not None)
+
+    def put_frame(self, frame: bytes) -> None:
+        self.offered += 1
+        if self._frame is not None:
+            self.dropped += 1
+        self._frame = frame
+        self.max_pending = max(self.max_pending, self.pending)
+        self._event.set()
+
+    def put_static(self, data: bytes) -> None:
+        self._static = data
+        self._event.set()
+
+    async def get(self) -> bytes:
+        """Wait for the next message: pending static data first, then the newest frame."""
+        while True:
+            if self._static is not None:
+                out, self._static = self._static, None
+                return out
+            if self._frame is not None:
+                out, self._frame = self._frame, None
+                self.taken += 1
+                return out
+            self._event.clear()
+            await self._event.wait()
+
+
+def pack_frame(seq: int, step: bytes | None, physics: dict[str, bytes],
+               sumo_alive: bool | None) -> bytes:
+    return msgpack.packb({"type": "frame", "seq": seq, "wall": time.time(),
+                          "sumo_alive": sumo_alive, "step": step, "physics": physics},
+                         use_bin_type=True)
+
+
+def pack_static(static: bytes) -> bytes:
+    return msgpack.packb({"type": "static", "static": static}, use_bin_type=True)
+
+
+# --------------------------------------------------------------------------- HTTP + WebSocket
+
+
+class ViewerServer:
+    """Serves the page and feeds every connected browser from a ``LatestStore``."""
+
+    def __init__(self, cfg: ViewerConfig, store: LatestStore, run: str = "", root: str = "") -> None:
+        self.cfg, self.store, self.run_id, self.root = cfg, store, run, root
+        self.clients: set[Mailbox] = set()
+        self.frames_built = 0
+        self.frames_sent = 0
+        self.clients_total = 0
+        self.port: int | None = None
+        self._wake: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._files = {
+            "/" + p.name: (p.read_bytes(), _CONTENT_TYPES.get(p.suffix, "application/octet-stream"))
+            for p in STATIC_DIR.iterdir() if p.is_file()
+        }
+        self._files["/"] = self._files["/index.html"]
+
+    # -- called from Zenoh threads through the store
+    def _notify(self) -> None:
+        loop, wake = self._loop, self._wake
+        if loop is not None and wake is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(wake.set)
+            except RuntimeError:  # loop closing during shutdown
+                pass
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "run": self.run_id,
+            "clients": len(self.clients),
+            "clients_total": self.clients_total,
+            "frames_built": self.frames_built,
+            "frames_sent": self.frames_sent,
+            "frames_dropped": sum(c.dropped for c in self.clients),
+            "max_pending": max((c.max_pending for c in self.clients), default=0),
+            "static": self.store.static is not None,
+            "steps_received": self.store.steps_received,
+            "physics_received": self.store.physics_received,
+            "physics_instances": sorted(self.store.physics),
+            "sumo_alive": self.store.sumo_alive,
+        }
+
+    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        path = request.path.split("?", 1)[0]
+        if path == "/ws":
+            return None  # go on with the WebSocket handshake
+        if path == "/status":
+            return _response(200, json.dumps(self.status()).encode(), "application/json")
+        if path == "/favicon.ico":
+            return _response(204, b"", "text/plain")
+        hit = self._files.get(path)
+        if hit is None:
+            return _response(404, f"not found: {path}\n".encode(), "text/plain; charset=utf-8")
+        return _response(200, hit[0], hit[1])
+
+    async def _handler(self, ws: ServerConnection) -> None:
+        box = Mailbox()
+        peer = ws.remote_address
+        await ws.send(msgpack.packb({"type": "hello", "run": self.run_id, "root": self.root,
+                                     "max_hz": self.cfg.max_hz}, use_bin_type=True))
+        if self.store.static is not None:
+            box.put_static(pack_static(self.store.static))
+        self.clients.add(box)
+        self.clients_total += 1
+        log.info("browser connected from %s (%d connected)", peer, len(self.clients))
+        self._wake_now()  # give the newcomer the current frame without waiting for new data
+        sender = asyncio.create_task(self._send_loop(ws, box))
+        try:
+            async for _ in ws:  # the page sends nothing we need; this waits for the close
+                pass
+        except ConnectionClosed:
+            pass
+        finally:
+            self.clients.discard(box)
+            sender.cancel()
+            log.info("browser %s left after %d frames (%d dropped as it lagged)",
+                     peer, box.taken, box.dropped)
+
+    async def _send_loop(self, ws: ServerConnection, box: Mailbox) -> None:
+        try:
+            while True:
+                msg = await box.get()
+                # send() waits while the socket buffer is full (write_limit): meanwhile newer
+                # frames replace the pending one in the mailbox instead of queueing.
+                await ws.send(msg)
+                self.frames_sent += 1
+        except (ConnectionClosed, asyncio.CancelledError):
+            pass
+
+    def _wake_now(self) -> None:
+        self._last_version = -1
+        if self._wake is not None:
+            self._wake.set()
+
+    async def _broadcast_loop(self) -> None:
+        assert self._wake is not None
+        period = 1.0 / self.cfg.max_hz
+        self._last_version = -1
+        static_version = self.store.static_version
+        seq = 0
+        last = 0.0
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            # Rate limit: at most one frame per period; data arriving meanwhile is merged.
+            delay = last + period - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+                self._wake.clear()
+            last = time.monotonic()
+            if self.store.static_version != static_version and self.store.static is not None:
+                static_version = self.store.static_version
+                msg = pack_static(self.store.static)
+                for box in self.clients:
+                    box.put_static(msg)
+            version, step, physics, alive = self.store.snapshot()
+            if version == self._last_version or not self.clients:
+                continue
+            if step is None and not physics:
+                continue
+            self._last_version = version
+            seq += 1
+            frame = pack_frame(seq, step, physics, alive)
+            self.frames_built += 1
+            for box in self.clients:
+                box.put_frame(frame)
+
+    async def run(self, stop: asyncio.Event, ready: Callable[[int], None] | None = None) -> None:
+        """Serve until ``stop`` is set; ``ready(port)`` is called once listening."""
+        self._loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        self.store.add_listener(self._notify)
+        async with serve(self._handler, self.cfg.host, self.cfg.port,
+                         process_request=self._process_request,
+                         compression=None,  # binary columns barely compress; save the CPU
+                         max_size=1 << 16,  # the page only ever sends tiny messages
+                         ping_interval=20, ping_timeout=20) as server:
+            self.port = next(iter(server.sockets)).getsockname()[1]
+            log.info("viewer for run %r at http://%s:%d/", self.run_id, _url_host(self.cfg.host), self.port)
+            if ready is not None:
+                ready(self.port)
+            bcast = asyncio.create_task(self._broadcast_loop())
+            try:
+                await stop.wait()
+            finally:
+                bcast.cancel()
+
+
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+
+
+def _response(status: int, body: bytes, content_type: str) -> Response:
+    reason = {200: "OK", 204: "No Content", 404: "Not Found"}.get(status, "")
+    headers = Headers([("Content-Type", content_type), ("Content-Length", str(len(body))),
+                       ("Cache-Control", "no-cache"), ("Connection", "close")])
+    return Response(status, reason, headers, body)
+
+
+# --------------------------------------------------------------------------- Zenoh side
+
+
+class ZenohFeed:
+    """Fills a ``LatestStore`` from a Zenoh session (callbacks keep only the newest)."""
+
+    def __init__(self, session: Any, keys: Keys, store: LatestStore, cfg: ViewerConfig) -> None:
+        self.session, self.keys, self.store, self.cfg = session, keys, store, cfg
+        self._want_static = threading.Event()
+        self._stop = threading.Event()
+        self._last_step_idx: int | None = None
+        self._last_static_ask = 0.0
+        self._handles: list[Any] = []
+        self._thread = threading.Thread(target=self._static_worker, name="viewer-static", daemon=True)
+
+    def start(self) -> "ZenohFeed":
+        s, k = self.session, self.keys
+        self._handles = [
+            s.declare_subscriber(k.step, self._on_step),
+            s.declare_subscriber(k.physics_state_all, self._on_physics),
+            s.liveliness().declare_subscriber(k.sumo_alive, self._on_sumo_token, history=True),
+            s.liveliness().declare_subscriber(k.physics_alive_all, self._on_physics_token, history=True),
+        ]
+        self._want_static.set()
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._want_static.set()
+        for h in self._handles:
+            try:
+                h.undeclare()
+            except Exception:  # session may already be closing
+                pass
+        self._thread.join(timeout=self.cfg.static_timeout_s + 1.0)
+
+    # Zenoh callbacks: keep them to a reference swap, never block Zenoh's thread.
+    def _on_step(self, sample: Any) -> None:
+        payload = sample.payload.to_bytes()
+        self.store.put_step(payload)
+        if self.store.static is None and time.monotonic() - self._last_static_ask > 2.0:
+            self._ask_static()  # steps flow but we missed the static data: ask again
+
+    def _on_physics(self, sample: Any) -> None:
+        inst = Keys.instance_of(str(sample.key_expr))
+        if inst:
+            self.store.put_physics(inst, sample.payload.to_bytes())
+
+    def _on_sumo_token(self, sample: Any) -> None:
+        import zenoh
+
+        alive = sample.kind == zenoh.SampleKind.PUT
+        self.store.set_sumo_alive(alive)
+        if alive:
+            log.info("SUMO side is up: fetching static data")
+            self._ask_static()
+        else:
+            log.info("SUMO side left")
+
+    def _on_physics_token(self, sample: Any) -> None:
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.DELETE:
+            inst = Keys.instance_of(str(sample.key_expr))
+            log.info("physics instance %r left", inst)
+            self.store.drop_physics(inst)
+
+    def _ask_static(self) -> None:
+        self._last_static_ask = time.monotonic()
+        self._want_static.set()
+
+    def _query_static(self) -> bytes | None:
+        for reply in self.session.get(self.keys.static, timeout=self.cfg.static_timeout_s):
+            if reply.ok is None:
+                continue
+            data = reply.ok.payload.to_bytes()
+            try:  # validate once here so a broken reply is reported in our log, not the page's
+                decode_as(data, StaticData)
+            except ProtocolError as e:
+                log.warning("ignoring invalid static data: %s", e)
+                continue
+            return data
+        return None
+
+    def _static_worker(self) -> None:
+        while not self._stop.is_set():
+            if not self._want_static.wait(timeout=1.0):
+                continue
+            self._want_static.clear()
+            for attempt in range(1, self.cfg.static_attempts + 1):
+                if self._stop.is_set():
+                    return
+                try:
+                    data = self._query_static()
+                except Exception as e:  # zenoh raises on a closing session
+                    log.debug("static query failed: %s", e)
+                    data = None
+                if data is not None:
+                    fresh = data != self.store.static
+                    self.store.put_static(data)
+                    if fresh:
+                        log.info("static data received (%d bytes, attempt %d)", len(data), attempt)
+                    break
+                if self._stop.wait(min(0.2 * attempt, 1.0)):
+                    return
+            else:
+                log.warning("no static data on %s after %d queries; drawing agents without the "
+                            "network until the SUMO side (re)appears", self.keys.static,
+                            self.cfg.static_attempts)
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def load_config(args: Any) -> tuple[Any, ViewerConfig]:
+    """Common config + ``[viewer]`` table, with the command-line overrides applied."""
+    from sumoco.config import CommonConfig, apply_cli, load_common, replace, section
+
+    if getattr(args, "config", None):
+        common, data, base = load_common(args.config)
+        vcfg = section(data, "viewer", ViewerConfig, base, str(args.config))
+    else:
+        common, vcfg = CommonConfig(), ViewerConfig()
+    common = apply_cli(common, args)
+    changes = {k: getattr(args, a) for k, a in (("host", "host"), ("port", "port"), ("max_hz", "max_hz"))
+               if getattr(args, a, None) is not None}
+    if changes:
+        vcfg = replace(vcfg, **changes)
+        vcfg.validate()
+    return common, vcfg
+
+
+def cli_main(args: Any) -> int:
+    from sumoco.transport import open_session
+
+    common, vcfg = load_config(args)
+    if not logging.getLogger().isEnabledFor(logging.DEBUG):
+        logging.getLogger("websockets").setLevel(logging.WARNING)  # one line per page GET is noise
+    try:
+        if not ipaddress.ip_address(vcfg.host).is_loopback:
+            log.warning("viewer bound to %s: it is reachable from other machines", vcfg.host)
+    except ValueError:
+        pass
+    keys = Keys(common.zenoh.root, common.run.id)
+    store = LatestStore(vcfg.stale_s)
+    server = ViewerServer(vcfg, store, run=common.run.id, root=common.zenoh.root)
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        await server.run(stop)
+
+    with open_session(common.zenoh) as session:
+        feed = ZenohFeed(session, keys, store, vcfg).start()
+        try:
+            asyncio.run(main())
+        finally:
+            feed.stop()
+    log.info("viewer stopped (%d frames sent)", server.frames_sent)
+    return 0
