@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import zenoh
 
 from protocol.codec import decode, encode
@@ -260,7 +259,7 @@ class SumoDaemon:
 
     def run(self) -> int:
         """Run until done or stopped; returns the process exit code (0)."""
-        keys, cfg, run = self.keys, self.cfg, self.run_cfg
+        keys, run = self.keys, self.run_cfg
         lockstep = run.timing == "lockstep"
         session = self.session
         queryable = session.declare_queryable(keys.static, self._on_static_query)

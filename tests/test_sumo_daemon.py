@@ -53,7 +53,9 @@ class SumoProcess:
             return self.proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.kill()
-            raise AssertionError(f"sumoco sumo did not exit within {timeout} s:\n{self.output()[-3000:]}")
+            raise AssertionError(
+                f"sumoco sumo did not exit within {timeout} s:\n{self.output()[-3000:]}"
+            ) from None
 
     def kill(self) -> None:
         if self.proc.poll() is None:
@@ -92,9 +94,9 @@ def next_step(q: queue.Queue, proc: SumoProcess, timeout: float = 20.0) -> StepM
             return decode(q.get(timeout=0.2))
         except queue.Empty:
             if proc.proc.poll() is not None:
-                raise AssertionError(f"daemon exited ({proc.proc.returncode}):\n{proc.output()[-3000:]}")
+                raise AssertionError(f"daemon exited ({proc.proc.returncode}):\n{proc.output()[-3000:]}") from None
             if time.monotonic() > deadline:
-                raise AssertionError(f"no step message within {timeout} s:\n{proc.output()[-3000:]}")
+                raise AssertionError(f"no step message within {timeout} s:\n{proc.output()[-3000:]}") from None
 
 
 def test_loopback_steps_static_ego_and_malformed(tmp_path, scenario, procs):

@@ -9,7 +9,6 @@ in their own module.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
