@@ -420,6 +420,8 @@ def load_configs(args) -> tuple[CommonConfig, SumoConfig]:
         scfg = replace(scfg, sumocfg=Path(args.sumocfg).expanduser().resolve())
     if getattr(args, "gui", False):
         scfg = replace(scfg, gui=True)
+    if getattr(args, "wait_for", None):
+        scfg = replace(scfg, lockstep_instances=tuple(args.wait_for))
     if scfg.sumocfg is None:
         where = f"{args.config}: " if getattr(args, "config", None) else ""
         raise ConfigError(f"{where}no SUMO scenario: set [sumo] sumocfg or pass --sumocfg PATH")
