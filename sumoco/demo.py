@@ -19,6 +19,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import zenoh
+
 from protocol.keys import Keys
 from sumoco.config import CommonConfig, ZenohConfig, apply_cli, load_common, replace, section
 from sumoco.record import LiveRecorder, McapRecorder
@@ -142,7 +144,7 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
             live = LiveRecorder(session, keys, recorder, on_message=progress).start()
             alive = set()
             tok_sub = session.liveliness().declare_subscriber(
-                f"{keys.base}/**", lambda s: (alive.add(str(s.key_expr)) if s.kind.name == "PUT"
+                f"{keys.base}/**", lambda s: (alive.add(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT
                                                else alive.discard(str(s.key_expr))),
                 history=True)
             common_args = ["--config", str(config_path), "--run", common.run.id,
@@ -173,7 +175,7 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
             while procs.procs["sumo"].poll() is None:
                 now = time.monotonic()
                 for name, p in procs.procs.items():
-                    if name != "sumo" and p.poll() is not None:
+                    if name != "sumo" and p.poll() not in (None, 0):
                         raise RuntimeError(f"{name} exited with code {p.returncode}; see {procs.log_dir / (name + '.log')}")
                 if now - t_run > demo.wall_limit_s:
                     log.info("wall-clock limit reached; stopping")
