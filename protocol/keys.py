@@ -5,6 +5,7 @@
 | <root>/<run>/sumo/step      | SUMO side         | StepMessage, one per SUMO step        |
 | <root>/<run>/sumo/static    | SUMO side (query) | StaticData, answered to `get`         |
 | <root>/<run>/sumo/alive     | SUMO side         | liveliness token                      |
+| <root>/<run>/sumo/status    | SUMO side (query) | counters (steps, rejected, ego drift) |
 | <root>/<run>/physics/<inst>/state | physics side | PhysicsState, per control tick     |
 | <root>/<run>/physics/<inst>/ack   | physics side | StepAck (lockstep)                 |
 | <root>/<run>/physics/<inst>/alive | physics side | liveliness token                   |
@@ -59,6 +60,10 @@ class Keys:
     @property
     def static(self) -> str:
         return f"{self.base}/sumo/static"
+
+    @property
+    def sumo_status(self) -> str:
+        return f"{self.base}/sumo/status"
 
     @property
     def sumo_alive(self) -> str:

@@ -30,12 +30,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import msgpack
 import zenoh
 
 from protocol.codec import decode, encode
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
-from protocol.messages import EgoPose, StepAck
+from protocol.messages import SCHEMA_VERSION, EgoPose, StepAck
 from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.ego import EgoManager
@@ -152,6 +153,14 @@ class SumoDaemon:
         except Exception as e:  # the querier may be gone already
             log.debug("static reply failed: %s", e)
 
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        # Counters for tests and operators (SPEC.md 3.6); read on Zenoh's thread, so copy.
+        try:
+            doc = {"v": list(SCHEMA_VERSION), "kind": "status", "counters": dict(self.stats())}
+            query.reply(self.keys.sumo_status, msgpack.packb(doc, use_bin_type=True))
+        except Exception as e:  # the querier may be gone, or a dict changed size mid-copy
+            log.debug("status reply failed: %s", e)
+
     def _on_ack(self, sample: zenoh.Sample) -> None:
         self._acks.put((str(sample.key_expr), sample.payload.to_bytes()))
 
@@ -263,6 +272,7 @@ class SumoDaemon:
         lockstep = run.timing == "lockstep"
         session = self.session
         queryable = session.declare_queryable(keys.static, self._on_static_query)
+        status_q = session.declare_queryable(keys.sumo_status, self._on_status_query)
         token = session.liveliness().declare_token(keys.sumo_alive)
         publisher = session.declare_publisher(
             keys.step,
@@ -288,7 +298,8 @@ class SumoDaemon:
         finally:
             for what, obj in (("ego subscriber", ego_sub), ("ack subscriber", ack_sub),
                               ("liveliness subscriber", alive_sub),
-                              ("publisher", publisher), ("queryable", queryable), ("token", token)):
+                              ("publisher", publisher), ("queryable", queryable),
+                              ("status queryable", status_q), ("token", token)):
                 if obj is None:
                     continue
                 try:
