@@ -31,6 +31,8 @@ class PhysicsConfig:
     presets: dict[str, str] = field(default_factory=dict)  # per type, e.g. {pedestrian="kinematic"}
     all_wheel_drive: tuple[str, ...] = ()  # car-like types driven on all four wheels
     divergence_m: float = 6.0  # [m] front-bumper distance to the SUMO pose that forces a placement
+    sideways_jump_m: float = 1.0  # [m] a slow agent whose SUMO pose moves sideways more than this in one step is placed (0 = off)
+    sideways_jump_speed: float = 5.0  # [m/s] "slow" for sideways_jump_m (SUMO's instant lane changes in queues)
     flip_deg: float = 60.0  # [deg] |roll| or |pitch| beyond which an agent is placed upright again
     max_extrapolation_s: float = 0.3  # [s] reference extrapolation limit past the newest SUMO step
     stop_decel: float = 3.0  # [m/s^2] deceleration of the safe stop when the SUMO side is gone
@@ -113,6 +115,7 @@ class DefaultControl:
     lateral: Literal["stanley", "pursuit"] = "stanley"  # front-bumper Stanley or front-axle pure pursuit
     k_cross: float = 4.0  # [1/s] Stanley cross-track gain: bumper heading correction atan(k e / v)
     v_soft: float = 1.0  # [m/s] Stanley low-speed softening
+    max_correction_deg: float = 15.0  # [deg] cross-track correction limit (angle of approach to the path)
     preview_s: float = 0.0  # [s] path heading/curvature taken this far ahead (steering servo lag)
     k_yaw: float = 0.05  # [s] yaw-rate damping: steer -= k_yaw * (r - r_ref) (rad per rad/s)
     lad_min: float = 4.0  # [m] pure pursuit: minimum look-ahead distance (lateral = "pursuit")

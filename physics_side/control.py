@@ -75,7 +75,7 @@ def pedal_to_torques(u: np.ndarray, max_drive: np.ndarray, max_brake: np.ndarray
 
 def stanley_bumper(
     heading_err: np.ndarray, e_lat: np.ndarray, v: np.ndarray, k: float, v_soft: float,
-    d_bumper: np.ndarray, wheelbase: np.ndarray,
+    d_bumper: np.ndarray, wheelbase: np.ndarray, max_correction: float | None = None,
 ) -> np.ndarray:
     """Stanley's law for a guide point ``d_bumper`` ahead of the rear axle (the front bumper).
 
@@ -83,9 +83,15 @@ def stanley_bumper(
     beta = atan(d * tan(delta) / L). Stanley asks for beta = -heading_err - atan(k e / v),
     with heading_err = vehicle yaw - path heading and e the lateral offset (+ left); so
     tan(delta) = L * tan(beta) / d. With d = L it is the classic front-axle Stanley.
+    ``max_correction`` [rad] saturates the cross-track term smoothly (tanh): a large
+    offset (SUMO's instantaneous lane change, a standing start beside the path) is
+    closed at a bounded angle to the path instead of at full lock.
     Returns the road-wheel angle [rad] (unclipped).
     """
-    beta = -heading_err - np.arctan2(k * e_lat, np.abs(v) + v_soft)
+    corr = np.arctan2(k * e_lat, np.abs(v) + v_soft)
+    if max_correction:
+        corr = max_correction * np.tanh(corr / max_correction)
+    beta = -heading_err - corr
     beta = np.clip(beta, -1.2, 1.2)
     return np.arctan(wheelbase * np.tan(beta) / d_bumper)
 
@@ -303,7 +309,8 @@ def control_default(
         # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
         # leads the body by beta_ss = asin(kappa * d) in a steady turn
         heading_err = wrap_pi(obs.yaw - ahead.heading)
-        steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase)
+        steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase,
+                               np.radians(cfg.max_correction_deg))
         if cfg.k_yaw:
             r_ref = obs.speed * ahead.curvature
             steer = steer - cfg.k_yaw * (obs.yaw_rate - r_ref)

@@ -61,6 +61,11 @@ PARK_SPACING = 25.0  # [m] > the longest bucket (18 m bus)
 PARK_ROW = 200  # slots per parking row
 
 GROUND_FRICTION = (1.0, 0.005, 0.0001)  # sliding, torsional, rolling
+# Agent bodies (chassis, frames, pedestrians) touch softly: a time constant of 0.1 s
+# instead of 0.02 s, so an overlap (a placement next to a lagging neighbour, a crash)
+# pushes the agents apart at a few m/s^2 instead of exploding; wheels keep the stiff
+# default against the ground.
+BODY_CONTACT = dict(solref=[0.1, 1.0], solimp=[0.9, 0.95, 0.01, 0.5, 2.0])
 
 
 @dataclass(frozen=True)
@@ -268,7 +273,7 @@ def _chassis(b, spec: AgentSpec) -> None:
         name="chassis", type=mujoco.mjtGeom.mjGEOM_BOX,
         size=[spec.length / 2, spec.width / 2, h / 2],
         pos=[0, 0, spec.clearance + h / 2 - r], density=0.0, contype=2, conaffinity=3,
-        condim=3, rgba=[0.6, 0.6, 0.7, 1],
+        condim=3, rgba=[0.6, 0.6, 0.7, 1], **BODY_CONTACT,
     )
     # Explicit inertia: the COM height matters for load transfer and roll-over, and a
     # uniform box would put it too high.
@@ -339,7 +344,7 @@ def ped_template(spec: AgentSpec) -> mujoco.MjSpec:
     b.add_geom(
         name="chassis", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[rad, 0, 0],
         fromto=[0, 0, rad, 0, 0, spec.height - rad], mass=spec.mass, contype=4, conaffinity=2,
-        condim=3, rgba=[0.8, 0.5, 0.3, 1],
+        condim=3, rgba=[0.8, 0.5, 0.3, 1], **BODY_CONTACT,
     )
     for name, j, lim in (("fx", "px", spec.ped_max_force), ("fy", "py", spec.ped_max_force), ("tz", "yaw", 150.0)):
         a = s.add_actuator(name=name, target=j, trntype=mujoco.mjtTrn.mjTRN_JOINT)

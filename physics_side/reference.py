@@ -29,6 +29,7 @@ from protocol.frames import sumo_angle_to_yaw, wrap_pi
 _BIG = 1.0e6  # [m] arc-length gap between agents in the global search key (> any path)
 SYNTH_LENGTH = 60.0  # [m] length of a synthesised path
 SYNTH_STEP = 2.0  # [m] vertex spacing of a synthesised path
+BLEND_M = 2.0  # [m] half-length over which the heading turns at a polyline vertex
 
 
 @dataclass(frozen=True)
@@ -44,10 +45,16 @@ class PathPoint:
 
 
 class PathSet:
-    """n ragged polylines (each >= 2 vertices), evaluated by arc length, vectorised.
+    """n ragged polylines (each >= 2 distinct vertices), evaluated by arc length, vectorised.
 
     Arc length 0 is each polyline's first vertex; queries before 0 or past the end
-    extrapolate along the first / last segment.
+    extrapolate along the first / last segment. Positions lie on the polyline. The
+    heading is the segment's, blended linearly across each vertex over
+    ``b = min(BLEND_M, half of either segment)`` on both sides (a corner becomes a
+    short constant-curvature turn): a finely sampled curve (SUMO's internal junction
+    lanes) gets a continuous heading and its curvature, a long straight lane segment
+    keeps its exact heading up to BLEND_M before its corner. On a finely sampled curve
+    the first and last segments continue their neighbour's turn.
     """
 
     def __init__(self, offsets: np.ndarray, xy: np.ndarray):
@@ -61,65 +68,78 @@ class PathSet:
         self.offsets = offsets
         self.xy = xy
         owner = np.repeat(np.arange(n), counts)
-        seg = xy[1:] - xy[:-1]  # segment j from vertex j to j+1 (invalid across agents)
-        seglen = np.hypot(seg[:, 0], seg[:, 1])
-        last = offsets[1:] - 1  # last vertex of each agent: no segment starts there
-        # segment j joins vertex j and j+1; the one leaving an agent's last vertex joins
-        # two different agents and is invalid
-        valid = np.ones(max(len(xy) - 1, 0), bool)
+        m = max(len(xy) - 1, 0)
+        seg = xy[1:] - xy[:-1]  # segment j joins vertex j and j+1
+        seglen = np.hypot(seg[:, 0], seg[:, 1]) if m else np.zeros(0)
+        last = offsets[1:] - 1  # last vertex of each agent
+        # the segment leaving an agent's last vertex joins two agents: invalid
+        valid = np.ones(m, bool)
         valid[last[:-1]] = False
         seglen = np.where(valid, seglen, 0.0)
-        # Zero-length segments get the direction of their neighbour via a tiny length.
-        seglen_safe = np.maximum(seglen, 1e-9)
-        heading_seg = np.arctan2(seg[:, 1], seg[:, 0]) if len(seg) else np.zeros(0)
-        # cumulative arc length at each vertex, restarting per agent
+        safe = np.maximum(seglen, 1e-9)
+        h = np.arctan2(seg[:, 1], seg[:, 0]) if m else np.zeros(0)
         cum = np.zeros(len(xy))
-        if len(xy) > 1:
+        if m:
             c = np.concatenate(([0.0], np.cumsum(seglen)))
             cum = c - c[offsets[:-1]][owner]
         self.cum = cum
         self.total = cum[last] if n else np.zeros(0)
-        self.owner = owner
         self.key = cum + owner * _BIG
         self.first = offsets[:-1]
         self.last_seg = last - 1
-        self.seglen = seglen_safe
-        self.dir = np.zeros((len(seg), 2))
-        if len(seg):
-            self.dir = seg / seglen_safe[:, None]
-        # Vertex headings: mean of the adjacent segments (first/last: their segment),
-        # so the heading varies continuously along the path.
-        hv = np.zeros(len(xy))
-        if len(seg):
-            hin = np.concatenate(([0.0], heading_seg))  # segment ending at vertex v
-            hout = np.concatenate((heading_seg, [0.0]))  # segment starting at vertex v
-            is_first = np.zeros(len(xy), bool)
-            is_first[offsets[:-1]] = True
-            is_last = np.zeros(len(xy), bool)
-            is_last[last] = True
-            mid = hin + 0.5 * wrap_pi(hout - hin)
-            # end vertices: continue the turn of the neighbouring vertex, so the first and
-            # last segments get their neighbours' curvature instead of half of it
-            hs = heading_seg
-            nxt = np.concatenate((hs[1:], [0.0, 0.0]))  # heading of segment v+1
-            prv = np.concatenate(([0.0, 0.0], hs[:-1]))  # heading of segment v-2
-            first_v = hout - 0.5 * wrap_pi(nxt - hout)
-            last_v = hin + 0.5 * wrap_pi(hin - prv)
-            two = np.diff(offsets) == 2  # one segment: no neighbour to continue
-            single = np.zeros(len(xy), bool)
-            single[offsets[:-1][two]] = True
-            single[last[two]] = True
-            first_v = np.where(single, hout, first_v)
-            last_v = np.where(single, hin, last_v)
-            hv = np.where(is_first, first_v, np.where(is_last, last_v, mid))
-        self.hv = hv
-        # Per-segment rate of heading change [1/m] (curvature), heading interpolated
-        # linearly between the segment's vertex headings.
-        if len(seg):
-            dh = wrap_pi(hv[1:] - hv[:-1])
-            self.kappa = np.where(valid, dh / seglen_safe, 0.0)
-        else:
-            self.kappa = np.zeros(0)
+        self.seglen = safe
+        self.dir = seg / safe[:, None] if m else np.zeros((0, 2))
+        self.h = h
+        # turn at the start vertex of each segment (segment j-1 -> j), 0 at path starts
+        first_seg = np.zeros(m, bool)
+        first_seg[offsets[:-1][counts >= 2]] = True
+        last_seg = np.zeros(m, bool)
+        last_seg[self.last_seg] = True
+        turn = np.zeros(m)
+        half = np.zeros(m)
+        if m > 1:
+            turn[1:] = wrap_pi(h[1:] - h[:-1])
+            half[1:] = np.minimum(seglen[1:], seglen[:-1]) * 0.5
+        turn = np.where(first_seg, 0.0, turn)
+        b_start = np.where(first_seg, 0.0, np.minimum(BLEND_M, half))
+        # turn at the end vertex of each segment = turn at the start of the next one
+        turn_end = np.zeros(m)
+        b_end = np.zeros(m)
+        if m > 1:
+            turn_end[:-1] = turn[1:]
+            b_end[:-1] = b_start[1:]
+        turn_end = np.where(last_seg, 0.0, turn_end)
+        b_end = np.where(last_seg, 0.0, b_end)
+        # sampled curves: the first / last segment continues its neighbour's turn
+        fine = seglen <= 2.0 * BLEND_M
+        if m > 1:
+            nxt_ok = first_seg & ~last_seg & fine & np.concatenate((fine[1:], [False]))
+            idx = np.flatnonzero(nxt_ok)
+            turn[idx] = turn_end[idx] * seglen[idx] / np.maximum(seglen[idx + 1], 1e-9)
+            b_start[idx] = 0.5 * seglen[idx]
+            prv_ok = last_seg & ~first_seg & fine & np.concatenate(([False], fine[:-1]))
+            idx = np.flatnonzero(prv_ok)
+            turn_end[idx] = turn[idx] * seglen[idx] / np.maximum(seglen[idx - 1], 1e-9)
+            b_end[idx] = 0.5 * seglen[idx]
+        self.turn_s, self.b_s = turn, b_start
+        self.turn_e, self.b_e = turn_end, b_end
+
+    @staticmethod
+    def dedup(offsets: np.ndarray, xy: np.ndarray, tol: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+        """Drop vertices within ``tol`` [m] of the previous one of the same polyline
+        (SUMO repeats the junction point where a lane ends and the next begins)."""
+        offsets = np.asarray(offsets, np.int64)
+        xy = np.asarray(xy, np.float64)
+        n = len(offsets) - 1
+        if len(xy) < 2:
+            return offsets, xy
+        d = np.hypot(*(xy[1:] - xy[:-1]).T)
+        keep = np.ones(len(xy), bool)
+        keep[1:] = d >= tol
+        keep[offsets[:-1][np.diff(offsets) > 0]] = True  # every polyline keeps its first vertex
+        owner = np.repeat(np.arange(n), np.diff(offsets))
+        counts = np.bincount(owner[keep], minlength=n)
+        return np.concatenate(([0], np.cumsum(counts))), xy[keep]
 
     @classmethod
     def concat_fallback(
@@ -137,7 +157,7 @@ class PathSet:
             offsets = np.zeros(n + 1, np.int64)
             xy = np.zeros((0, 2))
         else:
-            offsets = np.asarray(offsets, np.int64)
+            offsets, xy = cls.dedup(offsets, xy)
             counts = np.diff(offsets)
         need = counts < 2
         if not need.any():
@@ -177,9 +197,17 @@ class PathSet:
         j = np.clip(j, self.first, self.last_seg)
         t = s - self.cum[j]  # unclipped: extrapolates before 0 / past the end
         p = self.xy[j] + self.dir[j] * t[:, None]
-        tc = np.clip(t, 0.0, self.seglen[j])
-        heading = self.hv[j] + self.kappa[j] * tc
-        return PathPoint(p[:, 0], p[:, 1], wrap_pi(heading), self.kappa[j])
+        L = self.seglen[j]
+        tc = np.clip(t, 0.0, L)
+        bs, be = self.b_s[j], self.b_e[j]
+        ds, de = self.turn_s[j], self.turn_e[j]
+        in_s = tc < bs
+        in_e = tc > L - be
+        with np.errstate(divide="ignore", invalid="ignore"):
+            heading = self.h[j] + np.where(
+                in_s, -ds * (bs - tc) / (2 * bs), np.where(in_e, de * (tc - L + be) / (2 * be), 0.0))
+            kappa = np.where(in_s, ds / (2 * bs), np.where(in_e, de / (2 * be), 0.0))
+        return PathPoint(p[:, 0], p[:, 1], wrap_pi(heading), kappa)
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:

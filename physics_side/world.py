@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 SLEEP_NEVER = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
 SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
 NEIGHBOUR_M = 40.0  # [m] a new agent joins the shard of a live agent this close
+MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
 
@@ -552,6 +553,7 @@ class PhysicsWorld:
         yaw = np.asarray(yaw, np.float64) * np.ones(n)
         speed = np.asarray(speed, np.float64) * np.ones(n)
         kappa = np.zeros(n) if curvature is None else np.asarray(curvature, np.float64) * np.ones(n)
+        kappa = np.clip(kappa, -MAX_PLACE_CURVATURE, MAX_PLACE_CURVATURE)
         kind = t.kind[slots]
         ped = kind == M.KIND_PED
         veh = ~ped
