@@ -196,3 +196,25 @@ def test_reference_held_extrapolated_and_projection():
     assert s_p[0] == pytest.approx(2.0, abs=5e-3) and lat[0] == pytest.approx(0.3, abs=5e-3)
     lon, lat2 = tracking_error(np.array([1.0]), np.array([0.0]), h)  # heading east at the sample
     assert lon[0] == pytest.approx(1.0) and lat2[0] == pytest.approx(0.0)
+
+
+def test_pathset_drops_repeated_vertices_and_keeps_straight_headings():
+    # SUMO repeats the junction point where one lane ends and the next begins
+    xy = np.array([[0.0, 0.0], [-15.0, 0.0], [-15.0, 0.0], [-25.0, 0.0]])
+    off, xy2 = PathSet.dedup(np.array([0, 4]), xy)
+    assert list(off) == [0, 3] and len(xy2) == 3
+    ps = PathSet.concat_fallback(np.array([0, 4]), xy, np.zeros(1), np.zeros(1), np.full(1, np.pi), np.zeros(1))
+    for s in (0.0, 5.0, 14.0, 15.0, 20.0):
+        p = ps.at(np.array([s]))
+        assert abs(abs(p.heading[0]) - np.pi) < 1e-9 and p.curvature[0] == 0.0
+
+
+def test_pathset_long_segments_turn_only_near_the_corner():
+    # 20 m east, then 20 m north: the heading blends over BLEND_M around the corner only
+    from physics_side.reference import BLEND_M
+
+    ps = PathSet(np.array([0, 3]), np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0]]))
+    h = lambda s: ps.at(np.array([s])).heading[0]  # noqa: E731
+    assert h(20.0 - BLEND_M - 0.1) == 0.0 and h(20.0) == pytest.approx(np.pi / 4)
+    assert h(20.0 + BLEND_M + 0.1) == pytest.approx(np.pi / 2)
+    assert ps.at(np.array([19.0])).curvature[0] == pytest.approx(np.pi / 2 / (2 * BLEND_M))

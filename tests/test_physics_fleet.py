@@ -148,3 +148,39 @@ def test_many_spawns_grow_the_pools_and_spread_over_shards():
     assert np.abs(snap.err_lon).max() < 0.05 and np.abs(snap.err_lat).max() < 0.05
     assert f.world.counters["placements"] == 40  # the first four kept driving through the recompile
     assert before.ids == snap.ids[:4]
+
+
+def test_sideways_jumps_slow_agents_are_placed_fast_ones_driven():
+    """SUMO's instantaneous lane change: a queueing car cannot drive 3.2 m sideways, a
+    fast one changes lanes physically over the next seconds."""
+    f = _fleet()
+    slow = lambda k: circle_traffic(1, k, speed=2.0)  # noqa: E731
+    for k in range(3):
+        _run_step(f, slow(k))
+    m = slow(3)
+    a = m.agents
+    yaw = np.radians(90.0 - a.angle[0])
+    left = np.array([-np.sin(yaw), np.cos(yaw)]) * 3.2  # one lane to the left
+    _run_step(f, _with(m, x=a.x + left[0], y=a.y + left[1], path_xy=a.path_xy + left.astype(np.float32)))
+    assert f.counters["placements_jump"] == 1
+    assert abs(f.snapshot().err_lat[0]) < 0.05
+
+    f = _fleet()
+    for k in range(3):
+        _run_step(f, circle_traffic(1, k, speed=12.0))
+    m = circle_traffic(1, 3, speed=12.0)
+    a = m.agents
+    yaw = np.radians(90.0 - a.angle[0])
+    left = np.array([-np.sin(yaw), np.cos(yaw)]) * 3.2
+    shifted = lambda m: _with(m, x=m.agents.x + left[0], y=m.agents.y + left[1],  # noqa: E731
+                              path_xy=m.agents.path_xy + left.astype(np.float32))
+    _run_step(f, shifted(m))
+    assert f.counters["placements_jump"] == 0
+    first = f.snapshot().err_lat[0]
+    assert first < -2.5  # 3.2 m right of the new lane, closing in
+    lat = []
+    for k in range(4, 40):  # the next 3.6 s: the physical car changes lanes
+        _run_step(f, shifted(circle_traffic(1, k, speed=12.0)))
+        lat.append(f.snapshot().err_lat[0])
+    assert abs(lat[-1]) < 0.1 and np.all(np.diff(lat[:10]) > 0)  # closes monotonically at first
+    assert max(lat) < 0.3  # without a big overshoot into the next lane

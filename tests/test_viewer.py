@@ -1,0 +1,476 @@
+"""Live viewer (``sumoco view``): newest-frame-only delivery and the page in a real Chromium.
+
+The browser tests run Debian's chromium + chromedriver through Selenium against a real
+``sumoco view`` subprocess fed by a synthetic run published over loopback Zenoh. They skip
+(with the reason) only when chromium cannot be installed (``.ci/install-browser.sh``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+import msgpack
+import pytest
+
+from protocol.keys import Keys
+from sumoco.config import ZenohConfig
+from sumoco.transport import free_tcp_port, open_session
+from sumoco.viewer.server import LatestStore, Mailbox, ViewerConfig, ViewerServer
+from sumoco.viewer.synthetic import FakePublisher, FakeRun
+
+ROOT = Path(__file__).resolve().parents[1]
+GOLDEN = ROOT / "protocol" / "golden"
+SHOTS = ROOT / "runs" / "viewer"
+CHROMIUM = "/usr/bin/chromium"
+CHROMEDRIVER = "/usr/bin/chromedriver"
+
+
+def wait_for(cond, timeout: float, what: str, interval: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = cond()
+        if v:
+            return v
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+# --------------------------------------------------------------------------- unit: mailbox
+
+
+def test_mailbox_keeps_only_the_newest_frame():
+    async def go():
+        box = Mailbox()
+        for i in range(100):
+            box.put_frame(b"frame%d" % i)
+            assert box.pending <= 1
+        assert box.dropped == 99
+        assert await box.get() == b"frame99"
+        assert box.pending == 0
+        # static data has its own slot and goes first, so frames never push it out
+        box.put_frame(b"f1")
+        box.put_static(b"static")
+        box.put_frame(b"f2")
+        assert await box.get() == b"static"
+        assert await box.get() == b"f2"
+
+    asyncio.run(go())
+
+
+def test_slow_consumer_never_accumulates_more_than_one_pending_frame():
+    async def go():
+        box = Mailbox()
+        got: list[int] = []
+        done = asyncio.Event()
+
+        async def slow_reader():
+            while not done.is_set() or box.pending:
+                msg = await box.get()
+                got.append(int(msg))
+                await asyncio.sleep(0.02)  # 50 Hz reader against a ~1 kHz producer
+
+        reader = asyncio.create_task(slow_reader())
+        for i in range(300):
+            box.put_frame(str(i).encode())
+            assert box.pending <= 1
+            await asyncio.sleep(0.001)
+        done.set()
+        await asyncio.wait_for(reader, 2.0)
+        return box, got
+
+    box, got = asyncio.run(go())
+    assert box.max_pending == 1
+    assert got[-1] == 299  # the newest frame is always delivered
+    assert got == sorted(got)  # in order, older ones skipped
+    assert box.dropped == 300 - len(got) and box.dropped > 100
+
+
+def test_server_drops_frames_for_a_client_that_stops_reading():
+    """A real WebSocket client that stalls: the server skips frames instead of queueing."""
+    from websockets.asyncio.client import connect
+
+    payload_size = 2_000_000  # big enough that the socket buffers fill up quickly
+    n_puts = 40
+
+    async def go():
+        store = LatestStore()
+        cfg = ViewerConfig(port=0, max_hz=100.0)
+        server = ViewerServer(cfg, store, run="unit")
+        stop = asyncio.Event()
+        ready = asyncio.Event()
+        task = asyncio.create_task(server.run(stop, ready=lambda port: ready.set()))
+        await asyncio.wait_for(ready.wait(), 5)
+        async with connect(f"ws://127.0.0.1:{server.port}/ws", max_size=None,
+                           compression=None, max_queue=1) as ws:
+            hello = msgpack.unpackb(await ws.recv())
+            assert hello["type"] == "hello" and hello["run"] == "unit"
+            await asyncio.sleep(0.1)
+            box = next(iter(server.clients))
+            # The client reads nothing while the store changes 40 times, 20 ms apart.
+            for i in range(n_puts):
+                store.put_step(i.to_bytes(4, "little") + bytes(payload_size))
+                await asyncio.sleep(0.02)
+                assert box.pending <= 1
+            await asyncio.sleep(0.2)
+            assert box.max_pending <= 1
+            # Now drain: we get a bounded number of frames and the last is the newest.
+            steps = []
+            while True:
+                try:
+                    msg = await asyncio.wait_for(ws.recv(), 1.0)
+                except asyncio.TimeoutError:
+                    break
+                env = msgpack.unpackb(msg)
+                if env["type"] == "frame":
+                    steps.append(int.from_bytes(env["step"][:4], "little"))
+            stats = server.status()
+        stop.set()
+        await task
+        return box, steps, stats
+
+    box, steps, stats = asyncio.run(go())
+    assert steps and steps[-1] == n_puts - 1
+    assert box.dropped > 0, "a stalled client should have caused dropped frames"
+    assert len(steps) < n_puts
+    assert box.max_pending <= 1
+    assert stats["frames_built"] >= len(steps)
+
+
+# --------------------------------------------------------------------------- Zenoh feed
+
+
+def test_feed_fetches_static_when_sumo_appears_late_and_again_after_a_restart():
+    """Static data arrives although the viewer started first, and is refreshed when the
+    SUMO side comes back (new liveliness token) with a different network."""
+    from protocol.codec import decode_as
+    from protocol.messages import StaticData
+    from sumoco.viewer.server import ZenohFeed
+
+    zport = free_tcp_port()
+    cfg = ViewerConfig(static_timeout_s=0.5, static_attempts=2)
+    store = LatestStore()
+    with open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{zport}",))) as viewer_side:
+        feed = ZenohFeed(viewer_side, Keys("sumoco", "late"), store, cfg).start()
+        try:
+            time.sleep(1.0)  # the feed's first queries find nobody and give up (bounded)
+            assert store.static is None
+            for grid in (1, 2):  # SUMO side starts, stops, starts again with another network
+                with open_session(ZenohConfig(connect=(f"tcp/127.0.0.1:{zport}",))) as sumo_side:
+                    pub = FakePublisher(sumo_side, FakeRun(grid=grid, n=5, run="late"), instances=("main",)).start()
+                    try:
+                        want = len(pub.fake.junctions.ids)
+                        wait_for(lambda: store.static is not None and len(
+                            decode_as(store.static, StaticData).junctions.ids) == want,
+                            10.0, f"static data of the {grid}x{grid} network")
+                        wait_for(lambda: store.steps_received > 0 and "main" in store.physics, 5.0, "live data")
+                        assert store.sumo_alive is True
+                    finally:
+                        pub.stop()
+                wait_for(lambda: store.sumo_alive is False, 5.0, "the SUMO token to go")
+                wait_for(lambda: "main" not in store.physics, 5.0, "the physics instance to be dropped")
+                store.steps_received = 0
+        finally:
+            feed.stop()
+
+
+# --------------------------------------------------------------------------- browser
+
+
+def _ensure_chromium() -> str | None:
+    """None when chromium + chromedriver + selenium are usable, else the reason to skip."""
+    if not (os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER)):
+        script = ROOT / ".ci" / "install-browser.sh"
+        subprocess.run(["bash", str(script)], check=False, timeout=600)
+    if not (os.path.exists(CHROMIUM) and os.path.exists(CHROMEDRIVER)):
+        return f"chromium could not be installed ({CHROMIUM}, {CHROMEDRIVER} missing; see .ci/install-browser.sh)"
+    try:
+        import selenium  # noqa: F401
+    except ImportError:
+        return "selenium is not installed (pip install -e '.[test]')"
+    return None
+
+
+@pytest.fixture(scope="module")
+def browser():
+    reason = _ensure_chromium()
+    if reason:
+        pytest.skip(reason)
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    os.environ.setdefault("SE_OFFLINE", "true")  # never let Selenium Manager download anything
+    profile = tempfile.mkdtemp(prefix="sumoco-chromium-")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+              "--disable-background-networking", "--disable-component-update", "--disable-sync",
+              "--disable-dev-shm-usage", f"--user-data-dir={profile}", "--window-size=1280,860"):
+        opts.add_argument(a)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    driver.set_page_load_timeout(15)
+    driver.set_script_timeout(15)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+class LiveRun:
+    """A synthetic run on loopback Zenoh plus ``sumoco view`` as a real subprocess."""
+
+    def __init__(self, tmp: Path, fake: FakeRun, physics_hz: float = 20.0) -> None:
+        self.fake = fake
+        self.zport = free_tcp_port()
+        self.port = free_tcp_port()
+        self.session = open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{self.zport}",)))
+        self.pub = FakePublisher(self.session, fake, step_hz=10.0, physics_hz=physics_hz).start()
+        cfg = tmp / "view.toml"
+        cfg.write_text(
+            f'[run]\nid = "{fake.run}"\n\n[zenoh]\nconnect = ["tcp/127.0.0.1:{self.zport}"]\n\n'
+            f'[viewer]\nport = {self.port}\nmax_hz = 15.0\n'
+        )
+        self.log_path = tmp / "view.log"
+        self._log = self.log_path.open("wb")
+        self.proc = subprocess.Popen([sys.executable, "-m", "sumoco.cli", "view", "--config", str(cfg)],
+                                     cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
+        self.url = f"http://127.0.0.1:{self.port}/"
+
+    def status(self) -> dict | None:
+        try:
+            with urllib.request.urlopen(self.url + "status", timeout=1.0) as r:
+                return json.loads(r.read())
+        except OSError:
+            return None
+
+    def wait_ready(self, timeout: float = 20.0) -> dict:
+        def ready():
+            if self.proc.poll() is not None:
+                raise AssertionError(f"sumoco view exited with {self.proc.returncode}:\n{self.log()}")
+            st = self.status()
+            return st if st and st["static"] and st["steps_received"] > 0 else None
+
+        return wait_for(ready, timeout, "sumoco view to have static data and steps", 0.1)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=5)
+        self._log.close()
+        self.pub.stop()
+        self.session.close()
+
+
+def _viewer_stats(driver) -> dict:
+    return driver.execute_script(
+        "const s = window.sumocoViewer; if (!s) return null;"
+        "const o = {}; for (const k in s) { if (typeof s[k] !== 'function' && k !== 'view' && k !== 'decode') o[k] = s[k]; }"
+        "return o;"
+    )
+
+
+_PIXELS_JS = """
+const c = document.getElementById('view');
+const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+let nonBg = 0, red = 0, blue = 0, total = 0;
+for (let i = 0; i < d.length; i += 4 * 7) {   // every 7th pixel is plenty
+  const r = d[i], g = d[i + 1], b = d[i + 2];
+  total++;
+  if (Math.abs(r - 0x1b) + Math.abs(g - 0x1f) + Math.abs(b - 0x24) > 12) nonBg++;
+  if (r > 200 && g < 60 && b < 110) red++;          // look-ahead points #ff1744
+  if (b > 200 && g > 150 && r < 120) blue++;        // passenger outlines #4fc3f7
+}
+return {nonBg, red, blue, total, url: c.toDataURL('image/png').length};
+"""
+
+
+def _open_and_wait(driver, live: LiveRun, n_agents: int, timeout: float = 15.0) -> dict:
+    driver.get(live.url)
+
+    def drawn():
+        s = _viewer_stats(driver)
+        if s and s["decodeErrors"]:
+            raise AssertionError(f"page failed to decode: {s['lastError']}")
+        ok = (s and s["connected"] and s["staticLoaded"] and s["agentsDrawn"] == n_agents
+              and s["lanesDrawn"] > 0 and s["physicsDrawn"] > 0 and s["framesDrawn"] > 3)
+        return s if ok else None
+
+    try:
+        return wait_for(drawn, timeout, "the page to draw agents, lanes and physics", 0.2)
+    except AssertionError:
+        print("page stats:", _viewer_stats(driver))
+        print("viewer log:\n", live.log())
+        raise
+
+
+def _measure(driver, seconds: float = 3.0) -> dict:
+    """Frames and steps the page drew over ``seconds`` of wall time."""
+    a = _viewer_stats(driver)
+    t0 = time.monotonic()
+    time.sleep(seconds)
+    b = _viewer_stats(driver)
+    dt = time.monotonic() - t0
+    return {"frame_hz": (b["framesDrawn"] - a["framesDrawn"]) / dt,
+            "step_hz": (b["step"] - a["step"]) / dt, "page": b}
+
+
+def test_browser_draws_a_live_run(browser, tmp_path):
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    live = LiveRun(tmp_path, FakeRun(grid=1, n=50, run="viewer-e2e"))
+    try:
+        live.wait_ready()
+        s = _open_and_wait(browser, live, 50)
+        assert s["tlsDrawn"] == 1 and s["lookaheadDrawn"] == 50
+        assert s["hello"]["run"] == "viewer-e2e"
+        m = _measure(browser, 3.0)
+        print(f"browser: {m['frame_hz']:.1f} frames/s drawn, {m['step_hz']:.1f} SUMO steps/s; "
+              f"page says {m['page']['frameHz']:.1f} / {m['page']['stepHz']:.1f} Hz, draw {m['page']['drawMs']:.2f} ms")
+        assert 7.0 <= m["step_hz"] <= 13.0, m
+        assert m["frame_hz"] >= 7.0, m
+        assert 7.0 <= m["page"]["stepHz"] <= 13.0, m["page"]  # the HUD's own measurement
+
+        # The canvas shows lanes, agents and look-ahead points (not blank, right colours).
+        px = browser.execute_script(_PIXELS_JS)
+        assert px["nonBg"] > 0.03 * px["total"], px
+        assert px["red"] > 20 and px["blue"] > 20, px
+        hud = browser.find_element("id", "hud").text
+        assert "agents" in hud and "50" in hud and "Hz" in hud and "J0_0" in hud, hud
+
+        # Hover over a bus (long, so it is still under the pointer a moment later).
+        buses = [i for i in live.fake.ids if i.startswith("bus")]
+        browser.execute_script("const v = window.sumocoViewer.view; v.s *= 1.5; v.user = true;")
+        canvas = browser.find_element("id", "view")
+        tip = browser.find_element("id", "tooltip")
+        size = browser.execute_script("const c = document.getElementById('view'); return [c.clientWidth, c.clientHeight];")
+        hud = browser.find_element("id", "hud").rect
+
+        def hovered():
+            for bus in buses:
+                pos = browser.execute_script(f"return window.sumocoViewer.screenOf({json.dumps(bus)});")
+                if not pos or not (20 < pos[0] < size[0] - 20 and 20 < pos[1] < size[1] - 20):
+                    continue
+                if pos[0] < hud["x"] + hud["width"] + 10 and pos[1] < hud["y"] + hud["height"] + 10:
+                    continue  # under the HUD panel
+                ActionChains(browser).move_to_element_with_offset(
+                    canvas, int(pos[0] - size[0] / 2), int(pos[1] - size[1] / 2)).perform()
+                time.sleep(0.1)
+                return tip.get_attribute("hidden") is None and bus in tip.text and tip.text
+            return False
+
+        text = wait_for(hovered, 20.0, "a tooltip naming a bus", 0.1)
+        assert "bus (bus)" in text and "paper" in text and "default" in text, text
+
+        # Back to the whole picture for people to look at.
+        ActionChains(browser).move_to_element_with_offset(canvas, -size[0] // 2 + 2, size[1] // 2 - 2).perform()
+        browser.execute_script("const s = window.sumocoViewer; s.fit(); s.view.s *= 1.8;"
+                               "s.view.cx = -170 / s.view.s; s.view.cy = 0;")  # the junction, clear of the HUD
+        time.sleep(0.3)
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        assert browser.save_screenshot(str(SHOTS / "screenshot.png"))
+        st = live.status()
+        assert st["clients"] == 1 and st["frames_sent"] > 0
+    finally:
+        live.close()
+
+
+def test_browser_keeps_up_with_1000_agents(browser, tmp_path):
+    live = LiveRun(tmp_path, FakeRun(grid=3, n=1000, run="viewer-1000"))
+    try:
+        live.wait_ready()
+        _open_and_wait(browser, live, 1000)
+        m = _measure(browser, 3.0)
+        page = m["page"]
+        print(f"1000 agents: {m['frame_hz']:.1f} frames/s drawn, {m['step_hz']:.1f} steps/s, "
+              f"draw {page['drawMs']:.1f} ms, server {live.status()}")
+        assert 7.0 <= m["step_hz"] <= 13.0, m
+        assert m["frame_hz"] >= 7.0, m
+        assert page["physicsDrawn"] == 2000 and page["tlsDrawn"] == 9
+        assert page["drawMs"] < 50, page
+        # The page is current: its step is within a second of what the publisher sent.
+        assert live.pub.steps_sent - 1 - page["step"] <= 10, (live.pub.steps_sent, page["step"])
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        browser.save_screenshot(str(SHOTS / "screenshot_1000.png"))
+    finally:
+        live.close()
+
+
+def test_page_msgpack_reader_matches_golden_vectors(browser, tmp_path):
+    """The page's own msgpack and column reader decodes the protocol's golden vectors."""
+    live = LiveRun(tmp_path, FakeRun(grid=1, n=5, run="viewer-golden"), physics_hz=5.0)
+    try:
+        live.wait_ready()
+        browser.get(live.url)
+        wait_for(lambda: browser.execute_script("return !!(window.sumocoViewer && window.sumocoViewer.decode)"),
+                 10.0, "viewer.js to load")
+        for path in sorted(GOLDEN.glob("*.msgpack")):
+            raw = path.read_bytes()
+            js = browser.execute_script(
+                "const b = Uint8Array.from(atob(arguments[0]), (c) => c.charCodeAt(0));"
+                "const D = window.sumocoViewer.decode; const v = D.unpack(b);"
+                "const enc = (x) => x instanceof Uint8Array ? {$bin: btoa(String.fromCharCode(...x))}"
+                "  : Array.isArray(x) ? x.map(enc) : (x && typeof x === 'object') ? Object.fromEntries("
+                "  Object.keys(x).map((k) => [k, enc(x[k])])) : x;"
+                "const out = {generic: enc(v)};"
+                "const cols = (o) => Object.fromEntries(Object.keys(o).filter((k) => ArrayBuffer.isView(o[k]))"
+                "  .map((k) => [k, Array.from(o[k])]));"
+                "if (v.kind === 'step' && v.v[0] === 1) { try { out.cols = cols(D.readStep(v)); } catch (e) { out.err = String(e); } }"
+                "if (v.kind === 'physics') out.cols = cols(D.readPhysics(v));"
+                "if (v.kind === 'static') { const n = D.buildNetwork(v); out.lanes = n.lanesDrawn; }"
+                "return out;",
+                base64.b64encode(raw).decode(),
+            )
+
+            def enc(x):
+                if isinstance(x, bytes):
+                    return {"$bin": base64.b64encode(x).decode()}
+                if isinstance(x, list):
+                    return [enc(i) for i in x]
+                if isinstance(x, dict):
+                    return {k: enc(v) for k, v in x.items()}
+                return x
+
+            py = enc(msgpack.unpackb(raw, raw=False))
+            assert _same(js["generic"], py), path.name
+            if path.stem in ("step", "step_no_paths", "physics"):
+                want = json.loads(path.with_suffix(".json").read_text())["agents"]
+                for k, vals in js["cols"].items():
+                    assert _same(vals, want[k]), f"{path.name}: agents.{k}"
+            if path.stem == "static":
+                want = json.loads(path.with_suffix(".json").read_text())
+                assert js["lanes"] == want["lanes"]["n"]
+    finally:
+        live.close()
+
+
+def _same(a, b) -> bool:
+    """Structural equality; floats compared with a relative tolerance (NaN == NaN)."""
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a == b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        if isinstance(a, float) and math.isnan(a) or isinstance(b, float) and math.isnan(b):
+            return isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b)
+        return math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    return a == b
