@@ -293,8 +293,11 @@
   function fitTo(b) {
     if (!b) return false;
     const w = Math.max(b[2] - b[0], 10), h = Math.max(b[3] - b[1], 10);
-    view.s = Math.min(cssW / w, cssH / h) * 0.92;
-    view.cx = (b[0] + b[2]) / 2;
+    // On a wide screen keep the network clear of the HUD panel on the left.
+    const hud = document.getElementById('hud');
+    const left = hud && cssW - hud.offsetWidth - 16 > 0.55 * cssW ? hud.offsetWidth + 16 : 0;
+    view.s = Math.min((cssW - left) / w, cssH / h) * 0.92;
+    view.cx = (b[0] + b[2]) / 2 - left / 2 / view.s;
     view.cy = (b[1] + b[3]) / 2;
     view.fitted = true;
     dirty = true;
@@ -521,7 +524,7 @@
       }
       if (ego) { ctx.strokeStyle = '#ffffff'; ctx.lineWidth = 3 / s; ctx.stroke(); }
       // Look-ahead points: the paper's red spheres.
-      const r = Math.max(0.45, 2.5 / s);
+      const r = Math.max(0.45, 1.8 / s);
       ctx.beginPath();
       for (let i = 0; i < n; i++) {
         if (step.flags[i] & 1) continue; // a person riding a vehicle has no look-ahead of its own
@@ -811,7 +814,14 @@
   // Exposed for tests and the console.
   stats.fit = () => { view.user = false; fit(); };
   stats.view = view;
-  stats.unpack = unpack;
+  stats.decode = { unpack, readStep, readPhysics, buildNetwork };
+  // CSS-pixel position of an agent's body centre (front bumper minus length/2), or null.
+  stats.screenOf = (id) => {
+    const i = step ? step.id.indexOf(id) : -1;
+    if (i < 0) return null;
+    const a = step.angle[i] * DEG, half = step.length[i] / 2;
+    return toScreen(step.x[i] - half * Math.sin(a), step.y[i] - half * Math.cos(a));
+  };
 
   resize();
   connect();
