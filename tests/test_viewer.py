@@ -474,3 +474,27 @@ def _same(a, b) -> bool:
     if isinstance(a, dict) and isinstance(b, dict):
         return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
     return a == b
+
+
+def test_viewer_config_table_and_overrides(tmp_path):
+    from types import SimpleNamespace
+
+    from protocol.errors import ConfigError
+    from sumoco.viewer.server import load_config
+
+    cfg = tmp_path / "v.toml"
+    cfg.write_text('[run]\nid = "r1"\n\n[viewer]\nport = 9001\nmax_hz = 12.0\n')
+    args = SimpleNamespace(config=str(cfg), run=None, listen=None, connect=["tcp/127.0.0.1:7447"],
+                           mode=None, timing=None, duration=None, host=None, port=None, max_hz=None)
+    common, v = load_config(args)
+    assert (common.run.id, v.port, v.max_hz, v.host) == ("r1", 9001, 12.0, "127.0.0.1")
+    assert common.zenoh.connect == ("tcp/127.0.0.1:7447",)
+    args.port, args.run = 0, "r2"
+    common, v = load_config(args)
+    assert (common.run.id, v.port) == ("r2", 0)
+    cfg.write_text("[viewer]\nprot = 1\n")
+    with pytest.raises(ConfigError, match="viewer.prot"):
+        load_config(args)
+    cfg.write_text("[viewer]\nmax_hz = 0.0\n")
+    with pytest.raises(ConfigError, match="max_hz"):
+        load_config(args)
