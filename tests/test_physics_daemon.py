@@ -16,7 +16,10 @@ import threading
 import numpy as np
 import pytest
 
-from harness import Daemon, Probe, endpoint, wait_until
+try:  # tests/ as a package or as rootdir-relative modules
+    from tests.harness import Daemon, Probe, endpoint, wait_until
+except ImportError:  # pragma: no cover
+    from harness import Daemon, Probe, endpoint, wait_until
 from physics_side.bench import circle_traffic
 from protocol.codec import decode, encode
 from protocol.keys import Keys
