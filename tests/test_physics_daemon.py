@@ -148,3 +148,48 @@ def test_daemon_lockstep_liveliness_and_rejects(tmp_path):
             pass
         probe.close()
         sumo.close()
+
+
+def test_daemon_realtime_paces_ticks_by_the_wall_clock(tmp_path):
+    """Realtime: ticks at ~50 Hz of wall time, each using the newest step; no acks awaited."""
+    import time
+
+    run = "phys-rt-test"
+    keys = Keys("sumoco", run)
+    cfg = tmp_path / "physics.toml"
+    cfg.write_text(CONFIG.format(run=run).replace('timing = "lockstep"', 'timing = "realtime"'))
+    from sumoco.config import ZenohConfig
+    from sumoco.transport import open_session
+
+    sumo_ep = endpoint()
+    sumo = open_session(ZenohConfig(listen=(sumo_ep,)))
+    token = sumo.liveliness().declare_token(keys.sumo_alive)
+    daemon = Daemon("physics-rt", ["physics", "--config", str(cfg), "--connect", sumo_ep, "--listen", endpoint()],
+                    tmp_path / "logs")
+    probe = Probe(keys, connect=[sumo_ep])
+    try:
+        wait_until(lambda: keys.physics_alive in probe.alive, 30.0, "the physics liveliness token", procs=[daemon])
+        t0 = time.monotonic()
+        k = 0
+        while time.monotonic() - t0 < 2.0:  # SUMO at 10 Hz of wall time
+            sumo.put(keys.step, encode(circle_traffic(4, k, run=run)))
+            k += 1
+            time.sleep(max(0.0, t0 + k * 0.1 - time.monotonic()))
+        with probe.lock:
+            states = list(probe.physics.get("main", []))
+        assert states, daemon.tail()
+        span = states[-1].time - states[0].time
+        rate = (len(states) - 1) / max(span, 1e-9)
+        assert 40.0 < rate <= 51.0, rate  # one state per 20 ms tick
+        wall = len(states) / 50.0
+        assert 1.2 < wall < 2.2, wall  # paced: about as many ticks as wall-clock 20 ms slots
+        last = states[-1]
+        assert sorted(last.agents.ids) == ["veh0", "veh1", "veh2", "veh3"]
+        assert last.sumo_step >= k - 3  # uses the newest steps
+        assert np.abs(last.agents.err_lat).max() < 0.2 and np.abs(last.agents.err_lon).max() < 0.5
+        assert daemon.terminate(15.0) == 0, daemon.tail()
+    finally:
+        daemon.kill()
+        token.undeclare()
+        probe.close()
+        sumo.close()
