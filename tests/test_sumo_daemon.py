@@ -25,7 +25,7 @@ from protocol.keys import Keys
 from protocol.messages import AgentFlag, EgoPose, StaticData, StepAck, StepMessage
 from sumoco.config import ZenohConfig
 from sumoco.transport import free_tcp_port, open_session
-from sumo_testnet import EXPECTED_IDS, make_testnet
+from tests.sumo_testnet import EXPECTED_IDS, make_testnet
 
 pytestmark = pytest.mark.integration
 

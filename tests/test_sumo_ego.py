@@ -10,7 +10,7 @@ from protocol.messages import AgentFlag, EgoPose
 from sumo_side.config import SumoConfig
 from sumo_side.ego import EgoManager
 from sumo_side.simulation import SumoSim
-from sumo_testnet import make_testnet
+from tests.sumo_testnet import make_testnet
 
 LANE_Y = -1.6  # centre line of A0B0_2 (left lane eastbound) in the test net
 

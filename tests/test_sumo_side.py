@@ -19,7 +19,7 @@ from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig
 from sumo_side.lookahead import look_ahead_distance
 from sumo_side.simulation import SumoSim
-from sumo_testnet import EXPECTED_IDS, make_testnet
+from tests.sumo_testnet import EXPECTED_IDS, make_testnet
 
 STEPS = 700  # 70 s: every agent departs, the bus ride ends, the jumper teleports
 
