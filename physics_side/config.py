@@ -123,7 +123,7 @@ class DefaultControl:
     k_lad: float = 0.6  # [s] pure pursuit: LAD = v * k_lad between the limits
     pos_omega: float = 2.5  # [rad/s] along-path position loop natural frequency
     pos_zeta: float = 1.0  # [1] along-path position loop damping ratio (critically damped)
-    k_int: float = 0.5  # [1/s^2 per m*s] integral of the along-path error (rolling losses, slopes)
+    k_int: float = 0.5  # [1/s^3] gain on the integral of the along-path error (cornering drag, slopes)
     int_limit: float = 1.0  # [m/s^2] integral term clamp
     accel_max: float = 6.0  # [m/s^2] commanded acceleration limit
     decel_max: float = 9.0  # [m/s^2] commanded deceleration limit

@@ -73,6 +73,9 @@ class Fleet:
         self.rates = rates
         self.dt = rates.control_dt
         self._warned_vclass: set[str] = set()
+        # preset code per wire class (the config names presets per agent type)
+        self._preset_lut = np.array(
+            [_PRESET_CODE[self.cfg.preset_for(_TYPE_NAME[c])] for c in AgentClass], np.int8)
         self.counters: dict[str, int] = {
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
@@ -139,8 +142,7 @@ class Fleet:
         cls = a.cls[rows]
         flags = a.flags[rows]
         model_cls = self._model_class(cls, a.vtype[rows], a.length[rows], msg.vtypes)
-        type_names = [_TYPE_NAME[AgentClass(int(c))] for c in cls]
-        preset = np.fromiter((_PRESET_CODE[self.cfg.preset_for(t)] for t in type_names), np.int8, len(ids))
+        preset = self._preset_lut[cls]
         ego = (flags & AgentFlag.EGO) != 0
 
         # leave: agents of the previous step missing now

@@ -30,6 +30,7 @@ import mujoco.batch
 import numpy as np
 
 from physics_side import models as M
+from physics_side.control import ackermann, steady_state_delta
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
 
@@ -255,7 +256,6 @@ class PhysicsWorld:
                 steer_j, spin_j, share = (), (), [0.0] * 4
             rel_sq = [m.jnt_qposadr[m.joint(pre0 + j).id] - q0 for j in steer_j]
             rel_sd = [m.jnt_dofadr[m.joint(pre0 + j).id] - d0 for j in spin_j]
-            nq_slot = (m.jnt_qposadr[m.body_jntadr[b0] + 0] - q0)  # 0, placeholder
             # qpos block length: the tree's joints are consecutive
             jn = [j for j in range(m.njnt) if m.body_treeid[m.jnt_bodyid[j]] == tree0]
             nq_slot = sum({0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])] for j in jn)
@@ -465,13 +465,6 @@ class PhysicsWorld:
 
     # ------------------------------------------------------------------ reads
 
-    def params(self, slots: np.ndarray) -> _Tables:
-        """The per-slot tables (use attributes indexed by ``slots``)."""
-        return self._tables
-
-    def kind(self, slots: np.ndarray) -> np.ndarray:
-        return self._tables.kind[slots]
-
     def observe(self, slots: np.ndarray) -> Observation:
         """Vectorised state of ``slots`` (any mix of kinds)."""
         slots = np.asarray(slots, np.int64)
@@ -542,8 +535,6 @@ class PhysicsWorld:
         moving so that the bumper follows the path. Counted as placements unless ``count``
         is False (kinematic and external agents are placed every tick, counted apart).
         """
-        from physics_side.control import steady_state_delta
-
         slots = np.asarray(slots, np.int64)
         n = len(slots)
         if n == 0:
@@ -593,8 +584,6 @@ class PhysicsWorld:
             st[vb] = vcx[veh]
             st[vb + 1] = vcy[veh]
             st[vb + 5] = omega[veh]
-            from physics_side.control import ackermann
-
             left, right = ackermann(steer[veh], t.wheelbase[sv], t.track[sv])
             sq = t.steer_q[sv]
             st[sq[:, 0]] = left
@@ -624,8 +613,6 @@ class PhysicsWorld:
         stab: np.ndarray | None = None,
     ) -> None:
         """Steer (bicycle-model angle [rad], split by Ackermann), drive and brake torques [N*m]."""
-        from physics_side.control import ackermann
-
         slots = np.asarray(slots, np.int64)
         if len(slots) == 0:
             return

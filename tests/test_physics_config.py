@@ -66,3 +66,11 @@ def test_rate_errors_name_the_number_to_change(tmp_path):
         check_rates(0.1, 50.0, 0.02)
     with pytest.raises(ConfigError, match="control_hz"):
         _load(tmp_path, "[physics]\ncontrol_hz = 25\n")
+
+
+def test_example_config_lists_the_defaults():
+    from physics_side.config import PhysicsSettings
+
+    root = Path(__file__).resolve().parents[1]
+    data, base = load_toml(root / "configs" / "physics.toml")
+    assert load_physics_config(data, base, "configs/physics.toml") == PhysicsSettings()
