@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Iterator
 
 import zenoh
-from mcap.reader import NonSeekingReader
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from protocol.codec import decode
@@ -51,7 +52,7 @@ def kind_of_topic(topic: str) -> str:
 class McapRecorder:
     """Writes raw messages to an MCAP file; thread-safe ``write``."""
 
-    def __init__(self, path: str | Path, chunk_size: int = 256 * 1024) -> None:
+    def __init__(self, path: str | Path, chunk_size: int = 64 * 1024) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._f = self.path.open("wb")
@@ -236,13 +237,20 @@ def read_recording(path: str | Path) -> ReadResult:
     if not p.is_file():
         raise RecordingError(f"{p}: recording not found")
     out = ReadResult()
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, int]] = {}
     with p.open("rb") as f:
         try:
-            reader = NonSeekingReader(f, validate_crcs=False)
-            for schema, channel, message in reader.iter_messages():
-                out.messages.append(RecordedMessage(
-                    channel.topic, schema.name if schema else "", message.log_time, message.data,
-                ))
+            # The streaming reader yields records as it meets them, so everything before a
+            # truncated end is kept (the indexed readers need the footer).
+            for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec.name
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = (rec.topic, rec.schema_id)
+                elif isinstance(rec, Message):
+                    topic, sid = channels.get(rec.channel_id, ("", 0))
+                    out.messages.append(RecordedMessage(topic, schemas.get(sid, ""), rec.log_time, rec.data))
         except Exception as e:  # truncated chunk/record: keep what was read
             out.truncated = True
             out.error = f"{type(e).__name__}: {e}"
