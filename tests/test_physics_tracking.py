@@ -100,3 +100,20 @@ def test_nothing_flips_or_explodes_on_the_paper_route(cls):
             assert np.abs(r["roll"]).max() < 5.0
         if preset == "default":
             assert r["err"].max() < 0.35, r["err"].max()
+
+
+def test_paper_lookahead_from_the_path_equals_the_sent_point():
+    """lookahead = "path" recomputes the SUMO side's look-ahead point on path_xy with the
+    physics config's LAD: same point as sent when both sides use the paper's LAD."""
+    from dataclasses import replace
+
+    from physics_side.config import PhysicsSettings
+
+    s = PhysicsSettings()
+    s = replace(s, control=replace(s.control, paper=replace(s.control.paper, lookahead="path")))
+    a = track_reference("paper", AgentClass.PASSENGER, TURN)
+    b = track_reference("paper", AgentClass.PASSENGER, TURN, settings=s)
+    assert np.abs(a["err"] - b["err"]).max() < 0.05
+    for key in ("t", "x", "y", "ref_x", "ref_y", "err", "err_lon", "err_lat", "dist", "speed", "v_ref",
+                "steer_deg", "steer_pct", "drive", "brake", "u"):
+        assert len(a[key]) == len(a["t"]), key  # the time series the report figures use
