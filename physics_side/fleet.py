@@ -151,15 +151,18 @@ class Fleet:
         if gone:
             w.park(w.slot_of(gone))
             st.parked = len(gone)
-        # previous position of each agent (for yaw rate and controller state)
+        # previous sample of each agent (yaw rate, sideways jumps, controller state); a
+        # resync or a clock that went back (a new SUMO run) has no usable previous sample
         prev = np.fromiter((self._index.get(aid, -1) for aid in ids), np.int64, len(ids))
+        if resync or (old_ref is not None and not 0.0 < msg.time - old_ref.t_k < 1.0):
+            old_ref = None
+            prev[:] = -1
         x, y = a.x[rows], a.y[rows]
         yaw = sumo_angle_to_yaw(a.angle[rows])
         yaw_rate = np.zeros(len(ids))
-        if self.ref is not None and len(ids):
+        if old_ref is not None and len(ids):
             had = prev >= 0
-            dt_s = max(msg.time - self.ref.t_k, 1e-3)
-            yaw_rate[had] = wrap_pi(yaw[had] - self.ref.yaw[prev[had]]) / dt_s if dt_s < 1.0 else 0.0
+            yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
         ref = Reference.from_batch(msg.time, a, rows, yaw_rate)
 
         slots = w.slot_of(ids)
