@@ -305,7 +305,7 @@ def control_default(
 
     if cfg.lateral == "stanley":
         # heading of the path where the bumper will be after the steering lag
-        ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s)
+        ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s) if cfg.preview_s else pp
         # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
         # leads the body by beta_ss = asin(kappa * d) in a steady turn
         heading_err = wrap_pi(obs.yaw - ahead.heading)

@@ -230,7 +230,8 @@ class Fleet:
         if st.diverged or st.flipped:
             log.info("step %d: placed %d diverged and %d flipped agents", msg.step, st.diverged, st.flipped)
         # along-path position of each bumper on the new path (guess for the projection)
-        self.s_act = e_lon.copy()
+        # (``obs`` predates the placements: placed agents sit exactly at s = 0)
+        self.s_act = np.where(place, 0.0, ref.project_far(obs.fx, obs.fy, e_lon)[0]) if len(ids) else e_lon.copy()
         n = len(ids)
         self.drive = np.zeros(n)
         self.brake = np.zeros(n)

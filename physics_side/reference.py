@@ -85,6 +85,7 @@ class PathSet:
         self.cum = cum
         self.total = cum[last] if n else np.zeros(0)
         self.key = cum + owner * _BIG
+        self._base = np.arange(n) * _BIG
         self.first = offsets[:-1]
         self.last_seg = last - 1
         self.seglen = safe
@@ -187,18 +188,20 @@ class PathSet:
 
     def at(self, s: np.ndarray) -> PathPoint:
         """Evaluate every polyline at its own arc length ``s`` (length n) [m]."""
+        # hot path (several calls per tick): minimum/maximum instead of np.clip, which
+        # costs a few microseconds of Python wrapping per call on small arrays
         s = np.asarray(s, np.float64)
         if self.n == 0:
             z = np.zeros(0)
             return PathPoint(z, z, z, z)
-        sc = np.clip(s, 0.0, self.total)
-        key = sc + np.arange(self.n) * _BIG
+        key = np.minimum(np.maximum(s, 0.0), self.total) + self._base
         j = np.searchsorted(self.key, key, side="right") - 1
-        j = np.clip(j, self.first, self.last_seg)
+        j = np.minimum(np.maximum(j, self.first), self.last_seg)
         t = s - self.cum[j]  # unclipped: extrapolates before 0 / past the end
-        p = self.xy[j] + self.dir[j] * t[:, None]
+        d = self.dir[j]
+        p0 = self.xy[j]
         L = self.seglen[j]
-        tc = np.clip(t, 0.0, L)
+        tc = np.minimum(np.maximum(t, 0.0), L)
         bs, be = self.b_s[j], self.b_e[j]
         ds, de = self.turn_s[j], self.turn_e[j]
         in_s = tc < bs
@@ -207,7 +210,7 @@ class PathSet:
             heading = self.h[j] + np.where(
                 in_s, -ds * (bs - tc) / (2 * bs), np.where(in_e, de * (tc - L + be) / (2 * be), 0.0))
             kappa = np.where(in_s, ds / (2 * bs), np.where(in_e, de / (2 * be), 0.0))
-        return PathPoint(p[:, 0], p[:, 1], wrap_pi(heading), kappa)
+        return PathPoint(p0[:, 0] + d[:, 0] * t, p0[:, 1] + d[:, 1] * t, wrap_pi(heading), kappa)
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -282,6 +285,7 @@ class Reference:
         self._dx = self.x - p0.x
         self._dy = self.y - p0.y
         self._dyaw = wrap_pi(self.yaw - p0.heading)
+        self._last_at: tuple[float, ReferencePoint] | None = None
 
     @classmethod
     def from_batch(cls, t_k: float, agents, rows: np.ndarray | None = None, yaw_rate=None) -> "Reference":
@@ -310,8 +314,15 @@ class Reference:
         p = self.path.at(z)
         return ReferencePoint(self.x, self.y, self.yaw, self.speed, self.accel, p.curvature, z)
 
-    def at(self, tau: float | np.ndarray) -> ReferencePoint:
-        """Extrapolated reference ``tau`` [s] after the sample (tau >= 0)."""
+    def at(self, tau: float) -> ReferencePoint:
+        """Extrapolated reference ``tau`` [s] after the sample (tau >= 0); the last one is cached."""
+        if self._last_at is not None and self._last_at[0] == tau:
+            return self._last_at[1]
+        r = self._at(tau)
+        self._last_at = (tau, r)
+        return r
+
+    def _at(self, tau: float) -> ReferencePoint:
         s, v = stopping_distance(self.speed, self.accel, tau)
         p = self.path.at(s)
         a = np.where(v > 0.0, self.accel, 0.0)
@@ -323,20 +334,27 @@ class Reference:
         return PathPoint(p.x + self._dx, p.y + self._dy, wrap_pi(p.heading + self._dyaw), p.curvature)
 
     def project(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray) -> tuple[np.ndarray, np.ndarray, PathPoint]:
-        """Project points on the path near ``s_guess``: returns (s, lateral offset + left, path point).
+        """Project points on the path near ``s_guess``: (s, lateral offset + left, path point at s).
 
-        One tangent-line refinement from the guess (the guess is within centimetres of the
-        answer on the hot path): exact on straight segments and within O(d^2 * curvature)
-        on curves for a guess d off, which is all the controllers need.
+        One evaluation at the guess, then the tangent line there: exact on straight
+        segments, within O(d^2 * curvature) for a guess d off on curves. On the hot path
+        the guess is the previous projection advanced by v * dt (millimetres off); call
+        ``project_far`` for a rough guess.
         """
+        g = self.point_at(np.asarray(s_guess, np.float64))
+        c, sn = np.cos(g.heading), np.sin(g.heading)
+        dx, dy = px - g.x, py - g.y
+        ds = dx * c + dy * sn
+        lat = -dx * sn + dy * c
+        p = PathPoint(g.x + ds * c, g.y + ds * sn, wrap_pi(g.heading + g.curvature * ds), g.curvature)
+        return s_guess + ds, lat, p
+
+    def project_far(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray, iterations: int = 3):
+        """``project`` refined ``iterations`` times (for guesses metres off)."""
         s = np.asarray(s_guess, np.float64)
-        p = self.point_at(s)
-        c, sn = np.cos(p.heading), np.sin(p.heading)
-        s = s + (px - p.x) * c + (py - p.y) * sn
-        p = self.point_at(s)
-        c, sn = np.cos(p.heading), np.sin(p.heading)
-        lat = -(px - p.x) * sn + (py - p.y) * c
-        return s, lat, p
+        for _ in range(iterations - 1):
+            s = self.project(px, py, s)[0]
+        return self.project(px, py, s)
 
 
 def tracking_error(px, py, ref: ReferencePoint) -> tuple[np.ndarray, np.ndarray]:
