@@ -264,6 +264,8 @@ class Fleet:
         )
         self.mass = t.mass[s]
         self.stab_max = t.stab_max[s]
+        self._veh_idx = np.flatnonzero(self.kind != M.KIND_PED)
+        self._any_bike = bool(np.any(self.kind == M.KIND_BIKE))
         self._gen = self.world.generation
 
     # ------------------------------------------------------------------ control tick
@@ -341,12 +343,14 @@ class Fleet:
         # limit): never steer beyond the friction circle at the current speed
         lim = np.minimum(p.max_steer, np.arctan(p.wheelbase * A_LAT_MAX / np.maximum(obs.speed, 0.1) ** 2))
         steer = np.clip(steer, -lim, lim)
-        vi = np.flatnonzero(veh)
+        vi = self._veh_idx
         if len(vi):
-            stab = C.roll_stabiliser(
-                obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], obs.yaw_rate[vi],
-                self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
-            )
+            stab = None
+            if self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
+                stab = C.roll_stabiliser(
+                    obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], obs.yaw_rate[vi],
+                    self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
+                )
             w.command_vehicles(self.slots[vi], steer[vi], drive[vi], brake[vi], stab)
         pi = np.flatnonzero(ped & ~kin)
         if len(pi):

@@ -124,6 +124,11 @@ class PathSet:
             b_end[idx] = 0.5 * seglen[idx]
         self.turn_s, self.b_s = turn, b_start
         self.turn_e, self.b_e = turn_end, b_end
+        # one row per segment, so a query gathers everything it needs with one fancy index
+        self._seg = np.stack([
+            xy[:-1, 0] if m else np.zeros(0), xy[:-1, 1] if m else np.zeros(0), self.dir[:, 0], self.dir[:, 1],
+            cum[:-1] if m else np.zeros(0), safe, b_start, b_end, turn, turn_end, h,
+        ], axis=1) if m else np.zeros((0, 11))
 
     @staticmethod
     def dedup(offsets: np.ndarray, xy: np.ndarray, tol: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
@@ -197,20 +202,15 @@ class PathSet:
         key = np.minimum(np.maximum(s, 0.0), self.total) + self._base
         j = np.searchsorted(self.key, key, side="right") - 1
         j = np.minimum(np.maximum(j, self.first), self.last_seg)
-        t = s - self.cum[j]  # unclipped: extrapolates before 0 / past the end
-        d = self.dir[j]
-        p0 = self.xy[j]
-        L = self.seglen[j]
+        x0, y0, dx, dy, c0, L, bs, be, ds, de, h = self._seg[j].T
+        t = s - c0  # unclipped: extrapolates before 0 / past the end
         tc = np.minimum(np.maximum(t, 0.0), L)
-        bs, be = self.b_s[j], self.b_e[j]
-        ds, de = self.turn_s[j], self.turn_e[j]
         in_s = tc < bs
         in_e = tc > L - be
         with np.errstate(divide="ignore", invalid="ignore"):
-            heading = self.h[j] + np.where(
-                in_s, -ds * (bs - tc) / (2 * bs), np.where(in_e, de * (tc - L + be) / (2 * be), 0.0))
+            heading = h + np.where(in_s, -ds * (bs - tc) / (2 * bs), np.where(in_e, de * (tc - L + be) / (2 * be), 0.0))
             kappa = np.where(in_s, ds / (2 * bs), np.where(in_e, de / (2 * be), 0.0))
-        return PathPoint(p0[:, 0] + d[:, 0] * t, p0[:, 1] + d[:, 1] * t, wrap_pi(heading), kappa)
+        return PathPoint(x0 + dx * t, y0 + dy * t, wrap_pi(heading), kappa)
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -280,6 +280,7 @@ class Reference:
             kappa0 = np.where(self.speed > 0.5, yaw_rate / np.maximum(self.speed, 0.5), 0.0)
         self.path = PathSet.concat_fallback(path_offsets, path_xy, self.x, self.y, self.yaw, kappa0)
         p0 = self.path.at(np.zeros(n))
+        self._k0 = p0.curvature
         # The path may start a little off the bumper (e.g. mid lane change): carry the
         # offset, and turn the sample's heading with the path.
         self._dx = self.x - p0.x
@@ -310,9 +311,7 @@ class Reference:
 
     def held(self) -> ReferencePoint:
         """The sample itself (zero-order hold)."""
-        z = np.zeros(self.n)
-        p = self.path.at(z)
-        return ReferencePoint(self.x, self.y, self.yaw, self.speed, self.accel, p.curvature, z)
+        return ReferencePoint(self.x, self.y, self.yaw, self.speed, self.accel, self._k0, np.zeros(self.n))
 
     def at(self, tau: float) -> ReferencePoint:
         """Extrapolated reference ``tau`` [s] after the sample (tau >= 0); the last one is cached."""
@@ -349,7 +348,7 @@ class Reference:
         p = PathPoint(g.x + ds * c, g.y + ds * sn, wrap_pi(g.heading + g.curvature * ds), g.curvature)
         return s_guess + ds, lat, p
 
-    def project_far(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray, iterations: int = 3):
+    def project_far(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray, iterations: int = 2):
         """``project`` refined ``iterations`` times (for guesses metres off)."""
         s = np.asarray(s_guess, np.float64)
         for _ in range(iterations - 1):
