@@ -347,8 +347,11 @@ class Fleet:
         if len(vi):
             stab = None
             if self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
+                # lean for the turn the steering asks for (kinematic bicycle), not for the
+                # measured yaw rate: the latter feeds lean transients back into the target
+                r_cmd = obs.speed[vi] * np.tan(steer[vi]) / p.wheelbase[vi]
                 stab = C.roll_stabiliser(
-                    obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], obs.yaw_rate[vi],
+                    obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], r_cmd,
                     self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
                 )
             w.command_vehicles(self.slots[vi], steer[vi], drive[vi], brake[vi], stab)
