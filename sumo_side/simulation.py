@@ -55,6 +55,9 @@ _LANE = operator.itemgetter(V_LANE)
 _chain = itertools.chain.from_iterable
 _PERSON_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_LANEPOS, V_LANE, V_TYPE, V_VEHICLE)
 TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT)
+#: [m] beyond speed x step length, a position change this large is a jump (flag JUMPED);
+#: larger than one lane width so that SUMO's instant lane changes stay ordinary motion.
+JUMP_MARGIN_M = 5.0
 
 
 class VTypeTable:
@@ -197,6 +200,7 @@ class SumoSim:
         self._prev_speed = np.zeros(0)
         self._prev_vtype = np.zeros(0, np.int64)
         self._prev_time = -1.0
+        self._prev_xy = np.zeros((0, 2))
         self._serial = 0
 
     # ------------------------------------------------------------------ life cycle
@@ -400,12 +404,24 @@ class SumoSim:
         if len(fresh):
             vtype[fresh] = self._vehicle_types([vids[i] for i in fresh.tolist()])
         vtype_all = np.concatenate([vtype, ptype])
+        xy = np.concatenate([vxy, pxy])
+        # A position change no motion explains (a person starting to wait at a stop far
+        # from where it walked, a stage change, moveToXY) is a jump: physics must place,
+        # not steer. The margin covers SUMO's instant lane changes (one lane width).
+        jumped_pos = np.zeros(n, bool)
+        if known.any() and len(self._prev_xy):
+            pk = prev_index[known]
+            moved = np.hypot(*(xy[known] - self._prev_xy[pk]).T)
+            reach = np.maximum(speed_all[known], self._prev_speed[pk]) * dt + JUMP_MARGIN_M
+            jumped_pos[known] = moved > reach
         self._prev_ids, self._prev_speed, self._prev_time = ids, speed_all, now
         self._prev_vtype = vtype_all
+        self._prev_xy = xy
         self._serial += 1
 
         flags = np.zeros(n, np.uint8)
         flags[nv:][riding] = AgentFlag.INSIDE_VEHICLE
+        flags[jumped_pos] |= np.uint8(AgentFlag.JUMPED)
         new = set(departed)
         new.update(p_departed)
         if new:
@@ -416,7 +432,6 @@ class SumoSim:
             accel[jumped] = 0.0  # SUMO, too, reports 0 when a teleport changes the speed
         mode = np.full(n, MODE_LANES, np.uint8)
         mode[nv:] = np.where(riding, MODE_NONE, MODE_STRAIGHT)
-        xy = np.concatenate([vxy, pxy])
         return Snapshot(
             time=now,
             ids=ids,

@@ -6,7 +6,8 @@ run.mcap`` rebuilds exactly what the live demo wrote.
 Error metric (the same for every preset): the physics agent's *front-bumper centre* at
 physics time t against SUMO's front-bumper centre at the same t, linearly interpolated
 between the two SUMO steps around t. Only agents in mode PHYSICAL count; kinematic and
-external (ego) agents are reported apart.
+external (ego) agents are reported apart. Samples next to a SUMO step that flags the
+agent as jumped (teleport) or riding are left out: there SUMO moves the agent by fiat.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.keys import Keys
-from protocol.messages import AgentClass, AgentMode, PhysicsState, StaticData, StepMessage
+from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsState, StaticData, StepMessage
 from sumoco.record import ReadResult, iter_decoded, read_recording
 
 log = logging.getLogger(__name__)
@@ -41,6 +42,7 @@ class RefTable:
     speed: np.ndarray
     lane: np.ndarray
     cls: np.ndarray
+    flags: np.ndarray
 
 
 @dataclass
@@ -94,7 +96,7 @@ def load_run(res: ReadResult) -> RunData:
         return out
 
     static = None
-    ref_cols: dict[str, list] = {k: [] for k in ("t", "aid", "x", "y", "angle", "speed", "lane", "cls")}
+    ref_cols: dict[str, list] = {k: [] for k in ("t", "aid", "x", "y", "angle", "speed", "lane", "cls", "flags")}
     phys_cols: dict[str, dict[str, list]] = {}
     counters: dict[str, dict] = {}
     steps = 0
@@ -116,7 +118,7 @@ def load_run(res: ReadResult) -> RunData:
                 first_seen.setdefault(name, msg.time)
             ref_cols["t"].append(np.full(a.n, msg.time))
             ref_cols["aid"].append(ai)
-            for k in ("x", "y", "angle", "speed", "lane", "cls"):
+            for k in ("x", "y", "angle", "speed", "lane", "cls", "flags"):
                 ref_cols[k].append(getattr(a, k))
         elif isinstance(msg, PhysicsState):
             inst = Keys.instance_of(m.topic) or "main"
@@ -133,6 +135,7 @@ def load_run(res: ReadResult) -> RunData:
         x=_cat(ref_cols["x"], np.float64), y=_cat(ref_cols["y"], np.float64),
         angle=_cat(ref_cols["angle"], np.float64), speed=_cat(ref_cols["speed"], np.float64),
         lane=_cat(ref_cols["lane"], np.int64), cls=_cat(ref_cols["cls"], np.int64),
+        flags=_cat(ref_cols["flags"], np.int64),
     )
     phys = {}
     for inst, cols in phys_cols.items():
@@ -201,7 +204,12 @@ def tracking_errors(ref: RefTable, ph: PhysTable) -> Errors:
         out.ref_speed[ps] = np.interp(pt, rt, ref.speed[rs])
         nearest = np.clip(np.searchsorted(rt, pt), 0, len(rt) - 1)
         out.ref_lane[ps] = ref.lane[rs][nearest]
-        out.valid[ps] = ph.mode[ps] == AgentMode.PHYSICAL
+        # A sample bracketed by a jump (teleport, boarding) or a ride has no reference
+        # motion to follow: SUMO moved the agent, physics placed it.
+        odd = (ref.flags[rs] & (AgentFlag.INSIDE_VEHICLE | AgentFlag.JUMPED)) != 0
+        hi = np.clip(np.searchsorted(rt, pt, side="right"), 0, len(rt) - 1)
+        lo = np.clip(hi - 1, 0, len(rt) - 1)
+        out.valid[ps] = (ph.mode[ps] == AgentMode.PHYSICAL) & ~odd[lo] & ~odd[hi]
     return out
 
 

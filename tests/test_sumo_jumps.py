@@ -1,0 +1,38 @@
+"""Position jumps no motion explains are flagged JUMPED; lane changes are not."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from protocol.messages import AgentFlag
+from sumo_side.config import SumoConfig
+from sumo_side.simulation import JUMP_MARGIN_M, SumoSim
+from tests.harness import PAPER_CFG
+
+
+def test_person_reaching_its_stop_is_jumped_but_lane_changes_are_not():
+    sim = SumoSim(SumoConfig(sumocfg=PAPER_CFG), seed=42)
+    sim.start()
+    try:
+        prev = {}
+        rider_jumps, ref_jumps, ref_lane_changes = [], [], 0
+        for _ in range(200):  # 20 s: the rider starts waiting at ~10.4 s; ref changes lane twice
+            sim.step()
+            snap = sim.read()
+            for name in ("rider", "ref"):
+                if name not in snap.ids:
+                    continue
+                i = snap.ids.index(name)
+                xy = np.array([snap.x[i], snap.y[i]])
+                if name in prev:
+                    step_m = float(np.hypot(*(xy - prev[name])))
+                    jumped = bool(snap.flags[i] & AgentFlag.JUMPED)
+                    (rider_jumps if name == "rider" else ref_jumps).append((snap.time, step_m, jumped))
+                prev[name] = xy
+    finally:
+        sim.close()
+    big = [(t, d) for t, d, j in rider_jumps if d > JUMP_MARGIN_M + 2.0]
+    assert big, "the scenario's rider should move > 7 m in one step when it starts waiting"
+    assert all(j for t, d, j in rider_jumps if d > JUMP_MARGIN_M + 2.0)
+    assert not any(j for _, _, j in ref_jumps), "ref's lane changes must not count as jumps"
+    assert max(d for _, d, _ in ref_jumps) > 1.5  # a lane change happened (lateral hop)
