@@ -45,6 +45,31 @@ class Trajectory:
     """Acceleration at each t [m/s^2]."""
     name: str = ""
 
+    @classmethod
+    def from_samples(cls, t, x, y, speed, name: str = "samples", hz: float = 1000.0) -> "Trajectory":
+        """A trajectory through SUMO-like samples (e.g. a recorded 10 Hz front-bumper track).
+
+        The path is the polyline through the sample positions (standing samples merged),
+        continued 80 m straight at the end; arc length over time is interpolated linearly
+        between samples, speed from the samples, acceleration its derivative.
+        """
+        t = np.asarray(t, np.float64) - float(t[0])
+        xy = np.c_[np.asarray(x, np.float64), np.asarray(y, np.float64)]
+        seg = np.hypot(*np.diff(xy, axis=0).T)
+        s_samples = np.concatenate(([0.0], np.cumsum(seg)))
+        keep = np.concatenate(([True], seg > 1e-3))
+        path = xy[keep]
+        if len(path) < 2:
+            raise ValueError("the samples never move")
+        d = path[-1] - path[-2]
+        d = d / max(np.hypot(*d), 1e-9)
+        path = np.vstack([path, path[-1] + d * (PATH_AHEAD_M + 20.0)])
+        tt = np.arange(0.0, t[-1] + 1e-9, 1.0 / hz)
+        ss = np.interp(tt, t, s_samples)
+        vv = np.interp(tt, t, np.asarray(speed, np.float64))
+        aa = np.gradient(vv, tt) if len(tt) > 1 else np.zeros_like(tt)
+        return cls(path, tt, ss, vv, aa, name)
+
     @property
     def duration(self) -> float:
         return float(self.t[-1] - self.t[0])

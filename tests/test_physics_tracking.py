@@ -117,3 +117,14 @@ def test_paper_lookahead_from_the_path_equals_the_sent_point():
     for key in ("t", "x", "y", "ref_x", "ref_y", "err", "err_lon", "err_lat", "dist", "speed", "v_ref",
                 "steer_deg", "steer_pct", "drive", "brake", "u"):
         assert len(a[key]) == len(a["t"]), key  # the time series the report figures use
+
+
+def test_trajectory_from_10hz_samples():
+    """A recorded 10 Hz track (here: the synthetic turn's samples) works as a reference."""
+    from physics_side.experiments import Trajectory
+
+    t = np.arange(0.0, TURN.duration, 0.1)
+    ref = TURN.at(t)
+    traj = Trajectory.from_samples(t, ref["x"], ref["y"], ref["speed"])
+    r = track_reference("default", AgentClass.PASSENGER, traj)
+    assert r["err"].max() < 0.35 and r["placements"][0] == 1
