@@ -246,8 +246,11 @@ class Fleet:
 
     def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True) -> None:
         """Place agents ``idx`` at reference point ``at`` (full-length arrays)."""
+        # physical placements: the steady-turn pose for the path tangent; kinematic ones:
+        # SUMO's own body angle (the direct representation)
+        yaw = at.tangent if steady_turn else at.yaw
         self.world.place(
-            self.slots[idx], at.x[idx], at.y[idx], at.yaw[idx], at.speed[idx], at.curvature[idx],
+            self.slots[idx], at.x[idx], at.y[idx], yaw[idx], at.speed[idx], at.curvature[idx],
             steady_turn=steady_turn, count=count,
         )
 
@@ -387,7 +390,7 @@ class Fleet:
         h = ref.held()
         tx = np.where(paper, h.x[pi], r.x[pi])
         ty = np.where(paper, h.y[pi], r.y[pi])
-        tyaw = np.where(paper, h.yaw[pi], r.yaw[pi])
+        tyaw = np.where(paper, h.tangent[pi], r.tangent[pi])
         v = np.where(paper, h.speed[pi], r.speed[pi])
         if stopping is not None:
             v = stop_speed[pi]

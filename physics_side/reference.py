@@ -254,6 +254,9 @@ class ReferencePoint:
     """Path curvature [1/m]."""
     s: np.ndarray
     """Arc length along the path ahead from the sample [m]."""
+    tangent: np.ndarray
+    """Path tangent at the point [rad] (``yaw`` is SUMO's body angle, which on a curve
+    is the rear-to-front chord and differs from the tangent at the front bumper)."""
 
 
 class Reference:
@@ -281,6 +284,7 @@ class Reference:
         self.path = PathSet.concat_fallback(path_offsets, path_xy, self.x, self.y, self.yaw, kappa0)
         p0 = self.path.at(np.zeros(n))
         self._k0 = p0.curvature
+        self._h0 = p0.heading
         # The path may start a little off the bumper (e.g. mid lane change): carry the
         # offset, and turn the sample's heading with the path.
         self._dx = self.x - p0.x
@@ -311,7 +315,7 @@ class Reference:
 
     def held(self) -> ReferencePoint:
         """The sample itself (zero-order hold)."""
-        return ReferencePoint(self.x, self.y, self.yaw, self.speed, self.accel, self._k0, np.zeros(self.n))
+        return ReferencePoint(self.x, self.y, self.yaw, self.speed, self.accel, self._k0, np.zeros(self.n), self._h0)
 
     def at(self, tau: float) -> ReferencePoint:
         """Extrapolated reference ``tau`` [s] after the sample (tau >= 0); the last one is cached."""
@@ -325,12 +329,14 @@ class Reference:
         s, v = stopping_distance(self.speed, self.accel, tau)
         p = self.path.at(s)
         a = np.where(v > 0.0, self.accel, 0.0)
-        return ReferencePoint(p.x + self._dx, p.y + self._dy, wrap_pi(p.heading + self._dyaw), v, a, p.curvature, s)
+        return ReferencePoint(p.x + self._dx, p.y + self._dy, wrap_pi(p.heading + self._dyaw), v, a, p.curvature, s,
+                              p.heading)
 
     def point_at(self, s: np.ndarray) -> PathPoint:
-        """Path (with the sample's offset) at arc length s [m] from the sample."""
+        """Path (shifted by the sample's offset from its start) at arc length s [m]; its
+        heading is the path tangent."""
         p = self.path.at(s)
-        return PathPoint(p.x + self._dx, p.y + self._dy, wrap_pi(p.heading + self._dyaw), p.curvature)
+        return PathPoint(p.x + self._dx, p.y + self._dy, p.heading, p.curvature)
 
     def project(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray) -> tuple[np.ndarray, np.ndarray, PathPoint]:
         """Project points on the path near ``s_guess``: (s, lateral offset + left, path point at s).
@@ -356,10 +362,15 @@ class Reference:
         return self.project(px, py, s)
 
 
-def tracking_error(px, py, ref: ReferencePoint) -> tuple[np.ndarray, np.ndarray]:
-    """Front-bumper error vs a reference point: (longitudinal + ahead, lateral + left) [m]."""
+def tracking_error(px, py, ref) -> tuple[np.ndarray, np.ndarray]:
+    """Front-bumper error vs a reference point: (along the path + ahead, across + left) [m].
+
+    Uses ``ref.tangent`` when the reference has one (``ReferencePoint``), else ``ref.yaw``.
+    """
     dx, dy = px - ref.x, py - ref.y
-    c, s = np.cos(ref.yaw), np.sin(ref.yaw)
+    h = getattr(ref, "tangent", None)
+    h = ref.yaw if h is None else h
+    c, s = np.cos(h), np.sin(h)
     return dx * c + dy * s, -dx * s + dy * c
 
 

@@ -189,13 +189,14 @@ def test_reference_held_extrapolated_and_projection():
     assert r.s[0] == pytest.approx(s) and r.speed[0] == pytest.approx(5.1)
     assert math.hypot(r.x[0], r.y[0] - 20.0) == pytest.approx(20.0, abs=1e-3)
     assert r.yaw[0] == pytest.approx(s / 20.0, abs=2e-3)
+    assert r.tangent[0] == pytest.approx(s / 20.0, abs=2e-3)  # same here: SUMO's angle is the tangent
     # a point 0.3 m left of the path at s = 2 m projects back to s = 2, lateral +0.3
     p = ref.point_at(np.array([2.0]))
     px, py = p.x - 0.3 * np.sin(p.heading), p.y + 0.3 * np.cos(p.heading)
     s_p, lat, _ = ref.project(px, py, np.array([1.9]))
     assert s_p[0] == pytest.approx(2.0, abs=5e-3) and lat[0] == pytest.approx(0.3, abs=5e-3)
     lon, lat2 = tracking_error(np.array([1.0]), np.array([0.0]), h)  # heading east at the sample
-    assert lon[0] == pytest.approx(1.0) and lat2[0] == pytest.approx(0.0)
+    assert lon[0] == pytest.approx(1.0) and lat2[0] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_pathset_drops_repeated_vertices_and_keeps_straight_headings():
@@ -218,3 +219,19 @@ def test_pathset_long_segments_turn_only_near_the_corner():
     assert h(20.0 - BLEND_M - 0.1) == 0.0 and h(20.0) == pytest.approx(np.pi / 4)
     assert h(20.0 + BLEND_M + 0.1) == pytest.approx(np.pi / 2)
     assert ps.at(np.array([19.0])).curvature[0] == pytest.approx(np.pi / 2 / (2 * BLEND_M))
+
+
+def test_sumo_body_angle_is_kept_apart_from_the_path_tangent():
+    """In a junction SUMO's angle is the rear-to-front chord, not the lane tangent at the
+    front bumper: controllers steer on the tangent, kinematic agents show SUMO's angle."""
+    line = np.c_[np.linspace(0, 30, 4), np.zeros(4)].astype(np.float32)  # tangent east
+    ref = Reference(
+        t_k=0.0, x=np.array([0.0]), y=np.array([0.0]), angle_deg=np.array([110.0]), speed=np.array([5.0]),
+        accel=np.array([0.0]), la_x=np.array([7.0]), la_y=np.array([0.0]),
+        path_offsets=np.array([0, 4]), path_xy=line,
+    )
+    assert ref.point_at(np.array([3.0])).heading[0] == pytest.approx(0.0)
+    assert ref.held().tangent[0] == pytest.approx(0.0)
+    assert ref.at(0.1).yaw[0] == pytest.approx(np.radians(-20.0))  # SUMO's angle, turned with the path
+    lon, lat = tracking_error(np.array([1.0]), np.array([0.5]), ref.held())
+    assert (lon[0], lat[0]) == pytest.approx((1.0, 0.5))  # along / across the path
