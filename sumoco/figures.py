@@ -124,31 +124,16 @@ def make_figures(data, ref_id: str, out: Path, lad_sweep: bool = True, summary: 
     return names
 
 
-def trajectory_from_samples(track: dict):
-    """A physics_side Trajectory from recorded 10 Hz SUMO samples of one vehicle."""
-    from physics_side.experiments import Trajectory
-
-    xy = np.c_[track["x"], track["y"]]
-    d = np.r_[0.0, np.cumsum(np.hypot(*np.diff(xy, axis=0).T))]
-    keep = np.r_[True, np.diff(d) > 1e-3]  # standing still repeats points: drop them
-    t = track["t"] - track["t"][0]
-    v = np.asarray(track["speed"], float)
-    a = np.gradient(v, t) if len(t) > 1 else np.zeros_like(v)
-    dense = np.arange(0.0, t[-1], 0.001)
-    return Trajectory(path_xy=xy[keep], t=dense, s=np.interp(dense, t, d),
-                      v=np.interp(dense, t, v), a=np.interp(dense, t, a), name="recorded")
-
-
 def lad_min_sweep(track: dict, lad_mins=(5.0, 6.0, 7.0, 8.0)) -> list[dict]:
     """Replay the reference car alone under the paper preset for several LAD_min (Fig. 9).
 
     ``track`` holds the car's SUMO samples and ``internal`` (True on junction lanes);
     the lateral error is taken over the time the reference spends in the junction.
     """
-    from physics_side.experiments import track_reference
+    from physics_side.experiments import Trajectory, track_reference
     from protocol.messages import AgentClass
 
-    traj = trajectory_from_samples(track)
+    traj = Trajectory.from_samples(track["t"], track["x"], track["y"], track["speed"], name="recorded")
     t0 = float(track["t"][0])
     inside = track["t"][np.asarray(track.get("internal", np.zeros(len(track["t"]), bool)))]
     rows = []
