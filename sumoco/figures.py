@@ -89,7 +89,7 @@ def make_figures(data, ref_id: str, out: Path, lad_sweep: bool = True, summary: 
                 ax.set_xlim(cx - 25, cx + 25)
                 ax.set_ylim(cy - 25, cy + 25)
                 ax.set_title(f"LAD_min = {row['lad_min_m']} m")
-                ax.set_aspect("equal", adjustable="datalim")
+                ax.set_aspect("equal", adjustable="box")
                 ax.set_xlabel("x [m]")
             np.atleast_1d(axes)[0].set_ylabel("y [m]")
             np.atleast_1d(axes)[0].legend()
