@@ -184,10 +184,10 @@ class PathSet:
         # copy kept paths block-wise (vectorised with a gather)
         keep = np.flatnonzero(~need)
         if len(keep):
-            src = _ranges(offsets[keep], counts[keep])
-            dst = _ranges(new_off[keep], counts[keep])
+            src = concat_ranges(offsets[keep], counts[keep])
+            dst = concat_ranges(new_off[keep], counts[keep])
             new_xy[dst] = xy[src]
-        dst = _ranges(new_off[idx], np.full(len(idx), k))
+        dst = concat_ranges(new_off[idx], np.full(len(idx), k))
         new_xy[dst] = synth.reshape(-1, 2)
         return cls(new_off, new_xy)
 
@@ -213,7 +213,7 @@ class PathSet:
         return PathPoint(x0 + dx * t, y0 + dy * t, wrap_pi(heading), kappa)
 
 
-def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def concat_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Concatenated ``arange(start, start + count)`` for every pair (vectorised)."""
     counts = np.asarray(counts, np.int64)
     total = int(counts.sum())
@@ -302,7 +302,7 @@ class Reference:
         if len(a.path_offsets):
             off = np.asarray(a.path_offsets, np.int64)
             counts = off[rows + 1] - off[rows]
-            src = _ranges(off[rows], counts)
+            src = concat_ranges(off[rows], counts)
             xy = np.asarray(a.path_xy, np.float64)[src]
             new_off = np.concatenate(([0], np.cumsum(counts)))
         else:

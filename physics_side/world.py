@@ -31,6 +31,7 @@ import numpy as np
 
 from physics_side import models as M
 from physics_side.control import ackermann, steady_state_delta
+from physics_side.reference import concat_ranges
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
 
@@ -351,8 +352,8 @@ class PhysicsWorld:
         if len(olds) == 0:
             return
         for a_old, n_old, a_new in (("qpos", "nq", "qpos"), ("qvel", "nv", "qvel"), ("ctrl", "nu", "ctrl")):
-            src = _ranges(getattr(old, a_old)[olds], getattr(old, n_old)[olds])
-            dst = _ranges(getattr(new, a_new)[news], getattr(new, n_old)[news])
+            src = concat_ranges(getattr(old, a_old)[olds], getattr(old, n_old)[olds])
+            dst = concat_ranges(getattr(new, a_new)[news], getattr(new, n_old)[news])
             self._state[dst] = state[src]
         ok = old.spin_fl[olds] >= 0
         self._fl[new.spin_fl[news][ok]] = fl[old.spin_fl[olds][ok]]
@@ -440,10 +441,10 @@ class PhysicsWorld:
             return
         t = self._tables
         q0 = self.model.qpos0
-        src = _ranges(t.qpos0[slots], t.nq[slots])
-        self._state[_ranges(t.qpos[slots], t.nq[slots])] = q0[src]
-        self._state[_ranges(t.qvel[slots], t.nv[slots])] = 0.0
-        self._state[_ranges(t.ctrl[slots], t.nu[slots])] = 0.0
+        src = concat_ranges(t.qpos0[slots], t.nq[slots])
+        self._state[concat_ranges(t.qpos[slots], t.nq[slots])] = q0[src]
+        self._state[concat_ranges(t.qvel[slots], t.nv[slots])] = 0.0
+        self._state[concat_ranges(t.ctrl[slots], t.nu[slots])] = 0.0
         fl = t.spin_fl[slots]
         self._fl[fl[fl >= 0]] = 100.0
         self._policy[t.tree[slots]] = SLEEP_ALLOWED
@@ -567,7 +568,7 @@ class PhysicsWorld:
         vcy = vby - omega * front * c
         if veh.any():
             sv = slots[veh]
-            self._state[_ranges(t.qvel[sv], t.nv[sv])] = 0.0
+            self._state[concat_ranges(t.qvel[sv], t.nv[sv])] = 0.0
             qb = t.qpos[sv]
             # bicycles lean into the turn at the steady-turn angle (roll about +x, left side
             # down in a left turn); cars stand level
@@ -685,16 +686,6 @@ def _quat_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarra
         cy * sp * cr + sy * cp * sr,
         sy * cp * cr - cy * sp * sr,
     ], axis=-1)
-
-
-def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """Concatenated ``arange(start, start + count)`` for every pair (vectorised)."""
-    counts = np.asarray(counts, np.int64)
-    total = int(counts.sum())
-    if total == 0:
-        return np.zeros(0, np.int64)
-    rep = np.repeat(np.asarray(starts, np.int64) - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
-    return rep + np.arange(total)
 
 
 __all__ = ["Observation", "PhysicsWorld"]
