@@ -73,7 +73,7 @@ class RunData:
     sim_span_s: float
     wall_span_s: float
     truncated: bool = False
-    first_seen: dict[str, float] = field(default_factory=dict)
+    first_seen: dict[str, tuple[float, int]] = field(default_factory=dict)
 
 
 def _cat(parts, dtype):
@@ -102,7 +102,7 @@ def load_run(res: ReadResult) -> RunData:
     steps = 0
     t_first = t_last = None
     w_first = w_last = None
-    first_seen: dict[str, float] = {}
+    first_seen: dict[str, tuple[float, int]] = {}
     for m, msg in iter_decoded(res):
         if isinstance(msg, StaticData):
             static = static or msg
@@ -114,8 +114,8 @@ def load_run(res: ReadResult) -> RunData:
             w_first = m.log_time_ns if w_first is None else w_first
             w_last = m.log_time_ns
             ai = aids(a.ids)
-            for name in a.ids:
-                first_seen.setdefault(name, msg.time)
+            for i, name in enumerate(a.ids):
+                first_seen.setdefault(name, (msg.time, i))  # time, then SUMO's order
             ref_cols["t"].append(np.full(a.n, msg.time))
             ref_cols["aid"].append(ai)
             for k in ("x", "y", "angle", "speed", "lane", "cls", "flags"):
@@ -228,7 +228,7 @@ def reference_car(data: RunData, prefer: str = "ref") -> str | None:
     cars = np.unique(data.ref.aid[data.ref.cls == AgentClass.PASSENGER])
     if not len(cars):
         return None
-    return min((data.ids[i] for i in cars), key=lambda n: (data.first_seen.get(n, 0.0), n))
+    return min((data.ids[i] for i in cars), key=lambda n: data.first_seen.get(n, (0.0, 0)))
 
 
 def internal_lane_mask(static: StaticData | None, lane_idx: np.ndarray) -> np.ndarray:

@@ -97,3 +97,79 @@ def test_truncated_recording_still_reports(two_runs):
     s = write_report(cut, tmp / "cut", lad_sweep=False)
     assert s["truncated_recording"] is True
     assert 0 < s["steps"] < a["steps"]
+
+
+def _processes_mentioning(text: str) -> list[int]:
+    import os
+
+    pids = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                if text.encode() in f.read():
+                    pids.append(int(pid))
+        except OSError:
+            pass
+    return pids
+
+
+def test_ctrl_c_stops_every_daemon(tmp_path):
+    import signal
+    import time
+    import uuid
+
+    from tests.harness import wait_until
+
+    run_id = f"ctrlc{uuid.uuid4().hex[:8]}"
+    cfg = _config(tmp_path)
+    out = tmp_path / "out"
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(out),
+         "--run", run_id, "--timing", "realtime", "--duration", "300"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT,
+    )
+    try:
+        wait_until(lambda: len(_processes_mentioning(run_id)) >= 4, 60, "demo + 3 daemons running")
+        time.sleep(2.0)  # let it run a little: the report must cover what was recorded
+        demo.send_signal(signal.SIGINT)
+        demo.wait(60)
+        assert demo.returncode == 130
+        wait_until(lambda: not _processes_mentioning(run_id), 10, "no orphan daemon processes")
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["steps"] > 5
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+        for pid in _processes_mentioning(run_id):
+            try:
+                os_kill(pid)
+            except OSError:
+                pass
+
+
+def os_kill(pid: int) -> None:
+    import os
+    import signal
+
+    os.kill(pid, signal.SIGKILL)
+
+
+def test_demo_runs_a_scenario_the_user_brings(tmp_path):
+    from tests.sumo_testnet import make_testnet
+
+    cfg_path = make_testnet(tmp_path / "net")
+    cfg = _config(tmp_path)
+    r = subprocess.run(
+        [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(tmp_path / "own"),
+         "--sumocfg", str(cfg_path), "--duration", "15", "--quiet"],
+        capture_output=True, text=True, timeout=240, cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    s = json.loads((tmp_path / "own" / "summary.json").read_text())
+    # the first passenger car SUMO reported: both depart at t=0, SUMO lists them in its order
+    assert s["reference_car"] in ("v0", "jumper")
+    assert {"passenger", "bus", "bicycle", "pedestrian"} <= set(s["agents_seen_sumo"])
+    assert s["presets"]["default"]["reference_car"]["overall"]["samples"] > 20
+    assert (tmp_path / "own" / "fig07_trajectory.png").is_file()
