@@ -52,6 +52,10 @@ class System:
         self.probe = Probe(self.keys, [self.sumo_ep, self.phys_ep])
         self.sumo = self.start_sumo()
         self.physics = self.start_physics()
+        # The probe's links come up in the background (Zenoh retries connects): start the
+        # tests only once both kinds of message reach it.
+        wait_until(lambda: self.probe.last_step() is not None and self.probe.last_physics() is not None,
+                   60, "steps and physics states at the probe", procs=[self.sumo, self.physics])
 
     def start_sumo(self, name="sumo") -> Daemon:
         d = Daemon(name, ["sumo", "--config", self.cfg, "--listen", self.sumo_ep, "--quiet"], self.tmp / "logs")
