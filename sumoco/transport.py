@@ -42,7 +42,3 @@ def free_tcp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def payload_bytes(sample: zenoh.Sample) -> bytes:
-    return sample.payload.to_bytes()
