@@ -31,6 +31,7 @@ from protocol.messages import (
     StaticData,
     StepAck,
     StepMessage,
+    TlsLinks,
     TrafficLights,
     VType,
 )
@@ -76,6 +77,14 @@ PHYSICS_AGENT_COLUMNS: tuple[tuple[str, str], ...] = (
     ("brake", "<f4"),
     ("err_lon", "<f4"),
     ("err_lat", "<f4"),
+)
+
+TLS_LINK_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("tls", "<u2"),
+    ("link", "<u2"),
+    ("from_lane", "<i4"),
+    ("to_lane", "<i4"),
+    ("via_lane", "<i4"),
 )
 
 _N_CLASSES = len(AgentClass)
@@ -171,6 +180,7 @@ def encode(msg: Message) -> bytes:
                 "width": _bin(msg.vtype_width, "<f4"),
             },
             "tls": list(msg.tls_ids),
+            "tls_links": {"n": len(msg.tls_links.tls), **_columns(msg.tls_links, TLS_LINK_COLUMNS)},
         }
     else:
         raise TypeError(f"not a protocol message: {type(msg).__name__}")
@@ -442,6 +452,16 @@ def _decode_static(d: dict) -> StaticData:
     jn = _map(d, "junctions", "")
     nj = _count(jn, "junctions.", MAX_POINTS)
     j_off, j_xy = _polyline_in(jn, "shape", nj, "junctions.")
+    tls_ids = _strs(d, "tls", "")
+    tls_links = TlsLinks.empty()
+    if "tls_links" in d:  # optional: added in 1.1
+        tl = _map(d, "tls_links", "")
+        nt = _count(tl, "tls_links.", MAX_POINTS)
+        cols = _columns_in(tl, TLS_LINK_COLUMNS, nt, "tls_links.")
+        _check_range(cols["tls"], 0, max(len(tls_ids) - 1, 0), "tls_links.tls")
+        for k in ("from_lane", "to_lane", "via_lane"):
+            _check_range(cols[k], -1, max(nl - 1, -1), f"tls_links.{k}")
+        tls_links = TlsLinks(**cols)
     vt = _map(d, "vtypes", "")
     nv = _count(vt, "vtypes.", 65_535)
     vids = _strs(vt, "id", "vtypes.", nv)
@@ -457,7 +477,8 @@ def _decode_static(d: dict) -> StaticData:
         vtypes=[VType(i, c) for i, c in zip(vids, vcls)],
         vtype_length=_col(vt, "length", "<f4", nv, "vtypes."),
         vtype_width=_col(vt, "width", "<f4", nv, "vtypes."),
-        tls_ids=_strs(d, "tls", ""),
+        tls_ids=tls_ids,
+        tls_links=tls_links,
     )
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from protocol.codec import PHYSICS_AGENT_COLUMNS, STEP_AGENT_COLUMNS, encode
+from protocol.codec import PHYSICS_AGENT_COLUMNS, STEP_AGENT_COLUMNS, TLS_LINK_COLUMNS, encode
 from protocol.messages import (
     AgentBatch,
     AgentClass,
@@ -28,6 +28,7 @@ from protocol.messages import (
     StaticData,
     StepAck,
     StepMessage,
+    TlsLinks,
     TrafficLights,
     VType,
 )
@@ -126,6 +127,8 @@ def _static() -> StaticData:
         vtype_length=np.array([5.0, 12.0], f32),
         vtype_width=np.array([1.8, 2.5], f32),
         tls_ids=["J1"],
+        tls_links=TlsLinks(np.array([0, 0], np.uint16), np.array([0, 1], np.uint16),
+                           np.array([0, 0], np.int32), np.array([-1, -1], np.int32), np.array([1, -1], np.int32)),
     )
 
 
@@ -146,6 +149,8 @@ def bin_dtype(kind: str, path: str) -> str:
     leaf = path.rsplit(".", 1)[-1]
     if path.startswith("agents.") and leaf in cols and path.count(".") == 1:
         return cols[leaf]
+    if path.startswith("tls_links."):
+        return dict(TLS_LINK_COLUMNS)[leaf]
     if leaf == "off":
         return "<u4"
     return "<f4"  # xy, widths, lengths

@@ -17,7 +17,7 @@ from enum import IntEnum
 import numpy as np
 
 #: Protocol version (major, minor). A different major is rejected by the decoder.
-SCHEMA_VERSION: tuple[int, int] = (1, 0)
+SCHEMA_VERSION: tuple[int, int] = (1, 1)  # 1.1 added StaticData.tls_links
 
 
 class AgentClass(IntEnum):
@@ -292,6 +292,26 @@ class JunctionTable:
 
 
 @dataclass(frozen=True)
+class TlsLinks:
+    """Which lanes each traffic-light link controls: row i is one character of a state string."""
+
+    tls: np.ndarray
+    """Index into ``StaticData.tls_ids`` [uint16]."""
+    link: np.ndarray
+    """Link index = position in that light's state string [uint16]."""
+    from_lane: np.ndarray
+    """Incoming lane, index into ``StaticData.lanes`` (-1 unknown) [int32]."""
+    to_lane: np.ndarray
+    """Outgoing lane [int32]."""
+    via_lane: np.ndarray
+    """Junction-internal lane the link drives through (-1 none) [int32]."""
+
+    @classmethod
+    def empty(cls) -> "TlsLinks":
+        return cls(np.zeros(0, np.uint16), np.zeros(0, np.uint16), *(np.zeros(0, np.int32) for _ in range(3)))
+
+
+@dataclass(frozen=True)
 class StaticData:
     """Network and type data that does not change during a run (queryable)."""
 
@@ -314,3 +334,5 @@ class StaticData:
     """Width per ``vtypes`` entry [m, float32]."""
     tls_ids: list[str]
     """Traffic-light ids."""
+    tls_links: TlsLinks = field(default_factory=TlsLinks.empty)
+    """Lanes controlled by each traffic-light link (since 1.1; empty from 1.0 senders)."""

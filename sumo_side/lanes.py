@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.messages import JunctionTable, LaneTable, StaticData, VType
+from protocol.messages import JunctionTable, LaneTable, StaticData, TlsLinks, VType
 
 log = logging.getLogger(__name__)
 
@@ -183,6 +183,21 @@ def junction_table(api) -> JunctionTable:
     return JunctionTable(ids, off, xy.astype(np.float32))
 
 
+def tls_link_table(api, graph: LaneGraph, tls_ids: list[str]) -> TlsLinks:
+    """Per traffic-light link: the lanes it controls (read once at start)."""
+    rows = []
+    for t, tl in enumerate(tls_ids):
+        for k, links in enumerate(api.trafficlight.getControlledLinks(tl)):
+            for lk in links or [("", "", "")]:  # a link index may control several connections
+                frm, to, via = (tuple(lk) + ("", "", ""))[:3]
+                rows.append((t, k, graph.lane_index_of(frm), graph.lane_index_of(to), graph.lane_index_of(via)))
+    if not rows:
+        return TlsLinks.empty()
+    a = np.array(rows, np.int64)
+    return TlsLinks(a[:, 0].astype(np.uint16), a[:, 1].astype(np.uint16),
+                    *(a[:, i].astype(np.int32) for i in (2, 3, 4)))
+
+
 def build_static(
     api,
     graph: LaneGraph,
@@ -208,4 +223,5 @@ def build_static(
         vtype_length=np.asarray(vtype_length, np.float32),
         vtype_width=np.asarray(vtype_width, np.float32),
         tls_ids=list(tls_ids),
+        tls_links=tls_link_table(api, graph, list(tls_ids)),
     )

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from protocol import (
-    AgentBatch, EgoPose, PhysicsState, ProtocolError, StaticData, StepAck, StepMessage,
+    SCHEMA_VERSION, AgentBatch, EgoPose, PhysicsState, ProtocolError, StaticData, StepAck, StepMessage,
     decode, decode_as, encode,
 )
 from protocol.codec import STEP_AGENT_COLUMNS
@@ -76,7 +76,8 @@ def test_other_major_version_names_both_versions():
     d["v"] = [7, 3]
     with pytest.raises(ProtocolError) as e:
         decode(_pack(d))
-    assert e.value.field == "v" and "7.3" in str(e.value) and "1.0" in str(e.value)
+    ours = f"{SCHEMA_VERSION[0]}.{SCHEMA_VERSION[1]}"
+    assert e.value.field == "v" and "7.3" in str(e.value) and ours in str(e.value)
 
 
 def test_newer_minor_version_is_accepted():
@@ -158,6 +159,22 @@ def test_path_offsets_must_rise_to_point_count():
 def test_top_level_not_a_map():
     with pytest.raises(ProtocolError, match="map"):
         decode(_pack([1, 2, 3]))
+
+
+def test_static_from_a_1_0_sender_without_tls_links_decodes():
+    d = _wire(valid_messages()["static"])
+    d["v"] = [1, 0]
+    del d["tls_links"]
+    out = decode(_pack(d))
+    assert len(out.tls_links.tls) == 0 and out.tls_ids == ["J1"]
+
+
+def test_tls_link_lane_index_out_of_range_rejected():
+    d = _wire(valid_messages()["static"])
+    d["tls_links"]["to_lane"] = np.array([5, -1], "<i4").tobytes()
+    with pytest.raises(ProtocolError) as e:
+        decode(_pack(d))
+    assert e.value.field == "tls_links.to_lane"
 
 
 def test_empty_step_round_trip():

@@ -339,7 +339,7 @@ def test_browser_draws_a_live_run(browser, tmp_path):
     try:
         live.wait_ready()
         s = _open_and_wait(browser, live, 50)
-        assert s["tlsDrawn"] == 1 and s["lookaheadDrawn"] == 50
+        assert s["tlsDrawn"] == 8 and s["lookaheadDrawn"] == 50  # 8 signal heads (tls_links)
         assert s["hello"]["run"] == "viewer-e2e"
         m = _measure(browser, 3.0)
         print(f"browser: {m['frame_hz']:.1f} frames/s drawn, {m['step_hz']:.1f} SUMO steps/s; "
@@ -403,7 +403,7 @@ def test_browser_keeps_up_with_1000_agents(browser, tmp_path):
               f"draw {page['drawMs']:.1f} ms, server {live.status()}")
         assert 7.0 <= m["step_hz"] <= 13.0, m
         assert m["frame_hz"] >= 7.0, m
-        assert page["physicsDrawn"] == 2000 and page["tlsDrawn"] == 9
+        assert page["physicsDrawn"] == 2000 and page["tlsDrawn"] == 72  # 9 junctions x 8 heads
         assert page["drawMs"] < 50, page
         # The page is current: its step is within a second of what the publisher sent.
         assert live.pub.steps_sent - 1 - page["step"] <= 10, (live.pub.steps_sent, page["step"])

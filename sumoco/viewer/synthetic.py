@@ -26,6 +26,7 @@ from protocol.messages import (
     AgentBatch,
     AgentClass,
     JunctionTable,
+    TlsLinks,
     LaneTable,
     PhysicsAgents,
     PhysicsState,
@@ -141,7 +142,26 @@ class FakeRun:
             bounds=(-e, -e, hi + e, hi + e), lanes=self.lanes, junctions=self.junctions,
             vtypes=list(VTYPES), vtype_length=SIZES[:, 0].copy(), vtype_width=SIZES[:, 1].copy(),
             tls_ids=list(self.junctions.ids),
+            tls_links=self._tls_links(),
         )
+
+    def _tls_links(self) -> TlsLinks:
+        """Each junction's 8 links (state order: east/west-bound lanes 0,1 and 4,5; north/
+        south-bound 2,3 and 6,7), each controlling the road lane that ends at it."""
+        G, rows = self.grid, []
+        for ti in np.flatnonzero(~self.track_walk):
+            k = int(ti % 3)  # tracks come in groups: lane 0, lane 1, sidewalk
+            horiz = self.track_axis[ti][0] == 1.0
+            c = int(round((self.track_base[ti][1] if horiz else self.track_base[ti][0]) / self.D))
+            forward = self.track_dir[ti] > 0
+            for i in range(G):
+                lane = self.track_lane[ti, 2 * i if forward else 2 * i + 2]
+                jx, jy = (i, c) if horiz else (c, i)
+                link = (0 if horiz else 2) + (0 if forward else 4) + k
+                rows.append((jx * G + jy, link, lane))
+        a = np.array(rows, np.int64)
+        none = np.full(len(a), -1, np.int32)
+        return TlsLinks(a[:, 0].astype(np.uint16), a[:, 1].astype(np.uint16), a[:, 2].astype(np.int32), none, none)
 
     # ------------------------------------------------------------------ motion
     def _pose(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

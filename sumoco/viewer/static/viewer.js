@@ -235,9 +235,33 @@
       bounds = xmax > xmin ? [xmin, ymin, xmax, ymax] : null;
     }
     const laneIds = L.id;
+    // Signal heads (protocol 1.1 tls_links): a bar across the end of each controlled lane.
+    const heads = [];
+    const T = d.tls_links;
+    if (T && (T.n | 0) > 0) {
+      const nt = T.n | 0;
+      const tl = column(T.tls, Uint16Array, nt, 'tls_links.tls');
+      const lk = column(T.link, Uint16Array, nt, 'tls_links.link');
+      const fr = column(T.from_lane, Int32Array, nt, 'tls_links.from_lane');
+      const seen = new Set();
+      for (let r = 0; r < nt; r++) {
+        const i = fr[r];
+        const key = tl[r] + '|' + lk[r] + '|' + i;
+        if (i < 0 || i >= nl || seen.has(key)) continue;
+        seen.add(key);
+        const a = shape.off[i], b = shape.off[i + 1];
+        if (b - a < 2) continue;
+        const x1 = shape.xy[2 * (b - 1)], y1 = shape.xy[2 * (b - 1) + 1];
+        const x0 = shape.xy[2 * (b - 2)], y0 = shape.xy[2 * (b - 2) + 1];
+        const len = Math.hypot(x1 - x0, y1 - y0) || 1;
+        // unit normal to the lane's last segment, half a lane wide
+        const nx = -(y1 - y0) / len * width[i] * 0.45, ny = (x1 - x0) / len * width[i] * 0.45;
+        heads.push({ tls: tl[r], link: lk[r], ax: x1 - nx, ay: y1 - ny, bx: x1 + nx, by: y1 + ny });
+      }
+    }
     return {
       run: d.run, layers, junctions, centre, bounds, laneIds, lanesDrawn,
-      junctionsDrawn: centre.size, tlsIds: d.tls || [],
+      junctionsDrawn: centre.size, tlsIds: d.tls || [], heads,
     };
   }
 
@@ -548,12 +572,32 @@
     stats.drawMs = performance.now() - t0;
   }
 
-  // One marker per traffic light at its junction: a row of squares, one per controlled
-  // link in the order of SUMO's state string, coloured by the link's current letter.
-  // (The static data has no link -> lane mapping, so links are not placed on lanes.)
+  // Signal heads at the end of every controlled lane when the static data maps links to
+  // lanes (protocol >= 1.1); otherwise one marker per light at its junction: a row of
+  // squares, one per link in the order of SUMO's state string, coloured by its letter.
   function drawTls() {
     if (!step || !net || !step.tls || !step.tls.id) return 0;
     const ids = step.tls.id, states = step.tls.state;
+    if (net.heads && net.heads.length) {
+      const at = new Map(ids.map((id, k) => [id, k]));
+      ctx.lineWidth = Math.max(2, 0.8 * view.s);
+      ctx.lineCap = 'butt';
+      let drawn = 0;
+      for (const h of net.heads) {
+        const k = at.get(net.tlsIds[h.tls]);
+        if (k === undefined) continue;
+        const letter = (states[k] || '')[h.link];
+        const [ax, ay] = toScreen(h.ax, h.ay);
+        const [bx, by] = toScreen(h.bx, h.by);
+        ctx.strokeStyle = TLS_COLOURS[letter] || '#9e9e9e';
+        ctx.beginPath();
+        ctx.moveTo(ax, ay);
+        ctx.lineTo(bx, by);
+        ctx.stroke();
+        drawn++;
+      }
+      return drawn;
+    }
     const box = Math.min(14, Math.max(5, 1.4 * view.s));
     let drawn = 0;
     for (let k = 0; k < ids.length; k++) {

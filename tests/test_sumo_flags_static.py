@@ -36,3 +36,23 @@ def test_person_reaching_its_stop_is_jumped_but_lane_changes_are_not():
     assert all(j for t, d, j in rider_jumps if d > JUMP_MARGIN_M + 2.0)
     assert not any(j for _, _, j in ref_jumps), "ref's lane changes must not count as jumps"
     assert max(d for _, d, _ in ref_jumps) > 1.5  # a lane change happened (lateral hop)
+
+
+def test_static_data_maps_every_signal_link_to_its_lanes():
+    import libsumo  # noqa: F401  (SumoSim drives it)
+
+    sim = SumoSim(SumoConfig(sumocfg=PAPER_CFG), seed=42)
+    sim.start()
+    try:
+        st = sim.static
+        api = sim.api
+        tl = st.tls_ids[0]
+        n_links = len(api.trafficlight.getRedYellowGreenState(tl))
+        links = st.tls_links
+        assert sorted(set(links.link[links.tls == 0].tolist())) == list(range(n_links))
+        for row in range(len(links.tls)):
+            frm, to, via = api.trafficlight.getControlledLinks(tl)[links.link[row]][0]
+            assert st.lanes.ids[links.from_lane[row]] == frm
+            assert st.lanes.ids[links.to_lane[row]] == to
+    finally:
+        sim.close()
