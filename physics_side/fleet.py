@@ -51,6 +51,28 @@ class _Pose:
     yaw: np.ndarray
 
 
+@dataclass(frozen=True)
+class _Groups:
+    """Which agents each part of a control tick handles; changes only with the agent set,
+    the modes or the world's slot numbers, so it is built once per SUMO step, not per tick."""
+
+    kin_idx: np.ndarray
+    """Placed at the reference each tick (kinematic / external)."""
+    use_default: np.ndarray
+    """Vehicles under the default controller (all of them while stopping), bool."""
+    use_paper: np.ndarray
+    any_default: bool
+    all_default: bool
+    any_paper: bool
+    all_paper: bool
+    veh_idx: np.ndarray
+    """Vehicles (commanded through ``command_vehicles``)."""
+    veh_slots: np.ndarray
+    all_veh: bool
+    ped_idx: np.ndarray
+    """Pedestrians under force control."""
+
+
 @dataclass
 class StepStats:
     """What ``apply_step`` did."""
@@ -106,6 +128,7 @@ class Fleet:
         self.stop_v0 = np.zeros(0)
         self.stop_t = 0.0
         self._gen = -1
+        self._groups: _Groups | None = None
         self._cache = None
         self._last_obs = None
 
@@ -163,7 +186,7 @@ class Fleet:
         if old_ref is not None and len(ids):
             had = prev >= 0
             yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
-        ref = Reference.from_batch(msg.time, a, rows, yaw_rate)
+        ref = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
 
         slots = w.slot_of(ids)
         new = np.flatnonzero(slots < 0)
@@ -239,6 +262,8 @@ class Fleet:
         self.err_lon = np.where(place, 0.0, e_lon)
         self.err_lat = np.where(place, 0.0, e_lat)
         self.sumo_step = msg.step
+        # the first tick starts from ``obs`` unless a placement moved somebody since
+        self._cache = None if place.any() else (obs, None)
         self.counters["steps"] += 1
         if resync:
             self.counters["resyncs"] += 1
@@ -267,9 +292,27 @@ class Fleet:
         )
         self.mass = t.mass[s]
         self.stab_max = t.stab_max[s]
-        self._veh_idx = np.flatnonzero(self.kind != M.KIND_PED)
+        self._steer_lim_num = wb * A_LAT_MAX  # numerator of the friction-circle steering limit
         self._any_bike = bool(np.any(self.kind == M.KIND_BIKE))
         self._gen = self.world.generation
+        self._groups = None
+
+    def _build_groups(self) -> _Groups:
+        veh = self.kind != M.KIND_PED
+        if self.stopping:  # every vehicle brakes along its path with the default controller
+            kin = np.zeros(self.n, bool)
+            use_default, use_paper = veh.copy(), np.zeros(self.n, bool)
+        else:
+            kin = (self.mode == AgentMode.KINEMATIC) | (self.mode == AgentMode.EXTERNAL)
+            use_default = veh & ~kin & (self.preset == P_DEFAULT)
+            use_paper = veh & ~kin & (self.preset == P_PAPER)
+        veh_idx = np.flatnonzero(veh)
+        return _Groups(
+            kin_idx=np.flatnonzero(kin), use_default=use_default, use_paper=use_paper,
+            any_default=bool(use_default.any()), all_default=bool(use_default.all()), any_paper=bool(use_paper.any()),
+            all_paper=bool(use_paper.all()), veh_idx=veh_idx,
+            veh_slots=self.slots[veh_idx], all_veh=len(veh_idx) == self.n, ped_idx=np.flatnonzero(~veh & ~kin),
+        )
 
     # ------------------------------------------------------------------ control tick
 
@@ -284,6 +327,7 @@ class Fleet:
         self.stop_t = 0.0
         self.mode = np.full(self.n, AgentMode.STOPPING, np.uint8)
         self.stopping = True
+        self._groups = None
 
     def tick(self) -> None:
         """One control tick: controllers -> commands -> MuJoCo substeps -> errors, contacts."""
@@ -297,8 +341,8 @@ class Fleet:
             self.slots = w.slot_of(self.ids)
             self._params()
             self._cache = None
-        # the previous tick's end state is this tick's start state unless a step or a
-        # placement happened in between (then the cache was dropped)
+        # the previous tick's end state (or the one ``apply_step`` read) is this tick's start
+        # state unless a placement happened in between (then the cache was dropped)
         if self._cache is not None:
             obs, proj = self._cache
         else:
@@ -306,47 +350,44 @@ class Fleet:
         ref = self.ref
         tau = min(self.tau, self.cfg.max_extrapolation_s)
         p = self.params
-        veh = self.kind != M.KIND_PED
-        ped = ~veh
-        kin = (self.mode == AgentMode.KINEMATIC) | (self.mode == AgentMode.EXTERNAL)
-        steer = np.zeros(n)
-        drive = np.zeros(n)
-        brake = np.zeros(n)
-        aux = np.zeros(n)
+        if self._groups is None:
+            self._groups = self._build_groups()
+        g = self._groups
         stop_speed = None
         stopping = None
         if self.stopping:
             stopping = np.ones(n, bool)
             stop_speed = np.maximum(self.stop_v0 - self.cfg.stop_decel * self.stop_t, 0.0)
-            kin = np.zeros(n, bool)
         vobs = C.VehicleObs(obs.fx, obs.fy, obs.cx, obs.cy, obs.yaw, obs.speed, obs.yaw_rate, obs.fvx, obs.fvy)
-        use_default = veh & ~kin & ((self.preset == P_DEFAULT) | self.stopping)
-        use_paper = veh & ~kin & (self.preset == P_PAPER) & (not self.stopping)
-        if use_default.any():
+        cmds = []
+        if g.any_default:
             cmd = C.control_default(
                 vobs, p, ref, tau, self.dt, self.ctl.default, self.state, stopping, self.cfg.stop_decel,
                 stop_speed, s_guess=self.s_act, proj=proj,
             )
-            steer = np.where(use_default, cmd.steer, steer)
-            drive = np.where(use_default, cmd.drive, drive)
-            brake = np.where(use_default, cmd.brake, brake)
-            aux = np.where(use_default, cmd.aux, aux)
-        if use_paper.any():
-            cmd = C.control_paper(vobs, p, ref, self.ctl.paper)
-            steer = np.where(use_paper, cmd.steer, steer)
-            drive = np.where(use_paper, cmd.drive, drive)
-            brake = np.where(use_paper, cmd.brake, brake)
-            aux = np.where(use_paper, cmd.aux, aux)
-        if kin.any():
-            idx = np.flatnonzero(kin)
+            cmds.append((g.all_default, g.use_default, cmd))
+        if g.any_paper:
+            cmds.append((g.all_paper, g.use_paper, C.control_paper(vobs, p, ref, self.ctl.paper)))
+        if len(cmds) == 1 and cmds[0][0]:  # one controller for everybody (the usual case)
+            cmd = cmds[0][2]
+            steer, drive, brake, aux = cmd.steer, cmd.drive, cmd.brake, cmd.aux
+        else:
+            steer, drive, brake, aux = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+            for _, use, cmd in cmds:
+                steer = np.where(use, cmd.steer, steer)
+                drive = np.where(use, cmd.drive, drive)
+                brake = np.where(use, cmd.brake, brake)
+                aux = np.where(use, cmd.aux, aux)
+        if len(g.kin_idx):
+            idx = g.kin_idx
             r = ref.at(tau)
             self._place(idx, r, count=False, steady_turn=False)
             steer[idx] = np.arctan(p.wheelbase[idx] * r.curvature[idx])
         # vehicle property (as the paper's Unity car controller's speed-dependent steering
         # limit): never steer beyond the friction circle at the current speed
-        lim = np.minimum(p.max_steer, np.arctan(p.wheelbase * A_LAT_MAX / np.maximum(obs.speed, 0.1) ** 2))
-        steer = np.clip(steer, -lim, lim)
-        vi = self._veh_idx
+        lim = np.minimum(p.max_steer, np.arctan(self._steer_lim_num / np.maximum(obs.speed, 0.1) ** 2))
+        steer = np.minimum(np.maximum(steer, -lim), lim)
+        vi = g.veh_idx
         if len(vi):
             stab = None
             if self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
@@ -357,8 +398,11 @@ class Fleet:
                     obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], r_cmd,
                     self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
                 )
-            w.command_vehicles(self.slots[vi], steer[vi], drive[vi], brake[vi], stab)
-        pi = np.flatnonzero(ped & ~kin)
+            if g.all_veh:
+                w.command_vehicles(g.veh_slots, steer, drive, brake, stab)
+            else:
+                w.command_vehicles(g.veh_slots, steer[vi], drive[vi], brake[vi], stab)
+        pi = g.ped_idx
         if len(pi):
             drive[pi] = self._pedestrians(pi, obs, tau, stopping, stop_speed)
         w.step()
@@ -368,8 +412,8 @@ class Fleet:
             self.stop_t += self.dt
         # tracking error at the end of the tick, against the extrapolated reference
         obs2 = w.observe(self.slots)
-        r2 = ref.at(min(self.tau, self.cfg.max_extrapolation_s))
-        s2, lat2, pp2 = ref.project(obs2.fx, obs2.fy, self.s_act + np.maximum(obs.speed, 0.0) * self.dt)
+        s_guess = self.s_act + np.maximum(obs.speed, 0.0) * self.dt
+        r2, (s2, lat2, pp2) = ref.at_and_project(min(self.tau, self.cfg.max_extrapolation_s), obs2.fx, obs2.fy, s_guess)
         self.s_act = s2
         self.err_lon = s2 - r2.s
         self.err_lat = lat2

@@ -73,14 +73,14 @@ class PathSet:
         seglen = np.hypot(seg[:, 0], seg[:, 1]) if m else np.zeros(0)
         last = offsets[1:] - 1  # last vertex of each agent
         # the segment leaving an agent's last vertex joins two agents: invalid
-        valid = np.ones(m, bool)
-        valid[last[:-1]] = False
-        seglen = np.where(valid, seglen, 0.0)
+        seglen[last[:-1]] = 0.0
         safe = np.maximum(seglen, 1e-9)
         h = np.arctan2(seg[:, 1], seg[:, 0]) if m else np.zeros(0)
         cum = np.zeros(len(xy))
         if m:
-            c = np.concatenate(([0.0], np.cumsum(seglen)))
+            c = np.empty(m + 1)
+            c[0] = 0.0
+            np.cumsum(seglen, out=c[1:])
             cum = c - c[offsets[:-1]][owner]
         self.cum = cum
         self.total = cum[last] if n else np.zeros(0)
@@ -92,25 +92,26 @@ class PathSet:
         self.dir = seg / safe[:, None] if m else np.zeros((0, 2))
         self.h = h
         # turn at the start vertex of each segment (segment j-1 -> j), 0 at path starts
+        # (every polyline has a first segment: >= 2 vertices each)
         first_seg = np.zeros(m, bool)
-        first_seg[offsets[:-1][counts >= 2]] = True
+        first_seg[self.first] = True
         last_seg = np.zeros(m, bool)
         last_seg[self.last_seg] = True
         turn = np.zeros(m)
-        half = np.zeros(m)
+        b_start = np.zeros(m)
         if m > 1:
             turn[1:] = wrap_pi(h[1:] - h[:-1])
-            half[1:] = np.minimum(seglen[1:], seglen[:-1]) * 0.5
-        turn = np.where(first_seg, 0.0, turn)
-        b_start = np.where(first_seg, 0.0, np.minimum(BLEND_M, half))
+            b_start[1:] = np.minimum(np.minimum(seglen[1:], seglen[:-1]) * 0.5, BLEND_M)
+        turn[self.first] = 0.0
+        b_start[self.first] = 0.0
         # turn at the end vertex of each segment = turn at the start of the next one
         turn_end = np.zeros(m)
         b_end = np.zeros(m)
         if m > 1:
             turn_end[:-1] = turn[1:]
             b_end[:-1] = b_start[1:]
-        turn_end = np.where(last_seg, 0.0, turn_end)
-        b_end = np.where(last_seg, 0.0, b_end)
+        turn_end[self.last_seg] = 0.0
+        b_end[self.last_seg] = 0.0
         # sampled curves: the first / last segment continues its neighbour's turn
         fine = seglen <= 2.0 * BLEND_M
         if m > 1:
@@ -124,11 +125,15 @@ class PathSet:
             b_end[idx] = 0.5 * seglen[idx]
         self.turn_s, self.b_s = turn, b_start
         self.turn_e, self.b_e = turn_end, b_end
-        # one row per segment, so a query gathers everything it needs with one fancy index
-        self._seg = np.stack([
-            xy[:-1, 0] if m else np.zeros(0), xy[:-1, 1] if m else np.zeros(0), self.dir[:, 0], self.dir[:, 1],
-            cum[:-1] if m else np.zeros(0), safe, b_start, b_end, turn, turn_end, h,
-        ], axis=1) if m else np.zeros((0, 11))
+        # one column per segment, so a query gathers everything it needs with one ``take``;
+        # blend denominators are 1 where there is no blend (never selected then), so ``at``
+        # divides without a floating-point error state
+        two_bs = np.where(b_start > 0, 2 * b_start, 1.0)
+        two_be = np.where(b_end > 0, 2 * b_end, 1.0)
+        self._seg = np.array([
+            xy[:-1, 0], xy[:-1, 1], self.dir[:, 0], self.dir[:, 1], cum[:-1], safe, b_start, b_end, -turn, turn_end,
+            h, two_bs, two_be, turn / two_bs, turn_end / two_be,
+        ]) if m else np.zeros((15, 0))
 
     @staticmethod
     def dedup(offsets: np.ndarray, xy: np.ndarray, tol: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
@@ -143,6 +148,8 @@ class PathSet:
         keep = np.ones(len(xy), bool)
         keep[1:] = d >= tol
         keep[offsets[:-1][np.diff(offsets) > 0]] = True  # every polyline keeps its first vertex
+        if keep.all():  # nothing to drop (every step of a run without repeated vertices)
+            return offsets, xy
         owner = np.repeat(np.arange(n), np.diff(offsets))
         counts = np.bincount(owner[keep], minlength=n)
         return np.concatenate(([0], np.cumsum(counts))), xy[keep]
@@ -192,24 +199,24 @@ class PathSet:
         return cls(new_off, new_xy)
 
     def at(self, s: np.ndarray) -> PathPoint:
-        """Evaluate every polyline at its own arc length ``s`` (length n) [m]."""
+        """Evaluate every polyline at its own arc length ``s`` (length n) [m]; ``s`` of shape
+        (k, n) evaluates each polyline at k arc lengths in one go (fewer numpy calls)."""
         # hot path (several calls per tick): minimum/maximum instead of np.clip, which
         # costs a few microseconds of Python wrapping per call on small arrays
         s = np.asarray(s, np.float64)
         if self.n == 0:
-            z = np.zeros(0)
+            z = np.zeros(s.shape)
             return PathPoint(z, z, z, z)
         key = np.minimum(np.maximum(s, 0.0), self.total) + self._base
         j = np.searchsorted(self.key, key, side="right") - 1
         j = np.minimum(np.maximum(j, self.first), self.last_seg)
-        x0, y0, dx, dy, c0, L, bs, be, ds, de, h = self._seg[j].T
+        x0, y0, dx, dy, c0, L, bs, be, neg_ds, de, h, two_bs, two_be, k_s, k_e = self._seg.take(j, axis=1)
         t = s - c0  # unclipped: extrapolates before 0 / past the end
         tc = np.minimum(np.maximum(t, 0.0), L)
-        in_s = tc < bs
+        in_s = tc < bs  # never where bs = 0 (tc >= 0), nor in_e where be = 0 (tc <= L)
         in_e = tc > L - be
-        with np.errstate(divide="ignore", invalid="ignore"):
-            heading = h + np.where(in_s, -ds * (bs - tc) / (2 * bs), np.where(in_e, de * (tc - L + be) / (2 * be), 0.0))
-            kappa = np.where(in_s, ds / (2 * bs), np.where(in_e, de / (2 * be), 0.0))
+        heading = h + np.where(in_s, neg_ds * (bs - tc) / two_bs, np.where(in_e, de * (tc - L + be) / two_be, 0.0))
+        kappa = np.where(in_s, k_s, np.where(in_e, k_e, 0.0))
         return PathPoint(x0 + dx * t, y0 + dy * t, wrap_pi(heading), kappa)
 
 
@@ -296,10 +303,13 @@ class Reference:
     def from_batch(cls, t_k: float, agents, rows: np.ndarray | None = None, yaw_rate=None) -> "Reference":
         """Reference of ``agents`` (an AgentBatch), optionally only ``rows`` of it."""
         a = agents
-        if rows is None:
-            rows = np.arange(a.n)
-        rows = np.asarray(rows, np.int64)
-        if len(a.path_offsets):
+        every = rows is None
+        rows = np.arange(a.n) if every else np.asarray(rows, np.int64)
+        if len(a.path_offsets) and every:  # the paths as they are, without a gather
+            off = np.asarray(a.path_offsets, np.int64)
+            xy = np.asarray(a.path_xy[off[0]:off[-1]], np.float64)
+            new_off = off - off[0]
+        elif len(a.path_offsets):
             off = np.asarray(a.path_offsets, np.int64)
             counts = off[rows + 1] - off[rows]
             src = concat_ranges(off[rows], counts)
@@ -327,10 +337,28 @@ class Reference:
 
     def _at(self, tau: float) -> ReferencePoint:
         s, v = stopping_distance(self.speed, self.accel, tau)
-        p = self.path.at(s)
+        return self._point(s, v, self.path.at(s))
+
+    def _point(self, s: np.ndarray, v: np.ndarray, p: PathPoint) -> ReferencePoint:
+        """The reference point at arc length ``s`` and speed ``v``; ``p``: the path there."""
         a = np.where(v > 0.0, self.accel, 0.0)
         return ReferencePoint(p.x + self._dx, p.y + self._dy, wrap_pi(p.heading + self._dyaw), v, a, p.curvature, s,
                               p.heading)
+
+    def at_and_project(
+        self, tau: float, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray,
+    ) -> tuple[ReferencePoint, tuple[np.ndarray, np.ndarray, PathPoint]]:
+        """``at(tau)`` and ``project(px, py, s_guess)`` with one path evaluation (the end of
+        every control tick needs both)."""
+        s_guess = np.asarray(s_guess, np.float64)
+        if self._last_at is not None and self._last_at[0] == tau:
+            return self._last_at[1], self.project(px, py, s_guess)
+        s, v = stopping_distance(self.speed, self.accel, tau)
+        p = self.path.at(np.array([s, s_guess]))
+        r = self._point(s, v, PathPoint(p.x[0], p.y[0], p.heading[0], p.curvature[0]))
+        self._last_at = (tau, r)
+        g = PathPoint(p.x[1] + self._dx, p.y[1] + self._dy, p.heading[1], p.curvature[1])
+        return r, self._project(px, py, s_guess, g)
 
     def point_at(self, s: np.ndarray) -> PathPoint:
         """Path (shifted by the sample's offset from its start) at arc length s [m]; its
@@ -346,7 +374,11 @@ class Reference:
         the guess is the previous projection advanced by v * dt (millimetres off); call
         ``project_far`` for a rough guess.
         """
-        g = self.point_at(np.asarray(s_guess, np.float64))
+        s_guess = np.asarray(s_guess, np.float64)
+        return self._project(px, py, s_guess, self.point_at(s_guess))
+
+    def _project(self, px, py, s_guess: np.ndarray, g: PathPoint) -> tuple[np.ndarray, np.ndarray, PathPoint]:
+        """``project`` with ``g`` = ``point_at(s_guess)`` already evaluated."""
         c, sn = np.cos(g.heading), np.sin(g.heading)
         dx, dy = px - g.x, py - g.y
         ds = dx * c + dy * sn

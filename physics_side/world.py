@@ -24,6 +24,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import mujoco
 import mujoco.batch
@@ -128,6 +129,68 @@ class _Tables:
     rest_pitch: np.ndarray
 
 
+class _SlotPlan:
+    """Index arrays derived from one array of slot numbers, built on first use.
+
+    A fleet reads and writes the same slots every control tick until the next SUMO step,
+    so the gathers of ``_Tables`` rows are done once per step, not once per tick.
+    """
+
+    def __init__(self, t: _Tables, slots: np.ndarray):
+        self.t = t
+        self.slots = slots
+        kind = t.kind[slots]
+        self.ped = kind == M.KIND_PED
+        self.veh = ~self.ped
+        self.all_veh = bool(self.veh.all())
+        self.any_veh = bool(self.veh.any())
+        self.any_ped = bool(self.ped.any())
+        self.front = t.front[slots]
+
+    @cached_property
+    def veh_state(self) -> np.ndarray:
+        """(15, n_veh) flat state indices: freejoint qpos (7), qvel (6), left/right steer qpos."""
+        sv = self.slots[self.veh]
+        t = self.t
+        return np.concatenate([
+            t.qpos[sv][None, :] + np.arange(7)[:, None], t.qvel[sv][None, :] + np.arange(6)[:, None], t.steer_q[sv].T,
+        ])
+
+    @cached_property
+    def ped_state(self) -> np.ndarray:
+        """(6, n_ped) flat state indices: slide x, slide y, yaw hinge qpos, then their qvel."""
+        sp = self.slots[self.ped]
+        t = self.t
+        k = np.arange(3)[:, None]
+        return np.concatenate([t.qpos[sp][None, :] + k, t.qvel[sp][None, :] + k])
+
+    @cached_property
+    def ped_park(self) -> tuple[np.ndarray, np.ndarray]:
+        sp = self.slots[self.ped]
+        return self.t.park_x[sp], self.t.park_y[sp]
+
+    @cached_property
+    def command(self) -> tuple:
+        """wheelbase, track, left/right steer ctrl, drive ctrl, spin frictionloss (n, 4), brake share (n, 4)."""
+        t, s = self.t, self.slots
+        su = t.steer_u[s]
+        return (t.wheelbase[s], t.track[s], su[:, 0].copy(), su[:, 1].copy(), t.drive_u[s], t.spin_fl[s],
+                t.brake_share[s])
+
+    @cached_property
+    def stab(self) -> tuple[np.ndarray, np.ndarray]:
+        """Stabiliser ctrl index of the slots that have one, and which of the slots they are."""
+        au = self.t.aux_u[self.slots][:, 0]
+        ok = au >= 0
+        return au[ok], ok
+
+    @cached_property
+    def body_force(self) -> np.ndarray:
+        """(3, n) flat cfrc_ext indices of each root body's force."""
+        b = self.t.body[self.slots]
+        return np.stack([b, b + 1, b + 2])
+
+
 class PhysicsWorld:
     """Pooled multi-agent MuJoCo world (see module docstring)."""
 
@@ -201,6 +264,7 @@ class PhysicsWorld:
         self._policy = batch.expand("tree_sleep_policy").reshape(-1)
         self._cfrc = batch.bind("cfrc_ext")
         self._tables = self._build_tables(model)
+        self._plans: dict[bytes, _SlotPlan] = {}
         G = len(self._tables.pool)
         old_tables, old_state, old_fl, old_live, old_agents = previous or (None, None, None, None, None)
         self.live = np.zeros(G, bool)
@@ -464,60 +528,49 @@ class PhysicsWorld:
         get = self.agent_slot.get
         return np.fromiter((get(a, -1) for a in ids), np.int64, len(ids))
 
+    def _plan(self, slots: np.ndarray) -> _SlotPlan:
+        """The (cached) ``_SlotPlan`` of an int64 slot array; keyed by content, so callers
+        may pass fresh arrays; dropped on recompile (slot numbers change)."""
+        key = slots.tobytes()
+        plan = self._plans.get(key)
+        if plan is None:
+            if len(self._plans) >= 8:  # a fleet uses a few slot arrays per step
+                self._plans.clear()
+            plan = self._plans[key] = _SlotPlan(self._tables, slots.copy())
+        return plan
+
     # ------------------------------------------------------------------ reads
 
     def observe(self, slots: np.ndarray) -> Observation:
         """Vectorised state of ``slots`` (any mix of kinds)."""
         slots = np.asarray(slots, np.int64)
-        t = self._tables
+        plan = self._plan(slots)
         st = self._state
-        n = len(slots)
-        kind = t.kind[slots]
-        ped = kind == M.KIND_PED
-        veh = ~ped
-        cx = np.empty(n)
-        cy = np.empty(n)
-        z = np.zeros(n)
-        yaw = np.empty(n)
-        roll = np.zeros(n)
-        pitch = np.zeros(n)
-        vx = np.empty(n)
-        vy = np.empty(n)
-        wz = np.empty(n)
-        wx = np.zeros(n)
-        steer = np.zeros(n)
-        if veh.any():
-            sv = slots[veh]
-            q = st[t.qpos[sv][:, None] + np.arange(7)]
-            v = st[t.qvel[sv][:, None] + np.arange(6)]
-            qw, qx, qy, qz = q[:, 3], q[:, 4], q[:, 5], q[:, 6]
-            cx[veh], cy[veh], z[veh] = q[:, 0], q[:, 1], q[:, 2]
-            yaw[veh] = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-            roll[veh] = np.arctan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx * qx + qy * qy))
-            pitch[veh] = -np.arcsin(np.clip(2 * (qw * qy - qz * qx), -1, 1))
-            vx[veh], vy[veh] = v[:, 0], v[:, 1]
-            # freejoint angular velocity is in the body frame: world z = third row of R
-            r20 = 2 * (qx * qz - qw * qy)
-            r21 = 2 * (qy * qz + qw * qx)
-            r22 = 1 - 2 * (qx * qx + qy * qy)
-            wz[veh] = r20 * v[:, 3] + r21 * v[:, 4] + r22 * v[:, 5]
-            wx[veh] = v[:, 3]
-            sq = t.steer_q[sv]
-            steer[veh] = 0.5 * (st[sq[:, 0]] + st[sq[:, 1]])
-        if ped.any():
-            sp = slots[ped]
-            q = st[t.qpos[sp][:, None] + np.arange(3)]
-            v = st[t.qvel[sp][:, None] + np.arange(3)]
-            cx[ped] = t.park_x[sp] + q[:, 0]
-            cy[ped] = t.park_y[sp] + q[:, 1]
-            yaw[ped] = wrap_pi(q[:, 2])
-            vx[ped], vy[ped], wz[ped] = v[:, 0], v[:, 1], v[:, 2]
+        if plan.all_veh:  # the usual case: one gather, no scatter
+            cx, cy, z, yaw, roll, pitch, vx, vy, wz, wx, steer = _vehicle_state(st[plan.veh_state])
+        else:
+            n = len(slots)
+            veh, ped = plan.veh, plan.ped
+            cx, cy, yaw, vx, vy, wz = (np.empty(n) for _ in range(6))
+            z, roll, pitch, wx, steer = (np.zeros(n) for _ in range(5))
+            if plan.any_veh:
+                out = (cx, cy, z, yaw, roll, pitch, vx, vy, wz, wx, steer)
+                for arr, val in zip(out, _vehicle_state(st[plan.veh_state])):
+                    arr[veh] = val
+            if plan.any_ped:
+                g = st[plan.ped_state]
+                px, py = plan.ped_park
+                cx[ped] = px + g[0]
+                cy[ped] = py + g[1]
+                yaw[ped] = wrap_pi(g[2])
+                vx[ped], vy[ped], wz[ped] = g[3], g[4], g[5]
         c, s = np.cos(yaw), np.sin(yaw)
-        front = t.front[slots]
+        front = plan.front
+        wf = wz * front
         return Observation(
             cx=cx, cy=cy, z=z, fx=cx + front * c, fy=cy + front * s, yaw=yaw, roll=roll, pitch=pitch,
             speed=vx * c + vy * s, vx=vx, vy=vy, yaw_rate=wz, roll_rate=wx, steer=steer,
-            fvx=vx - wz * front * s, fvy=vy + wz * front * c,
+            fvx=vx - wf * s, fvy=vy + wf * c,
         )
 
     # ------------------------------------------------------------------ writes
@@ -617,18 +670,17 @@ class PhysicsWorld:
         slots = np.asarray(slots, np.int64)
         if len(slots) == 0:
             return
-        t = self._tables
+        plan = self._plan(slots)
+        wheelbase, track, steer_l, steer_r, drive_u, spin_fl, brake_share = plan.command
         st = self._state
-        left, right = ackermann(steer, t.wheelbase[slots], t.track[slots])
-        su = t.steer_u[slots]
-        st[su[:, 0]] = left
-        st[su[:, 1]] = right
-        st[t.drive_u[slots]] = drive
-        self._fl[t.spin_fl[slots]] = brake[:, None] * t.brake_share[slots]
+        left, right = ackermann(steer, wheelbase, track)
+        st[steer_l] = left
+        st[steer_r] = right
+        st[drive_u] = drive
+        self._fl[spin_fl] = brake[:, None] * brake_share
         if stab is not None:
-            au = t.aux_u[slots][:, 0]
-            ok = au >= 0
-            st[au[ok]] = np.asarray(stab)[ok]
+            au, ok = plan.stab
+            st[au] = np.asarray(stab)[ok]
 
     def command_pedestrians(self, slots: np.ndarray, fx: np.ndarray, fy: np.ndarray, tz: np.ndarray) -> None:
         """Planar force [N] and yaw torque [N*m] of pedestrians."""
@@ -659,10 +711,12 @@ class PhysicsWorld:
         crash with bounces counts once per agent involved.
         """
         slots = np.asarray(slots, np.int64)
-        f = self._cfrc.reshape(-1)
-        b = self._tables.body[slots]
-        mag = np.abs(f[b]) + np.abs(f[b + 1]) + np.abs(f[b + 2])
+        force = np.abs(self._cfrc.reshape(-1)[self._plan(slots).body_force])
+        mag = force[0] + force[1] + force[2]
         touching = (mag > CONTACT_N) & upright
+        if not touching.any():  # the usual tick
+            self.in_contact[slots] = False
+            return touching, 0
         began_mask = touching & ((self.time - self.last_touch[slots]) > CONTACT_GAP_S)
         self.last_touch[slots[touching]] = self.time
         began = int(began_mask.sum())
@@ -673,6 +727,20 @@ class PhysicsWorld:
     @property
     def tables(self) -> _Tables:
         return self._tables
+
+
+def _vehicle_state(g: np.ndarray) -> tuple[np.ndarray, ...]:
+    """cx, cy, z, yaw, roll, pitch, vx, vy, yaw rate, roll rate, steer from the rows of
+    ``_SlotPlan.veh_state`` (freejoint qpos, qvel, steer qpos)."""
+    qw, qx, qy, qz = g[3], g[4], g[5], g[6]
+    xx_yy = qx * qx + qy * qy
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+    roll = np.arctan2(2 * (qw * qx + qy * qz), 1 - 2 * xx_yy)
+    pitch = -np.arcsin(np.minimum(np.maximum(2 * (qw * qy - qz * qx), -1.0), 1.0))
+    # freejoint angular velocity is in the body frame: world z = third row of R
+    wz = 2 * (qx * qz - qw * qy) * g[10] + 2 * (qy * qz + qw * qx) * g[11] + (1 - 2 * xx_yy) * g[12]
+    steer = 0.5 * (g[13] + g[14])  # mean of the steered wheels
+    return g[0], g[1], g[2], yaw, roll, pitch, g[7], g[8], wz, g[10], steer
 
 
 def _quat_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
