@@ -45,11 +45,12 @@ def make_figures(data, ref_id: str, out: Path, lad_sweep: bool = True, summary: 
     ax.plot(track["x"], track["y"], "r--", lw=1.5, label="SUMO reference")
     for inst, s in series.items():
         ax.plot(s["x"], s["y"], lw=1.2, label=f"physics ({inst})", **_style(inst))
-    for d in range(0, int(series[next(iter(series))]["dist"].max()) + 1, 25):
-        i = np.searchsorted(series[next(iter(series))]["dist"], d)
-        s0 = series[next(iter(series))]
+    # Distance markers on the reference (aligned with Fig. 8's x axis, as in the paper).
+    s0 = next(iter(series.values()))
+    marks = np.arange(0, s0["dist"].max() + 1, 25)
+    for d, i in zip(marks, np.searchsorted(s0["dist"], marks)):
         if i < len(s0["t"]):
-            ax.annotate(f"{d} m", (s0["ref_x"][i], s0["ref_y"][i]), fontsize=7, color="0.3")
+            ax.annotate(f"{d:.0f} m", (s0["ref_x"][i], s0["ref_y"][i]), fontsize=7, color="0.3")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
