@@ -1,6 +1,6 @@
 """``run_physics_bench``: cost of one 20 ms control tick for many driving agents.
 
-Synthetic SUMO traffic (``circle_traffic``): cars on concentric circular lanes, spaced
+Synthetic SUMO traffic (``sumoco.testing.synthetic.circle_traffic``): cars on concentric circular lanes, spaced
 along them, at lane speed, with the path ahead and look-ahead points a SUMO side would
 send. Per SUMO step the bench encodes the step (the SUMO side's cost, not counted),
 then - counted - decodes it and applies it to the fleet; per control tick it runs the
@@ -24,64 +24,10 @@ import numpy as np
 from physics_side.config import PhysicsSettings, check_rates
 from physics_side.daemon import build_fleet
 from protocol.codec import decode_as, encode
-from protocol.frames import yaw_to_sumo_angle
-from protocol.messages import AgentBatch, AgentClass, PhysicsState, StepMessage, TrafficLights, VType
+from protocol.messages import PhysicsState, StepMessage
+from sumoco.testing.synthetic import circle_traffic
 
 log = logging.getLogger(__name__)
-
-LANE_R0 = 300.0  # [m] radius of the innermost circular lane
-LANE_GAP = 4.0  # [m] between lanes
-CAR_GAP = 22.0  # [m] arc length between cars on a lane
-PATH_POINTS = 12  # vertices of each path ahead
-PATH_LENGTH = 25.0  # [m] path ahead (LAD_max + margin)
-
-
-def _lanes(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lane and position index of each of n cars: lanes filled in turn, CAR_GAP apart."""
-    lane = np.zeros(n, np.int64)
-    slot = np.zeros(n, np.int64)
-    i, k = 0, 0
-    while i < n:
-        cap = int(2 * np.pi * (LANE_R0 + LANE_GAP * k) // CAR_GAP)
-        m = min(cap, n - i)
-        lane[i:i + m] = k
-        slot[i:i + m] = np.arange(m)
-        i += m
-        k += 1
-    return lane, slot
-
-
-def circle_traffic(n: int, step: int, step_s: float = 0.1, speed: float = 10.0,
-                   cls: AgentClass = AgentClass.PASSENGER, run: str = "bench", id_prefix: str = "veh",
-                   centre: tuple[float, float] = (1000.0, 1000.0)) -> StepMessage:
-    """Step ``step`` of ``n`` agents driving counter-clockwise on concentric circular lanes.
-
-    Lanes (radius LANE_R0 + k * LANE_GAP) are filled with cars CAR_GAP apart; every agent
-    keeps constant speed ``speed`` [m/s].
-    """
-    lane, slot = _lanes(n)
-    R = LANE_R0 + LANE_GAP * lane
-    t = step * step_s
-    th = (slot * CAR_GAP + speed * t) / R  # angle on the circle (ccw)
-    x = centre[0] + R * np.cos(th)
-    y = centre[1] + R * np.sin(th)
-    yaw = th + np.pi / 2
-    ds = np.linspace(0.0, PATH_LENGTH, PATH_POINTS)
-    pth = th[:, None] + ds[None, :] / R[:, None]
-    pxy = np.stack([centre[0] + R[:, None] * np.cos(pth), centre[1] + R[:, None] * np.sin(pth)], axis=-1)
-    la = th + 7.0 / R
-    f32 = np.float32
-    batch = AgentBatch(
-        ids=[f"{id_prefix}{k}" for k in range(n)], cls=np.full(n, int(cls), np.uint8), vtype=np.zeros(n, np.uint16),
-        x=x, y=y, angle=yaw_to_sumo_angle(yaw).astype(f32), speed=np.full(n, speed, f32), accel=np.zeros(n, f32),
-        signals=np.zeros(n, np.uint16), la_x=(centre[0] + R * np.cos(la)).astype(f32),
-        la_y=(centre[1] + R * np.sin(la)).astype(f32), length=np.full(n, 5.0, f32), width=np.full(n, 1.8, f32),
-        lane=lane.astype(np.int32), flags=np.full(n, 8 if step == 0 else 0, np.uint8),
-        path_offsets=(np.arange(n + 1) * PATH_POINTS).astype(np.uint32), path_xy=pxy.reshape(-1, 2).astype(f32),
-    )
-    vt = [VType("car", "passenger")]
-    return StepMessage(run, step, t, step_s, batch, TrafficLights.empty(), vt)
-
 
 def _settings(n: int, base: PhysicsSettings | None) -> PhysicsSettings:
     s = base or PhysicsSettings()
@@ -96,8 +42,8 @@ def bench_one(n: int, seconds: float = 2.0, warmup_s: float = 0.4, settings: Phy
     import zenoh
 
     from protocol.keys import Keys
-    from sumoco.config import ZenohConfig
-    from sumoco.transport import open_session
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
 
     settings = _settings(n, settings)
     cfg = settings.physics
@@ -167,4 +113,4 @@ def run_physics_bench(sizes=(100, 500, 1000), quick: bool = False, settings: Phy
     return [bench_one(n, seconds=seconds, warmup_s=0.2 if quick else 0.4, settings=settings) for n in sizes]
 
 
-__all__ = ["bench_one", "circle_traffic", "run_physics_bench"]
+__all__ = ["bench_one", "run_physics_bench"]

@@ -1,7 +1,7 @@
 """Typed configuration of the physics side: ``[physics]``, ``[control.paper]``, ``[control.default]``.
 
 Every knob has its unit; ``load_physics_config`` reads the tables of a run config (see
-``sumoco.config``), and ``check_rates`` validates the SUMO step / control / MuJoCo step
+``sumoco.common.config``), and ``check_rates`` validates the SUMO step / control / MuJoCo step
 ratios once at start-up.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from protocol.errors import ConfigError
-from sumoco.config import from_dict, section
+from sumoco.common.config import from_dict, section
 
 PRESETS = ("paper", "default", "kinematic")
 TYPES = ("passenger", "taxi", "bus", "bicycle", "pedestrian", "other")

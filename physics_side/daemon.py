@@ -40,7 +40,7 @@ from protocol.codec import decode_as, encode
 from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StepAck, StepMessage
-from sumoco.config import RunConfig
+from sumoco.common.config import RunConfig
 
 log = logging.getLogger("physics")
 
@@ -341,8 +341,8 @@ def build_fleet(settings: PhysicsSettings) -> Fleet:
 
 def cli_main(args) -> int:
     """``sumoco physics --config X.toml [--preset P] [--instance I] [--listen ...] [--timing ...]``."""
-    from sumoco.config import apply_cli, load_common
-    from sumoco.transport import open_session
+    from sumoco.common.config import apply_cli, load_common
+    from sumoco.common.transport import open_session
 
     if not args.config:
         raise ConfigError("sumoco physics: --config is required")

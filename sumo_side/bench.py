@@ -59,8 +59,8 @@ class _Sink:
 
 
 def _sessions():
-    from sumoco.config import ZenohConfig
-    from sumoco.transport import free_tcp_port, open_session
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import free_tcp_port, open_session
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     pub_s = open_session(ZenohConfig(listen=(ep,)))

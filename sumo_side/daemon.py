@@ -41,7 +41,7 @@ from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.ego import EgoManager
 from sumo_side.simulation import SumoSim
-from sumoco.config import CommonConfig, RunConfig, apply_cli, load_common, replace
+from sumoco.common.config import CommonConfig, RunConfig, apply_cli, load_common, replace
 
 log = logging.getLogger("sumo_side")
 
@@ -441,7 +441,7 @@ def load_configs(args) -> tuple[CommonConfig, SumoConfig]:
 
 def cli_main(args) -> int:
     """``sumoco sumo``: start SUMO, open Zenoh, run until done or SIGINT/SIGTERM."""
-    from sumoco.transport import open_session
+    from sumoco.common.transport import open_session
 
     common, scfg = load_configs(args)
     keys = Keys(common.zenoh.root, common.run.id)

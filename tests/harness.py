@@ -19,8 +19,8 @@ from protocol.codec import decode
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepMessage
-from sumoco.config import ZenohConfig
-from sumoco.transport import free_tcp_port, open_session
+from sumoco.common.config import ZenohConfig
+from sumoco.common.transport import free_tcp_port, open_session
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_CFG = ROOT / "configs" / "scenarios" / "paper" / "paper.sumocfg"
@@ -54,7 +54,7 @@ class Daemon:
         log_dir.mkdir(parents=True, exist_ok=True)
         self._f = self.log.open("wb")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "sumoco.cli", *args],
+            [sys.executable, "-m", "sumoco.app.cli", *args],
             stdout=self._f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=ROOT,
         )

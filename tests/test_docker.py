@@ -52,7 +52,7 @@ def test_compose_file_parses_and_wires_router():
 
 
 def test_cli_takes_settings_from_environment(monkeypatch):
-    from sumoco.cli import build_parser, _env_list
+    from sumoco.app.cli import build_parser, _env_list
 
     monkeypatch.setenv("SUMOCO_CONNECT", "tcp/router:7447, tcp/other:7447")
     assert _env_list("SUMOCO_CONNECT") == ["tcp/router:7447", "tcp/other:7447"]

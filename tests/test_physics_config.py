@@ -8,7 +8,7 @@ import pytest
 
 from physics_side.config import check_rates, load_physics_config
 from protocol.errors import ConfigError
-from sumoco.config import load_toml
+from sumoco.common.config import load_toml
 
 
 def _load(tmp_path: Path, text: str):

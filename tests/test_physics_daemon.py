@@ -20,7 +20,7 @@ try:  # tests/ as a package or as rootdir-relative modules
     from tests.harness import Daemon, Probe, endpoint, wait_until
 except ImportError:  # pragma: no cover
     from harness import Daemon, Probe, endpoint, wait_until
-from physics_side.bench import circle_traffic
+from sumoco.testing.synthetic import circle_traffic
 from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import AgentMode, StepAck
@@ -59,8 +59,8 @@ def test_daemon_lockstep_liveliness_and_rejects(tmp_path):
     cfg.write_text(CONFIG.format(run=run))
     sumo_ep = endpoint()
     # the fake SUMO side listens; the daemon and the probe connect to it
-    from sumoco.config import ZenohConfig
-    from sumoco.transport import open_session
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
 
     sumo = open_session(ZenohConfig(listen=(sumo_ep,)))
     acks: list[StepAck] = []
@@ -158,8 +158,8 @@ def test_daemon_realtime_paces_ticks_by_the_wall_clock(tmp_path):
     keys = Keys("sumoco", run)
     cfg = tmp_path / "physics.toml"
     cfg.write_text(CONFIG.format(run=run).replace('timing = "lockstep"', 'timing = "realtime"'))
-    from sumoco.config import ZenohConfig
-    from sumoco.transport import open_session
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
 
     sumo_ep = endpoint()
     sumo = open_session(ZenohConfig(listen=(sumo_ep,)))

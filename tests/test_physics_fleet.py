@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from physics_side.bench import circle_traffic
+from sumoco.testing.synthetic import circle_traffic
 from physics_side.config import PhysicsConfig, PhysicsSettings
 from physics_side.daemon import build_fleet
 from protocol.messages import AgentClass, AgentFlag, AgentMode, VType

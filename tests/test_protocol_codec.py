@@ -16,7 +16,7 @@ from protocol import (
 )
 from protocol.codec import STEP_AGENT_COLUMNS
 from protocol.golden_vectors import valid_messages
-from sumoco.bench import synthetic_step
+from sumoco.testing.synthetic import synthetic_step
 
 
 def _assert_same(a, b, path="msg"):

@@ -10,7 +10,7 @@ import pytest
 from protocol.codec import decode
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepMessage
-from sumoco.record import kind_of_topic, read_recording
+from sumoco.app.record import kind_of_topic, read_recording
 from tests.harness import PAPER_CFG, ROOT, Daemon, endpoint
 
 pytestmark = pytest.mark.integration
@@ -26,7 +26,7 @@ def test_record_live_run_to_mcap(tmp_path):
     out = tmp_path / "run.mcap"
     try:
         r = subprocess.run(
-            [sys.executable, "-m", "sumoco.cli", "record", "--config", str(cfg), "--connect", sumo_ep,
+            [sys.executable, "-m", "sumoco.app.cli", "record", "--config", str(cfg), "--connect", sumo_ep,
              "--listen", endpoint(), "--out", str(out), "--duration", "6", "--quiet"],
             capture_output=True, text=True, timeout=60, cwd=ROOT,
         )

@@ -24,10 +24,11 @@ import msgpack
 import pytest
 
 from protocol.keys import Keys
-from sumoco.config import ZenohConfig
-from sumoco.transport import free_tcp_port, open_session
-from sumoco.viewer.server import LatestStore, Mailbox, ViewerConfig, ViewerServer
-from sumoco.viewer.synthetic import FakePublisher, FakeRun
+from sumoco.common.config import ZenohConfig
+from sumoco.common.transport import free_tcp_port, open_session
+from sumoco.app.viewer.server import LatestStore, Mailbox, ViewerConfig, ViewerServer
+from sumoco.testing.feed import FakePublisher
+from sumoco.testing.synthetic import FakeRun
 
 ROOT = Path(__file__).resolve().parents[1]
 GOLDEN = ROOT / "protocol" / "golden"
@@ -155,7 +156,7 @@ def test_feed_fetches_static_when_sumo_appears_late_and_again_after_a_restart():
     SUMO side comes back (new liveliness token) with a different network."""
     from protocol.codec import decode_as
     from protocol.messages import StaticData
-    from sumoco.viewer.server import ZenohFeed
+    from sumoco.app.viewer.server import ZenohFeed
 
     zport = free_tcp_port()
     cfg = ViewerConfig(static_timeout_s=0.5, static_attempts=2)
@@ -243,7 +244,7 @@ class LiveRun:
         )
         self.log_path = tmp / "view.log"
         self._log = self.log_path.open("wb")
-        self.proc = subprocess.Popen([sys.executable, "-m", "sumoco.cli", "view", "--config", str(cfg)],
+        self.proc = subprocess.Popen([sys.executable, "-m", "sumoco.app.cli", "view", "--config", str(cfg)],
                                      cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
         self.url = f"http://127.0.0.1:{self.port}/"
 
@@ -480,7 +481,7 @@ def test_viewer_config_table_and_overrides(tmp_path):
     from types import SimpleNamespace
 
     from protocol.errors import ConfigError
-    from sumoco.viewer.server import load_config
+    from sumoco.app.viewer.server import load_config
 
     cfg = tmp_path / "v.toml"
     cfg.write_text('[run]\nid = "r1"\n\n[viewer]\nport = 9001\nmax_hz = 12.0\n')

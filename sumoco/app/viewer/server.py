@@ -503,7 +503,7 @@ class ZenohFeed:
 
 def load_config(args: Any) -> tuple[Any, ViewerConfig]:
     """Common config + ``[viewer]`` table, with the command-line overrides applied."""
-    from sumoco.config import CommonConfig, apply_cli, load_common, replace, section
+    from sumoco.common.config import CommonConfig, apply_cli, load_common, replace, section
 
     if getattr(args, "config", None):
         common, data, base = load_common(args.config)
@@ -520,7 +520,7 @@ def load_config(args: Any) -> tuple[Any, ViewerConfig]:
 
 
 def cli_main(args: Any) -> int:
-    from sumoco.transport import open_session
+    from sumoco.common.transport import open_session
 
     common, vcfg = load_config(args)
     if not logging.getLogger().isEnabledFor(logging.DEBUG):

@@ -11,6 +11,8 @@ matplotlib.use("Agg")  # files only, no display needed
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from sumoco.app.analysis import internal_lane_mask, ref_series, ref_track  # noqa: E402
+
 log = logging.getLogger(__name__)
 
 _STYLE = {"paper": dict(color="tab:blue"), "default": dict(color="tab:green")}
@@ -28,12 +30,8 @@ def _save(fig, out: Path, name: str) -> str:
 
 
 def make_figures(data, ref_id: str, out: Path, lad_sweep: bool = True, summary: dict | None = None) -> list[str]:
-    from sumoco.report import ref_series, ref_track
-
     series = {inst: ref_series(data, inst, ref_id) for inst in sorted(data.phys)}
     series = {k: v for k, v in series.items() if len(v["t"])}
-    from sumoco.report import internal_lane_mask
-
     track = ref_track(data, ref_id)
     track["internal"] = internal_lane_mask(data.static, track["lane"])
     names: list[str] = []

@@ -1,7 +1,7 @@
 """End-to-end latency: SUMO-side publish to physics-side decoded, two OS processes.
 
 The publisher (this process) stamps each step index with ``time.monotonic_ns()`` just
-before ``put``; a subscriber process (``python -m sumoco.e2e_bench --sub``) stamps the
+before ``put``; a subscriber process (``python -m sumoco.app.e2e_bench --sub``) stamps the
 same index when ``decode`` returns. CLOCK_MONOTONIC is shared by all processes of one
 host, so the difference is the one-way latency including encode-free transport and decode.
 """
@@ -20,9 +20,9 @@ import zenoh
 
 from protocol.codec import decode, encode
 from protocol.keys import Keys
-from sumoco.bench import synthetic_step
-from sumoco.config import ZenohConfig
-from sumoco.transport import free_tcp_port, open_session
+from sumoco.testing.synthetic import synthetic_step
+from sumoco.common.config import ZenohConfig
+from sumoco.common.transport import free_tcp_port, open_session
 
 KEYS = Keys("sumocobench", "e2e")
 
@@ -58,7 +58,7 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
         pub = s.declare_publisher(KEYS.step, congestion_control=zenoh.CongestionControl.BLOCK)
         alive = s.liveliness().declare_subscriber(KEYS.physics_alive, history=True)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "sumoco.e2e_bench", "--sub", ep, "--count", str(steps),
+            [sys.executable, "-m", "sumoco.app.e2e_bench", "--sub", ep, "--count", str(steps),
              "--timeout", str(steps * period_s + 30)] + (["--shm"] if shm else []),
             stdout=subprocess.PIPE,
         )

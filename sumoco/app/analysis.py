@@ -1,27 +1,24 @@
-"""Tracking report from a recording: ``summary.json``, the paper's figures, ``report.md``.
-
-Everything here is computed from the recorded messages alone, so ``sumoco report
-run.mcap`` rebuilds exactly what the live demo wrote.
+"""Tracking analysis of a recorded run: tables of SUMO and physics samples, errors, summary.
 
 Error metric (the same for every preset): the physics agent's *front-bumper centre* at
 physics time t against SUMO's front-bumper centre at the same t, linearly interpolated
 between the two SUMO steps around t. Only agents in mode PHYSICAL count; kinematic and
 external (ego) agents are reported apart. Samples next to a SUMO step that flags the
 agent as jumped (teleport) or riding are left out: there SUMO moves the agent by fiat.
+
+``report`` (summary.json, report.md) and ``figures`` both read from here.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from protocol.keys import Keys
 from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsState, StaticData, StepMessage
-from sumoco.record import ReadResult, iter_decoded, read_recording
+from sumoco.app.record import ReadResult, iter_decoded, read_recording
 
 log = logging.getLogger(__name__)
 
@@ -310,84 +307,3 @@ def ref_track(data: RunData, ref_id: str) -> dict[str, np.ndarray]:
     return {k: getattr(data.ref, k)[sel][order] for k in ("t", "x", "y", "angle", "speed", "lane")}
 
 
-def write_report(recording: str | Path, out_dir: str | Path, lad_sweep: bool = True) -> dict:
-    """Rebuild summary.json, the figures and report.md from a recording."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    res = read_recording(recording)
-    data = load_run(res)
-    summary = summarise(data)
-    figures: list[str] = []
-    ref_id = summary["reference_car"]
-    if ref_id and data.phys:
-        from sumoco import figures as figs
-
-        figures = figs.make_figures(data, ref_id, out, lad_sweep=lad_sweep, summary=summary)
-    summary["figures"] = figures
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
-    (out / "report.md").write_text(render_markdown(summary, recording))
-    return summary
-
-
-def _fmt(s: dict | None) -> str:
-    if not s or s.get("mean") is None:
-        return "n/a"
-    return f"{s['mean']:.3f} / {s['p95']:.3f} / {s['max']:.3f}"
-
-
-def render_markdown(summary: dict, recording) -> str:
-    lines = [
-        "# sumoco run report",
-        "",
-        f"Recording: `{Path(recording).name}`; {summary['steps']} SUMO steps, "
-        f"{summary['sim_time_s']} s simulated"
-        + (f", real-time factor {summary['wall']['rtf']}" if summary["wall"].get("rtf") else "")
-        + ".",
-        f"Reference car: `{summary['reference_car']}`. Agents SUMO reported: "
-        + ", ".join(f"{k} {v}" for k, v in summary["agents_seen_sumo"].items()) + ".",
-        "",
-        "Front-bumper position error against SUMO at the same time [m], mean / p95 / max:",
-        "",
-        "| preset | all agents | reference car | ref straight | ref turn | collisions | placements |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for inst, p in summary["presets"].items():
-        rc = p.get("reference_car", {})
-        lines.append(
-            f"| {inst} | {_fmt(p['error_m']['overall'])} | {_fmt(rc.get('overall'))} | "
-            f"{_fmt(rc.get('straight'))} | {_fmt(rc.get('turn'))} | {p['collisions']} | {p['placements']} |"
-        )
-    lines += [
-        "",
-        "SUMO changes lanes instantly: a vehicle hops one lane width (about 3.2 m) sideways in a",
-        "single step. No physical vehicle can follow that, so the maxima near 3.2 m are those",
-        "hops; the physics vehicle steers over within a couple of seconds (Fig. 8).",
-        "",
-        "Per agent type (mean / p95 / max) [m]:", "",
-    ]
-    types = sorted({t for p in summary["presets"].values() for t in p["error_m"]["per_type"]})
-    lines.append("| preset | " + " | ".join(types) + " |")
-    lines.append("|---" * (len(types) + 1) + "|")
-    for inst, p in summary["presets"].items():
-        lines.append(f"| {inst} | " + " | ".join(_fmt(p["error_m"]["per_type"].get(t)) for t in types) + " |")
-    if summary.get("figures"):
-        lines += ["", "## Figures (reference car, presets side by side)", ""]
-        for f in summary["figures"]:
-            lines.append(f"![{f}]({f})")
-            lines.append("")
-    if summary.get("lad_sweep"):
-        lines += ["", "LAD_min sweep through the right turn (paper preset, reference car replayed alone):", "",
-                  "| LAD_min [m] | max lateral error in turn [m] | max error [m] |", "|---|---|---|"]
-        for row in summary["lad_sweep"]:
-            lines.append(f"| {row['lad_min_m']} | {row['turn_lat_max_m']:.3f} | {row['err_max_m']:.3f} |")
-    if summary.get("truncated_recording"):
-        lines += ["", "**The recording is truncated**: numbers cover what it holds."]
-    return "\n".join(lines) + "\n"
-
-
-def cli_main(args) -> int:
-    out = Path(args.out) if getattr(args, "out", None) else Path(args.recording).parent
-    summary = write_report(args.recording, out, lad_sweep=not getattr(args, "no_sweep", False))
-    print(json.dumps({k: summary[k] for k in ("steps", "reference_car")} | {
-        "presets": {k: v["error_m"]["overall"] for k, v in summary["presets"].items()}}, indent=1))
-    return 0

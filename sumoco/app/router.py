@@ -10,8 +10,8 @@ import logging
 import signal
 import threading
 
-from sumoco.config import ZenohConfig
-from sumoco.transport import open_session
+from sumoco.common.config import ZenohConfig
+from sumoco.common.transport import open_session
 
 log = logging.getLogger(__name__)
 

@@ -1,27 +1,23 @@
-"""A synthetic run for trying and testing the viewer without SUMO or MuJoCo.
+"""Synthetic traffic for benchmarks, tests and the viewer's demo feed (no SUMO, no MuJoCo).
 
-``FakeRun`` builds a grid of signalised four-way junctions (two lanes each way plus
-sidewalks) and moves agents along straight corridors through it; ``FakePublisher`` puts
-its step messages, physics states (one or more instances) and static data (queryable) on
-Zenoh with the real key layout and liveliness tokens, so ``sumoco view`` cannot tell it
-from a real run. Run it by hand next to ``sumoco view``::
+- ``synthetic_step``: a StepMessage of n random but plausible agents (codec and transport
+  benchmarks);
+- ``circle_traffic``: cars on concentric circular lanes with their path ahead (physics
+  benchmarks and daemon tests);
+- ``FakeRun``: a grid of signalised junctions with agents moving through it, its static
+  data and physics states (the viewer's demo feed, ``sumoco.testing.feed``).
 
-    python -m sumoco.viewer.synthetic --listen tcp/127.0.0.1:7447 --grid 3 --agents 1000
-    sumoco view --connect tcp/127.0.0.1:7447 --run synthetic
+Pure functions of their arguments (seeded); this module imports only ``protocol``.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
-import threading
-import time
 from typing import Any
 
 import numpy as np
 
-from protocol.codec import encode
-from protocol.keys import Keys
+from protocol.frames import yaw_to_sumo_angle
 from protocol.messages import (
     AgentBatch,
     AgentClass,
@@ -37,6 +33,92 @@ from protocol.messages import (
 )
 
 log = logging.getLogger(__name__)
+
+def synthetic_step(n: int, seed: int = 0, path_points: int = 0, step: int = 1) -> StepMessage:
+    """A StepMessage of ``n`` plausible agents (ids like SUMO's randomTrips ids)."""
+    rng = np.random.default_rng(seed)
+    f32 = np.float32
+    ids = [f"veh{i}" for i in range(n)]
+    x = rng.uniform(0, 2000, n)
+    y = rng.uniform(0, 2000, n)
+    off = np.arange(n + 1, dtype=np.uint32) * path_points
+    xy = (rng.uniform(0, 2000, (n * path_points, 2))).astype(f32)
+    agents = AgentBatch(
+        ids=ids,
+        cls=rng.integers(0, len(AgentClass), n).astype(np.uint8),
+        vtype=np.zeros(n, np.uint16),
+        x=x, y=y,
+        angle=rng.uniform(0, 360, n).astype(f32),
+        speed=rng.uniform(0, 15, n).astype(f32),
+        accel=rng.uniform(-3, 3, n).astype(f32),
+        signals=rng.integers(0, 16, n).astype(np.uint16),
+        la_x=(x + 7).astype(f32), la_y=(y + 1).astype(f32),
+        length=np.full(n, 5.0, f32), width=np.full(n, 1.8, f32),
+        lane=rng.integers(0, 500, n).astype(np.int32),
+        flags=np.zeros(n, np.uint8),
+        path_offsets=off if path_points else np.zeros(0, np.uint32),
+        path_xy=xy if path_points else np.zeros((0, 2), f32),
+    )
+    return StepMessage("bench", step, step * 0.1, 0.1, agents, TrafficLights.empty(),
+                       [VType("DEFAULT_VEHTYPE", "passenger")])
+
+
+
+LANE_R0 = 300.0  # [m] radius of the innermost circular lane
+LANE_GAP = 4.0  # [m] between lanes
+CAR_GAP = 22.0  # [m] arc length between cars on a lane
+PATH_POINTS = 12  # vertices of each path ahead
+PATH_LENGTH = 25.0  # [m] path ahead (LAD_max + margin)
+
+
+def _lanes(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lane and position index of each of n cars: lanes filled in turn, CAR_GAP apart."""
+    lane = np.zeros(n, np.int64)
+    slot = np.zeros(n, np.int64)
+    i, k = 0, 0
+    while i < n:
+        cap = int(2 * np.pi * (LANE_R0 + LANE_GAP * k) // CAR_GAP)
+        m = min(cap, n - i)
+        lane[i:i + m] = k
+        slot[i:i + m] = np.arange(m)
+        i += m
+        k += 1
+    return lane, slot
+
+
+def circle_traffic(n: int, step: int, step_s: float = 0.1, speed: float = 10.0,
+                   cls: AgentClass = AgentClass.PASSENGER, run: str = "bench", id_prefix: str = "veh",
+                   centre: tuple[float, float] = (1000.0, 1000.0)) -> StepMessage:
+    """Step ``step`` of ``n`` agents driving counter-clockwise on concentric circular lanes.
+
+    Lanes (radius LANE_R0 + k * LANE_GAP) are filled with cars CAR_GAP apart; every agent
+    keeps constant speed ``speed`` [m/s].
+    """
+    lane, slot = _lanes(n)
+    R = LANE_R0 + LANE_GAP * lane
+    t = step * step_s
+    th = (slot * CAR_GAP + speed * t) / R  # angle on the circle (ccw)
+    x = centre[0] + R * np.cos(th)
+    y = centre[1] + R * np.sin(th)
+    yaw = th + np.pi / 2
+    ds = np.linspace(0.0, PATH_LENGTH, PATH_POINTS)
+    pth = th[:, None] + ds[None, :] / R[:, None]
+    pxy = np.stack([centre[0] + R[:, None] * np.cos(pth), centre[1] + R[:, None] * np.sin(pth)], axis=-1)
+    la = th + 7.0 / R
+    f32 = np.float32
+    batch = AgentBatch(
+        ids=[f"{id_prefix}{k}" for k in range(n)], cls=np.full(n, int(cls), np.uint8), vtype=np.zeros(n, np.uint16),
+        x=x, y=y, angle=yaw_to_sumo_angle(yaw).astype(f32), speed=np.full(n, speed, f32), accel=np.zeros(n, f32),
+        signals=np.zeros(n, np.uint16), la_x=(centre[0] + R * np.cos(la)).astype(f32),
+        la_y=(centre[1] + R * np.sin(la)).astype(f32), length=np.full(n, 5.0, f32), width=np.full(n, 1.8, f32),
+        lane=lane.astype(np.int32), flags=np.full(n, 8 if step == 0 else 0, np.uint8),
+        path_offsets=(np.arange(n + 1) * PATH_POINTS).astype(np.uint32), path_xy=pxy.reshape(-1, 2).astype(f32),
+    )
+    vt = [VType("car", "passenger")]
+    return StepMessage(run, step, t, step_s, batch, TrafficLights.empty(), vt)
+
+
+
 
 LANE_W = 3.2  # [m] vehicle lane width
 WALK_W = 2.0  # [m] sidewalk width
@@ -228,98 +310,3 @@ class FakeRun:
             err_lon=lon, err_lat=lat,
         )
         return PhysicsState(self.run, tick, t, sumo_step, agents, {"collisions": 0, "placements": n})
-
-
-class FakePublisher:
-    """Publishes a ``FakeRun`` on a Zenoh session in a background thread, in real time."""
-
-    def __init__(self, session: Any, fake: FakeRun, root: str = "sumoco", step_hz: float = 10.0,
-                 physics_hz: float = 20.0, instances: tuple[str, ...] = ("paper", "default")) -> None:
-        self.session, self.fake = session, fake
-        self.keys = Keys(root, fake.run)
-        self.step_hz, self.physics_hz, self.instances = step_hz, physics_hz, instances
-        self.static_bytes = encode(fake.static())
-        self.steps_sent = 0
-        self.static_queries = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name="fake-run", daemon=True)
-        self._decl: list[Any] = []
-
-    def _on_query(self, query: Any) -> None:
-        self.static_queries += 1
-        query.reply(self.keys.static, self.static_bytes)
-
-    def start(self) -> "FakePublisher":
-        s, k = self.session, self.keys
-        self._decl.append(s.declare_queryable(k.static, self._on_query))
-        self._decl.append(s.liveliness().declare_token(k.sumo_alive))
-        self._step_pub = s.declare_publisher(k.step)
-        self._phys_pubs = {}
-        for inst in self.instances:
-            ki = Keys(k.root, k.run, inst)
-            self._phys_pubs[inst] = s.declare_publisher(ki.physics_state)
-            self._decl.append(s.liveliness().declare_token(ki.physics_alive))
-        self._decl += [self._step_pub, *self._phys_pubs.values()]
-        self._thread.start()
-        return self
-
-    def _loop(self) -> None:
-        t0 = time.monotonic()
-        next_step, next_phys = 0, 0
-        while not self._stop.is_set():
-            now = time.monotonic() - t0
-            if now >= next_step / self.step_hz:
-                self._step_pub.put(encode(self.fake.step(next_step)))
-                self.steps_sent += 1
-                next_step += 1
-            if self.instances and now >= next_phys / self.physics_hz:
-                t = next_phys / self.physics_hz * self.step_hz * self.fake.dt  # same clock as steps
-                for j, (inst, pub) in enumerate(self._phys_pubs.items()):
-                    pub.put(encode(self.fake.physics(next_phys, t, next_step - 1, gain=1.0 + j)))
-                next_phys += 1
-            wait = min(next_step / self.step_hz,
-                       next_phys / self.physics_hz if self.instances else 1e9) - (time.monotonic() - t0)
-            if wait > 0:
-                self._stop.wait(wait)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        for d in reversed(self._decl):
-            try:
-                d.undeclare()
-            except Exception:  # already gone with the session
-                pass
-
-
-def main(argv: list[str] | None = None) -> int:
-    from sumoco.config import ZenohConfig
-    from sumoco.logs import setup_logging
-    from sumoco.transport import open_session
-
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--listen", default="tcp/127.0.0.1:7447", help="zenoh endpoint to listen on")
-    ap.add_argument("--run", default="synthetic")
-    ap.add_argument("--root", default="sumoco")
-    ap.add_argument("--grid", type=int, default=2, help="junctions per side")
-    ap.add_argument("--agents", type=int, default=200)
-    ap.add_argument("--hz", type=float, default=10.0, help="step messages per second")
-    args = ap.parse_args(argv)
-    setup_logging()
-    fake = FakeRun(grid=args.grid, n=args.agents, run=args.run)
-    with open_session(ZenohConfig(listen=(args.listen,))) as session:
-        pub = FakePublisher(session, fake, root=args.root, step_hz=args.hz).start()
-        log.info("synthetic run %r: %d agents on %dx%d junctions, listening on %s",
-                 args.run, args.agents, args.grid, args.grid, args.listen)
-        try:
-            while True:
-                time.sleep(1.0)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            pub.stop()
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

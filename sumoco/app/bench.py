@@ -1,7 +1,7 @@
 """``sumoco bench {sumo,physics,e2e,codec} --json``: benchmark rows as JSON on stdout.
 
 Benchmarks measure speed; tests check correctness. Each area owns its benchmark
-function (``sumo_side.bench``, ``physics_side.bench``, ``sumoco.e2e_bench``); this module
+function (``sumo_side.bench``, ``physics_side.bench``, ``sumoco.app.e2e_bench``); this module
 only dispatches and prints.
 """
 
@@ -14,36 +14,7 @@ import time
 import numpy as np
 
 from protocol.codec import decode, encode
-from protocol.messages import AgentBatch, AgentClass, StepMessage, TrafficLights, VType
-
-
-def synthetic_step(n: int, seed: int = 0, path_points: int = 0, step: int = 1) -> StepMessage:
-    """A StepMessage of ``n`` plausible agents (ids like SUMO's randomTrips ids)."""
-    rng = np.random.default_rng(seed)
-    f32 = np.float32
-    ids = [f"veh{i}" for i in range(n)]
-    x = rng.uniform(0, 2000, n)
-    y = rng.uniform(0, 2000, n)
-    off = np.arange(n + 1, dtype=np.uint32) * path_points
-    xy = (rng.uniform(0, 2000, (n * path_points, 2))).astype(f32)
-    agents = AgentBatch(
-        ids=ids,
-        cls=rng.integers(0, len(AgentClass), n).astype(np.uint8),
-        vtype=np.zeros(n, np.uint16),
-        x=x, y=y,
-        angle=rng.uniform(0, 360, n).astype(f32),
-        speed=rng.uniform(0, 15, n).astype(f32),
-        accel=rng.uniform(-3, 3, n).astype(f32),
-        signals=rng.integers(0, 16, n).astype(np.uint16),
-        la_x=(x + 7).astype(f32), la_y=(y + 1).astype(f32),
-        length=np.full(n, 5.0, f32), width=np.full(n, 1.8, f32),
-        lane=rng.integers(0, 500, n).astype(np.int32),
-        flags=np.zeros(n, np.uint8),
-        path_offsets=off if path_points else np.zeros(0, np.uint32),
-        path_xy=xy if path_points else np.zeros((0, 2), f32),
-    )
-    return StepMessage("bench", step, step * 0.1, 0.1, agents, TrafficLights.empty(),
-                       [VType("DEFAULT_VEHTYPE", "passenger")])
+from sumoco.testing.synthetic import synthetic_step
 
 
 def _best_ms(fn, repeat: int) -> float:
@@ -86,7 +57,7 @@ def cli_main(args) -> int:
 
         rows = run_physics_bench(quick=quick)
     elif args.what == "e2e":
-        from sumoco.e2e_bench import run_e2e_bench
+        from sumoco.app.e2e_bench import run_e2e_bench
 
         rows = run_e2e_bench(quick=quick)
     else:  # pragma: no cover

@@ -5,7 +5,7 @@ One TOML file configures a whole run; each part reads its own table:
 - ``[run]`` and ``[zenoh]``: defined here, shared by every process;
 - ``[sumo]``: ``sumo_side.config.SumoConfig``;
 - ``[physics]`` and ``[control.*]``: ``physics_side.config``;
-- ``[demo]``: ``sumoco.demo``.
+- ``[demo]``: ``sumoco.app.demo``.
 
 An unknown key or a value of the wrong type is a ``ConfigError`` that names the file,
 the dotted key and what was expected; a missing key takes the dataclass default.

@@ -22,9 +22,9 @@ from pathlib import Path
 import zenoh
 
 from protocol.keys import Keys
-from sumoco.config import CommonConfig, ZenohConfig, apply_cli, load_common, replace, section
-from sumoco.record import LiveRecorder, McapRecorder
-from sumoco.transport import free_tcp_port, open_session
+from sumoco.common.config import CommonConfig, ZenohConfig, apply_cli, load_common, replace, section
+from sumoco.app.record import LiveRecorder, McapRecorder
+from sumoco.common.transport import free_tcp_port, open_session
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ class Processes:
 
 
 def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "sumoco.cli", *args]
+    return [sys.executable, "-m", "sumoco.app.cli", *args]
 
 
 def _wait_for(cond, timeout_s: float, what: str, procs: Processes) -> None:
@@ -120,7 +120,7 @@ def _wait_for(cond, timeout_s: float, what: str, procs: Processes) -> None:
 def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfig,
              sumocfg: str | None = None, quiet: bool = False) -> dict:
     """Run the whole demo; returns the summary dict."""
-    from sumoco.report import write_report
+    from sumoco.app.report import write_report
 
     out.mkdir(parents=True, exist_ok=True)
     keys = Keys(common.zenoh.root, common.run.id)

@@ -123,7 +123,7 @@ class LiveRecorder:
 
     def __init__(self, session: zenoh.Session, keys: Keys, recorder: McapRecorder,
                  on_message=None, scene: bool = True) -> None:
-        from sumoco import scene as scene_mod
+        from sumoco.app import scene as scene_mod
 
         self.session, self.keys, self.rec = session, keys, recorder
         self._on_message = on_message
@@ -192,8 +192,8 @@ def record_cli(args) -> int:
     """``sumoco record --out run.mcap``: record a live run until Ctrl-C or --duration."""
     import signal
 
-    from sumoco.config import apply_cli, load_common, CommonConfig
-    from sumoco.transport import open_session
+    from sumoco.common.config import apply_cli, load_common, CommonConfig
+    from sumoco.common.transport import open_session
 
     common = load_common(args.config)[0] if args.config else CommonConfig()
     common = apply_cli(common, args)

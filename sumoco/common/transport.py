@@ -13,7 +13,7 @@ import socket
 
 import zenoh
 
-from sumoco.config import ZenohConfig
+from sumoco.common.config import ZenohConfig
 
 log = logging.getLogger(__name__)
 

@@ -11,6 +11,12 @@ import os
 import sys
 
 from protocol.errors import ConfigError, SumocoError
+from protocol.messages import SCHEMA_VERSION
+from sumoco import __version__
+from sumoco.common.errors import ExitCode, MissingExtraError
+
+#: Optional parts: the top-level module a command needs -> the extra that installs it.
+_EXTRAS = {"libsumo": "sumo", "sumo": "sumo", "mujoco": "physics", "matplotlib": "report", "foxglove": "foxglove"}
 
 
 def _env_list(name: str) -> list[str] | None:
@@ -38,6 +44,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="sumoco", description="SUMO <-> MuJoCo co-simulation over Zenoh")
+    ap.add_argument("--version", action="version",
+                    version=f"sumoco {__version__} (protocol {SCHEMA_VERSION[0]}.{SCHEMA_VERSION[1]})")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     p = sub.add_parser("sumo", help="run the SUMO side daemon")
@@ -96,37 +104,51 @@ def main(argv: list[str] | None = None) -> int:
         args.listen = _env_list("SUMOCO_LISTEN")
     if hasattr(args, "connect") and args.connect is None:
         args.connect = _env_list("SUMOCO_CONNECT")
-    from sumoco.logs import setup_logging
+    from sumoco.common.logs import setup_logging
 
     setup_logging(getattr(args, "quiet", False), getattr(args, "verbose", False))
+    try:
+        return _dispatch(args)
+    except ConfigError as e:
+        print(f"sumoco {args.cmd}: configuration error: {e}", file=sys.stderr)
+        return ExitCode.USAGE
+    except MissingExtraError as e:
+        print(f"sumoco {args.cmd}: {e}", file=sys.stderr)
+        return ExitCode.USAGE
+    except SumocoError as e:
+        print(f"sumoco {args.cmd}: {e}", file=sys.stderr)
+        return ExitCode.FAILURE
+    except KeyboardInterrupt:
+        return ExitCode.INTERRUPTED
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """Import the subcommand's package (lazily: a bare install lacks the sides' extras)."""
     try:
         if args.cmd == "sumo":
             from sumo_side.daemon import cli_main
         elif args.cmd == "physics":
             from physics_side.daemon import cli_main
         elif args.cmd == "demo":
-            from sumoco.demo import cli_main
+            from sumoco.app.demo import cli_main
         elif args.cmd == "bench":
-            from sumoco.bench import cli_main
+            from sumoco.app.bench import cli_main
         elif args.cmd == "record":
-            from sumoco.record import record_cli as cli_main
+            from sumoco.app.record import record_cli as cli_main
         elif args.cmd == "report":
-            from sumoco.report import cli_main
+            from sumoco.app.report import cli_main
         elif args.cmd == "view":
-            from sumoco.viewer.server import cli_main
+            from sumoco.app.viewer.server import cli_main
         elif args.cmd == "router":
-            from sumoco.router import cli_main
+            from sumoco.app.router import cli_main
         else:  # pragma: no cover - argparse enforces the choices
             return 2
-        return int(cli_main(args) or 0)
-    except ConfigError as e:
-        print(f"sumoco {args.cmd}: configuration error: {e}", file=sys.stderr)
-        return 2
-    except SumocoError as e:
-        print(f"sumoco {args.cmd}: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 130
+    except ModuleNotFoundError as e:
+        extra = _EXTRAS.get((e.name or "").split(".")[0])
+        if extra is None:
+            raise
+        raise MissingExtraError(args.cmd, extra, e.name) from e
+    return int(cli_main(args) or 0)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,41 @@
+"""Errors and exit codes shared by every daemon and command.
+
+The error classes live in ``protocol.errors`` (a client that only decodes needs them
+too); this module adds what a process does with them: its exit code.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+from protocol.errors import ConfigError, ProtocolError, SumocoError
+
+
+class ExitCode(IntEnum):
+    """Process exit codes of every ``sumoco`` command (README, "Exit codes")."""
+
+    OK = 0
+    FAILURE = 1  #: a run failed (a peer went silent, SUMO failed, ...): the message says why
+    USAGE = 2  #: bad config, bad scenario, bad arguments or a missing extra: fix and rerun
+    INTERRUPTED = 130  #: Ctrl-C / SIGINT
+
+
+class MissingExtraError(SumocoError):
+    """A command needs an optional part that is not installed (``pip install sumoco[x]``)."""
+
+    def __init__(self, command: str, extra: str, module: str) -> None:
+        super().__init__(f"`sumoco {command}` needs the {extra!r} extra (module {module!r} is not "
+                         f"installed): pip install 'sumoco[{extra}]'")
+        self.extra = extra
+
+
+def exit_code_of(error: BaseException) -> ExitCode:
+    """The exit code a command ends with after ``error``."""
+    if isinstance(error, (ConfigError, MissingExtraError)):
+        return ExitCode.USAGE
+    if isinstance(error, KeyboardInterrupt):
+        return ExitCode.INTERRUPTED
+    return ExitCode.FAILURE
+
+
+__all__ = ["ConfigError", "ExitCode", "MissingExtraError", "ProtocolError", "SumocoError", "exit_code_of"]

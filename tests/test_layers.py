@@ -1,0 +1,142 @@
+"""The architecture holds: import layers, no cycles, a bare install without the sides' extras.
+
+The layer and independence contracts themselves are in ``pyproject.toml``
+(``[tool.importlinter]``) and run as ``lint-imports`` in ``make test``; here we check
+what import-linter has no contract for (cycles) and that the contracts are enforced.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import grimp
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("protocol", "sumo_side", "physics_side", "sumoco")
+
+
+def _cycles(graph) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set[str] = set()
+    stack: list[str] = []
+    out: list[list[str]] = []
+    counter = 0
+    for root in sorted(graph.modules):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.find_modules_directly_imported_by(root))))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, it = work[-1]
+            nxt = next(it, None)
+            if nxt is not None:
+                if nxt not in index:
+                    index[nxt] = low[nxt] = counter
+                    counter += 1
+                    stack.append(nxt)
+                    on_stack.add(nxt)
+                    work.append((nxt, iter(sorted(graph.find_modules_directly_imported_by(nxt)))))
+                elif nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                comp = []
+                while True:
+                    m = stack.pop()
+                    on_stack.discard(m)
+                    comp.append(m)
+                    if m == node:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+    return out
+
+
+def test_no_import_cycles_between_modules():
+    graph = grimp.build_graph(*PACKAGES)
+    assert len(graph.modules) > 40  # the whole tree was analysed
+    assert _cycles(graph) == []
+
+
+def test_cycle_finder_finds_a_cycle():
+    g = grimp.ImportGraph()
+    for a, b in (("x.a", "x.b"), ("x.b", "x.c"), ("x.c", "x.a"), ("x.c", "x.d")):
+        g.add_import(importer=a, imported=b)
+    assert _cycles(g) == [["x.a", "x.b", "x.c"]]
+
+
+def _lint(tree: Path) -> subprocess.CompletedProcess:
+    exe = Path(sys.executable).with_name("lint-imports")
+    env = os.environ | {"PYTHONPATH": str(tree)}
+    return subprocess.run([str(exe), "--config", str(tree / "pyproject.toml"), "--no-cache"], cwd=tree,
+                          env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_lint_imports_passes_and_fails_on_a_forbidden_import(tmp_path):
+    ok = _lint(ROOT)
+    assert ok.returncode == 0, ok.stdout + ok.stderr
+    assert "0 broken" in ok.stdout
+    # The same tree with one forbidden import (the SUMO side reaching into the physics side).
+    for pkg in PACKAGES:
+        subprocess.run(["cp", "-r", str(ROOT / pkg), str(tmp_path / pkg)], check=True)
+    (tmp_path / "pyproject.toml").write_text((ROOT / "pyproject.toml").read_text())
+    bridge = tmp_path / "sumo_side" / "bridge.py"
+    bridge.write_text(bridge.read_text() + "\nfrom physics_side import control  # noqa: E402,F401\n")
+    bad = _lint(tmp_path)
+    assert bad.returncode != 0
+    assert "BROKEN" in bad.stdout and "sumo_side.bridge -> physics_side.control" in bad.stdout
+
+
+@pytest.mark.integration
+def test_bare_wheel_installs_without_libsumo_and_mujoco(tmp_path):
+    """`pip install sumoco` (no extras): protocol decodes the golden vectors; the sides ask for their extra."""
+    dist = tmp_path / "dist"
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", str(dist),
+                        str(ROOT)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    wheel = next(dist.glob("sumoco-*.whl"))
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=True).create(env_dir)
+    py = env_dir / "bin" / "python"
+    r = subprocess.run([str(py), "-m", "pip", "install", "--quiet", str(wheel)], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    check = r'''
+import importlib.util, json, sys
+from pathlib import Path
+import protocol
+from protocol.codec import decode
+gold = Path(protocol.__file__).parent / "golden"
+decoded = sorted(p.name for p in gold.glob("*.msgpack") if not p.name.startswith("invalid"))
+for name in decoded:
+    decode((gold / name).read_bytes())
+print(json.dumps({"decoded": decoded,
+                  "libsumo": importlib.util.find_spec("libsumo") is not None,
+                  "mujoco": importlib.util.find_spec("mujoco") is not None,
+                  "client": importlib.util.find_spec("sumoco.examples.client") is not None}))
+'''
+    r = subprocess.run([str(py), "-c", check], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    facts = json.loads(r.stdout)
+    assert len(facts["decoded"]) >= 5 and not facts["libsumo"] and not facts["mujoco"] and facts["client"]
+    exe = env_dir / "bin" / "sumoco"
+    v = subprocess.run([str(exe), "--version"], capture_output=True, text=True, timeout=60)
+    assert v.returncode == 0 and "protocol" in v.stdout
+    for cmd, extra in (("sumo", "sumo"), ("physics", "physics")):
+        r = subprocess.run([str(exe), cmd], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        assert r.returncode == 2, (cmd, r.returncode, r.stderr)
+        assert f"pip install 'sumoco[{extra}]'" in r.stderr, r.stderr
