@@ -1,4 +1,4 @@
-"""MuJoCo models of every agent type, built with ``MjSpec``, and the pooled world spec.
+"""MuJoCo models of every agent type, built with ``MjSpec`` (pools of them: ``layout``).
 
 Every agent is one kinematic tree rooted at a body named ``agent``:
 
@@ -52,13 +52,6 @@ TYPE_NAMES: dict[str, AgentClass] = {
     "bicycle": AgentClass.BICYCLE,
     "pedestrian": AgentClass.PEDESTRIAN,
 }
-
-# Template spacing of the parking lot where unused slots sleep [m]. Far from any SUMO
-# network (whose coordinates are >= 0 after netconvert's offset) and in a grid so
-# parked agents never touch.
-PARK_ORIGIN = (-50_000.0, -50_000.0)
-PARK_SPACING = 25.0  # [m] > the longest bucket (18 m bus)
-PARK_ROW = 200  # slots per parking row
 
 GROUND_FRICTION = (1.0, 0.005, 0.0001)  # sliding, torsional, rolling
 # Agent bodies (chassis, frames, pedestrians) touch softly: a time constant of 0.1 s
@@ -357,7 +350,7 @@ def template(spec: AgentSpec) -> mujoco.MjSpec:
     return {KIND_CAR: car_template, KIND_BIKE: bike_template, KIND_PED: ped_template}[spec.kind](spec)
 
 
-def _set_options(s: mujoco.MjSpec, timestep: float) -> None:
+def set_world_options(s: mujoco.MjSpec, timestep: float) -> None:
     s.compiler.degree = False  # every angle in these specs is in radians
     s.option.timestep = timestep
     # implicitfast at 5 ms is stable at the friction limit (FIELD-NOTES); 20 ms rolled cars.
@@ -368,7 +361,7 @@ def _set_options(s: mujoco.MjSpec, timestep: float) -> None:
     s.option.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ISLAND)
 
 
-def _ground(s: mujoco.MjSpec) -> None:
+def add_ground(s: mujoco.MjSpec) -> None:
     s.worldbody.add_geom(
         name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], contype=1, conaffinity=0,
         friction=list(GROUND_FRICTION),
@@ -380,51 +373,6 @@ def _ground(s: mujoco.MjSpec) -> None:
         name="probe", type=mujoco.mjtSensor.mjSENS_FRAMELINACC,
         objtype=mujoco.mjtObj.mjOBJ_SITE, objname="probe",
     )
-
-
-def park_position(pool_index: int, slot: int) -> tuple[float, float]:
-    """Parking spot of slot ``slot`` of pool ``pool_index`` (stable when pools grow)."""
-    row = pool_index * 1000 + slot // PARK_ROW
-    return (PARK_ORIGIN[0] + (slot % PARK_ROW) * PARK_SPACING, PARK_ORIGIN[1] + row * PARK_SPACING)
-
-
-@dataclass(frozen=True)
-class Pool:
-    """One bucket's slots in every shard's model."""
-
-    index: int
-    """Stable pool number (parking row block)."""
-    spec: AgentSpec
-    capacity: int
-    """Slots per shard."""
-
-
-def build_world_spec(pools: list[Pool], timestep: float) -> mujoco.MjSpec:
-    """The world spec: ground plus ``capacity`` parked, initially sleeping copies per pool.
-
-    Slot ``i`` of pool ``p`` is the subtree with prefix ``f"{p.spec.name}#{i}/"``.
-    """
-    s = mujoco.MjSpec()
-    s.copy_during_attach = True
-    _set_options(s, timestep)
-    _ground(s)
-    for p in pools:
-        if p.capacity == 0:
-            continue
-        t = template(p.spec)
-        root = t.body("agent")
-        # Parked slots start asleep: no cost until spawned (the world wakes them by
-        # switching their tree's sleep policy to "never").
-        root.sleep = mujoco.mjtSleepPolicy.mjSLEEP_INIT
-        for i in range(p.capacity):
-            x, y = park_position(p.index, i)
-            f = s.worldbody.add_frame(pos=[x, y, 0.0])
-            f.attach_body(root, slot_prefix(p.spec.name, i))
-    return s
-
-
-def slot_prefix(pool_name: str, i: int) -> str:
-    return f"{pool_name}#{i}/"
 
 
 # --------------------------------------------------------------------------- rest pose
@@ -447,9 +395,9 @@ def rest_pose(spec: AgentSpec, timestep: float = 0.005) -> RestPose:
         return RestPose(0.0, 0.0)
     s = mujoco.MjSpec()
     s.copy_during_attach = True
-    _set_options(s, timestep)
+    set_world_options(s, timestep)
     s.option.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_SLEEP)
-    _ground(s)
+    add_ground(s)
     f = s.worldbody.add_frame(pos=[0, 0, 0])
     f.attach_body(template(spec).body("agent"), "a/")
     m = s.compile()
@@ -477,7 +425,7 @@ def with_awd(spec: AgentSpec, awd: bool) -> AgentSpec:
 
 
 __all__ = [
-    "AgentSpec", "BUCKETS", "DEFAULT_BUCKET", "KIND_BIKE", "KIND_CAR", "KIND_PED", "Pool",
-    "RestPose", "TYPE_NAMES", "bucket_index", "build_world_spec", "model_class_for",
-    "park_position", "rest_pose", "slot_prefix", "spec_for", "template", "with_awd",
+    "AgentSpec", "BUCKETS", "DEFAULT_BUCKET", "KIND_BIKE", "KIND_CAR", "KIND_PED", "RestPose",
+    "TYPE_NAMES", "add_ground", "bucket_index", "model_class_for", "rest_pose", "set_world_options",
+    "spec_for", "template", "with_awd",
 ]

@@ -1,37 +1,36 @@
-"""``PhysicsWorld``: the one owner of MuJoCo indices.
+"""``PhysicsWorld``: the per-tick world and the one owner of MuJoCo indices.
 
 The world is ``shards`` MuJoCo simulations of one model (``mujoco.batch.Batch``, stepped
-on a thread pool; persistent because sleeping needs it). The model holds *pools* of
+on a thread pool; persistent because sleeping needs it), built by ``layout``: *pools* of
 pre-allocated slots, one pool per size bucket (``models.BUCKETS``). Unused slots sit
 asleep in a parking lot far from the network; spawning wakes a slot and places it,
 parking puts it back. A pool that runs out grows by at least ``pool_chunk`` slots per
 shard with one recompile (off the hot path); live agents keep their exact state.
 
-Nothing outside this module indexes ``qpos``/``qvel``/``ctrl``: callers get named,
-vectorised reads (``observe``) and writes (``command_vehicles``, ``command_pedestrians``,
-``place``, ``park``) over arrays of *slot numbers*. Slot numbers change when the model
-grows; ``generation`` increments then, and ``slot_of`` maps agent ids to current slots.
+Per control tick: ``observe`` -> (controllers, outside) -> ``command_vehicles`` /
+``command_pedestrians`` / ``place`` -> ``step``. Nothing outside this module indexes
+``qpos``/``qvel``/``ctrl``: callers get named, vectorised reads and writes over arrays
+of *slot numbers*. Slot numbers change when the model grows; ``generation`` increments
+then, and ``slot_of`` maps agent ids to current slots.
 
 Agents in different shards do not touch each other (they are in different
 simulations); a new agent goes to the shard of the nearest live agent within
 ``NEIGHBOUR_M`` (vehicles that follow each other share a shard) unless that shard is
 over its share, else to the least-loaded shard.
 """
-
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass
 from functools import cached_property
 
 import mujoco
-import mujoco.batch
 import numpy as np
 
 from physics_side import models as M
 from physics_side.control import ackermann, steady_state_delta
+from physics_side.layout import Layout, Pool, SlotTables, carry_over, compile_layout
 from physics_side.reference import concat_ranges
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
@@ -84,59 +83,14 @@ class Observation:
     """Front-bumper velocity y [m/s]."""
 
 
-@dataclass
-class _Tables:
-    """Per-slot index tables of one compiled layout (length G = total slots)."""
-
-    pool: np.ndarray
-    shard: np.ndarray
-    index: np.ndarray
-    kind: np.ndarray
-    cls: np.ndarray
-    qpos: np.ndarray  # flat state index of the slot's first qpos
-    nq: np.ndarray
-    qvel: np.ndarray  # flat state index of the first dof
-    nv: np.ndarray
-    ctrl: np.ndarray  # flat state index of the first actuator
-    nu: np.ndarray
-    qpos0: np.ndarray  # model index of the first qpos (for qpos0)
-    dof: np.ndarray  # model dof address of the first dof
-    steer_q: np.ndarray  # (G, 2) flat qpos index of left/right steer (bike: same twice; ped: -1)
-    steer_u: np.ndarray  # (G, 2) flat ctrl index
-    drive_u: np.ndarray  # flat ctrl index (ped: fx)
-    aux_u: np.ndarray  # (G, 2) bike: stab; ped: fy, tz
-    spin_fl: np.ndarray  # (G, 4) flat index into expanded dof_frictionloss
-    spin_v: np.ndarray  # (G, 4) flat qvel index of spin dofs
-    brake_share: np.ndarray  # (G, 4) share of total brake torque per column
-    tree: np.ndarray  # flat index into expanded tree_sleep_policy
-    body: np.ndarray  # flat index of the root body's cfrc_ext force (first of 3)
-    park_x: np.ndarray
-    park_y: np.ndarray
-    # physical parameters
-    length: np.ndarray
-    front: np.ndarray
-    wheelbase: np.ndarray
-    rear_axle: np.ndarray
-    track: np.ndarray
-    r_wheel: np.ndarray
-    m_eff: np.ndarray
-    mass: np.ndarray
-    max_steer: np.ndarray
-    max_drive: np.ndarray
-    max_brake: np.ndarray
-    stab_max: np.ndarray
-    rest_z: np.ndarray
-    rest_pitch: np.ndarray
-
-
 class _SlotPlan:
     """Index arrays derived from one array of slot numbers, built on first use.
 
     A fleet reads and writes the same slots every control tick until the next SUMO step,
-    so the gathers of ``_Tables`` rows are done once per step, not once per tick.
+    so the gathers of ``SlotTables`` rows are done once per step, not once per tick.
     """
 
-    def __init__(self, t: _Tables, slots: np.ndarray):
+    def __init__(self, t: SlotTables, slots: np.ndarray):
         self.t = t
         self.slots = slots
         kind = t.kind[slots]
@@ -205,7 +159,7 @@ class PhysicsWorld:
         self.threads = int(threads) or self.shards
         self.pool_chunk = int(pool_chunk)
         self.awd = frozenset(awd)
-        self._pools: list[M.Pool] = []
+        self._pools: list[Pool] = []
         self._pool_key: dict[tuple[int, int], int] = {}
         initial = initial or {}
         for cls, n in initial.items():
@@ -218,8 +172,8 @@ class PhysicsWorld:
         self.mujoco_s = 0.0  # [s] wall time spent in MuJoCo steps (cumulative)
         self.build_s = 0.0  # [s] wall time spent compiling (cumulative)
         self.time = 0.0  # [s] simulated time
-        self._batch: mujoco.batch.Batch | None = None
-        self._compile(previous=None)
+        self.live = np.zeros(0, bool)
+        self._compile()
 
     # ------------------------------------------------------------------ pools / compile
 
@@ -231,10 +185,10 @@ class PhysicsWorld:
         if key in self._pool_key:
             p = self._pool_key[key]
             old = self._pools[p]
-            self._pools[p] = M.Pool(old.index, old.spec, old.capacity + capacity)
+            self._pools[p] = Pool(old.index, old.spec, old.capacity + capacity)
             return p
         p = len(self._pools)
-        self._pools.append(M.Pool(p, self._spec_of(cls, bucket), capacity))
+        self._pools.append(Pool(p, self._spec_of(cls, bucket), capacity))
         self._pool_key[key] = p
         return p
 
@@ -243,205 +197,75 @@ class PhysicsWorld:
         """Total slots over all pools and shards."""
         return self.shards * sum(p.capacity for p in self._pools)
 
-    def _compile(self, previous: tuple | None) -> None:
-        t0 = time.perf_counter()
-        spec = M.build_world_spec(self._pools, self.timestep)
-        model = spec.compile()
-        batch = mujoco.batch.Batch(model, self.shards, nthread=min(self.threads, self.shards), persistent=True)
-        batch.reset()
-        self.model = model
-        self._batch = batch
-        self._state = batch.state.reshape(-1)  # (shards * nstate,) view: every state write goes here
-        base = batch.state.ctypes.data
-        item = batch.state.itemsize
-
-        def off(name: str) -> int:
-            return (batch.bind(name).ctypes.data - base) // item
-
-        self._off_qpos, self._off_qvel, self._off_ctrl = off("qpos"), off("qvel"), off("ctrl")
-        self._nstate = batch.nstate
-        self._fl = batch.expand("dof_frictionloss").reshape(-1)
-        self._policy = batch.expand("tree_sleep_policy").reshape(-1)
-        self._cfrc = batch.bind("cfrc_ext")
-        self._tables = self._build_tables(model)
+    def _compile(self) -> None:
+        """Compile the current pools; live agents of the previous layout keep their exact
+        qpos/qvel/ctrl/brakes (slot numbers change: ``generation`` increments)."""
+        old = getattr(self, "_layout", None)
+        layout = compile_layout(self._pools, self.timestep, self.shards, self.threads)
+        self._layout = layout
+        self.model = layout.model
+        self._batch = layout.batch
+        self._state = layout.state
+        self._fl = layout.frictionloss
+        self._policy = layout.sleep_policy
+        self._cfrc = layout.cfrc_ext
+        self._tables = layout.tables
         self._plans: dict[bytes, _SlotPlan] = {}
-        G = len(self._tables.pool)
-        old_tables, old_state, old_fl, old_live, old_agents = previous or (None, None, None, None, None)
+        G = layout.slots
+        old_live = self.live if old is not None else None
+        old_agents = self.slot_agent
         self.live = np.zeros(G, bool)
         self.in_contact = np.zeros(G, bool)
         self.last_touch = np.full(G, -np.inf)
         self.slot_agent = [None] * G
         self.agent_slot = {}
-        self._free: dict[tuple[int, int], list[int]] = {}
         t = self._tables
-        for g in range(G - 1, -1, -1):  # popped from the end: lowest index first
-            self._free.setdefault((int(t.pool[g]), int(t.shard[g])), []).append(g)
-        if old_tables is not None:
-            self._restore(old_tables, old_state, old_fl, old_live, old_agents)
+        self._free: dict[tuple[int, int], list[int]] = {}
+        key = t.pool * self.shards + t.shard
+        order = np.argsort(key, kind="stable")
+        bounds = np.flatnonzero(np.diff(key[order])) + 1
+        for group in np.split(order, bounds) if len(order) else ():
+            g = int(group[0])
+            # popped from the end: lowest slot number first
+            self._free[(int(t.pool[g]), int(t.shard[g]))] = group[::-1].tolist()
+        if old is not None:
+            self._restore(old, old_live, old_agents)
         self.generation += 1
-        dt = time.perf_counter() - t0
-        self.build_s += dt
-        log.info(
-            "physics world: %d slots in %d pools x %d shards (nq=%d nv=%d) compiled in %.2f s",
-            G, len(self._pools), self.shards, model.nq, model.nv, dt,
-        )
+        self.build_s += layout.build_s
 
-    def _build_tables(self, m: mujoco.MjModel) -> _Tables:
-        rows: dict[str, list] = {k: [] for k in _Tables.__dataclass_fields__}
-        S = self.shards
-        nst = self._nstate
-        nv, ntree, nbody = m.nv, m.ntree, m.nbody
-        for pool in self._pools:
-            spec = pool.spec
-            rest = M.rest_pose(spec, self.timestep)
-            if pool.capacity == 0:
-                continue
-            pre0 = M.slot_prefix(spec.name, 0)
-            b0 = m.body(pre0 + "agent").id
-            j0 = m.body_jntadr[b0]
-            q0, d0 = m.jnt_qposadr[j0], m.jnt_dofadr[j0]
-            tree0 = m.body_treeid[b0]
-            ndof = m.tree_dofnum[tree0]
-            act_names = {
-                M.KIND_CAR: ("steer_fl", "steer_fr", "drive"),
-                M.KIND_BIKE: ("steer", "drive", "stab"),
-                M.KIND_PED: ("fx", "fy", "tz"),
-            }[spec.kind]
-            a_first = m.actuator(pre0 + act_names[0]).id
-            rel_act = {n: m.actuator(pre0 + n).id - a_first for n in act_names}
-            nu_slot = len(act_names)
-            # joints relative to the slot's first qpos / dof
-            if spec.kind == M.KIND_CAR:
-                steer_j, spin_j = ("steer_fl", "steer_fr"), ("spin_fl", "spin_fr", "spin_rl", "spin_rr")
-                share = [spec.brake_front / 2] * 2 + [(1 - spec.brake_front) / 2] * 2
-            elif spec.kind == M.KIND_BIKE:
-                steer_j, spin_j = ("steer_f", "steer_f"), ("spin_f", "spin_f", "spin_r", "spin_r")
-                share = [spec.brake_front] * 2 + [1 - spec.brake_front] * 2
-            else:
-                steer_j, spin_j, share = (), (), [0.0] * 4
-            rel_sq = [m.jnt_qposadr[m.joint(pre0 + j).id] - q0 for j in steer_j]
-            rel_sd = [m.jnt_dofadr[m.joint(pre0 + j).id] - d0 for j in spin_j]
-            # qpos block length: the tree's joints are consecutive
-            jn = [j for j in range(m.njnt) if m.body_treeid[m.jnt_bodyid[j]] == tree0]
-            nq_slot = sum({0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])] for j in jn)
-            for i in range(pool.capacity):
-                pre = M.slot_prefix(spec.name, i)
-                b = m.body(pre + "agent").id if i else b0
-                j = m.body_jntadr[b]
-                q, d = int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])
-                a = m.actuator(pre + act_names[0]).id if i else a_first
-                tree = int(m.body_treeid[b])
-                px, py = M.park_position(pool.index, i)
-                for s in range(S):
-                    rows["pool"].append(pool.index)
-                    rows["shard"].append(s)
-                    rows["index"].append(i)
-                    rows["kind"].append(spec.kind)
-                    rows["cls"].append(int(spec.cls))
-                    rows["qpos"].append(s * nst + self._off_qpos + q)
-                    rows["nq"].append(nq_slot)
-                    rows["qvel"].append(s * nst + self._off_qvel + d)
-                    rows["nv"].append(ndof)
-                    rows["ctrl"].append(s * nst + self._off_ctrl + a)
-                    rows["nu"].append(nu_slot)
-                    rows["qpos0"].append(q)
-                    rows["dof"].append(d)
-                    qb = s * nst + self._off_qpos + q
-                    ub = s * nst + self._off_ctrl + a
-                    vb = s * nst + self._off_qvel + d
-                    if spec.kind == M.KIND_CAR:
-                        rows["steer_q"].append([qb + rel_sq[0], qb + rel_sq[1]])
-                        rows["steer_u"].append([ub + rel_act["steer_fl"], ub + rel_act["steer_fr"]])
-                        rows["drive_u"].append(ub + rel_act["drive"])
-                        rows["aux_u"].append([-1, -1])
-                    elif spec.kind == M.KIND_BIKE:
-                        rows["steer_q"].append([qb + rel_sq[0]] * 2)
-                        rows["steer_u"].append([ub + rel_act["steer"]] * 2)
-                        rows["drive_u"].append(ub + rel_act["drive"])
-                        rows["aux_u"].append([ub + rel_act["stab"], -1])
-                    else:
-                        rows["steer_q"].append([-1, -1])
-                        rows["steer_u"].append([-1, -1])
-                        rows["drive_u"].append(ub + rel_act["fx"])
-                        rows["aux_u"].append([ub + rel_act["fy"], ub + rel_act["tz"]])
-                    if rel_sd:
-                        rows["spin_fl"].append([s * nv + d + r for r in rel_sd])
-                        rows["spin_v"].append([vb + r for r in rel_sd])
-                    else:
-                        rows["spin_fl"].append([-1] * 4)
-                        rows["spin_v"].append([-1] * 4)
-                    rows["brake_share"].append(share)
-                    rows["tree"].append(s * ntree + tree)
-                    rows["body"].append((s * nbody + b) * 6 + 3)
-                    rows["park_x"].append(px)
-                    rows["park_y"].append(py)
-                    rows["length"].append(spec.length)
-                    rows["front"].append(spec.front_offset)
-                    rows["wheelbase"].append(spec.wheelbase)
-                    rows["rear_axle"].append(spec.rear_axle)
-                    rows["track"].append(spec.track)
-                    rows["r_wheel"].append(spec.wheel_radius)
-                    rows["m_eff"].append(spec.effective_mass)
-                    rows["mass"].append(spec.total_mass)
-                    rows["max_steer"].append(math.radians(spec.max_steer_deg))
-                    rows["max_drive"].append(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force)
-                    rows["max_brake"].append(spec.max_brake)
-                    rows["stab_max"].append(spec.stab_max)
-                    rows["rest_z"].append(rest.z)
-                    rows["rest_pitch"].append(rest.pitch)
-        ints = {"pool", "shard", "index", "kind", "cls", "qpos", "nq", "qvel", "nv", "ctrl", "nu", "qpos0", "dof",
-                "steer_q", "steer_u", "drive_u", "aux_u", "spin_fl", "spin_v", "tree", "body"}
-        out = {}
-        for k, v in rows.items():
-            if k in ints:
-                a = np.asarray(v, np.int64)
-                if k in ("steer_q", "steer_u", "aux_u") and a.size == 0:
-                    a = a.reshape(0, 2)
-                if k in ("spin_fl", "spin_v") and a.size == 0:
-                    a = a.reshape(0, 4)
-                out[k] = a
-            else:
-                a = np.asarray(v, np.float64)
-                if k == "brake_share" and a.size == 0:
-                    a = a.reshape(0, 4)
-                out[k] = a
-        return _Tables(**out)
-
-    def _restore(self, old: _Tables, state: np.ndarray, fl: np.ndarray, live: np.ndarray, agents: list) -> None:
+    def _restore(self, old: Layout, live: np.ndarray, agents: list) -> None:
         """Copy live agents from the previous layout (same pool/shard/index) into this one."""
-        new = self._tables
-        key_new = {(int(p), int(s), int(i)): g for g, (p, s, i) in enumerate(zip(new.pool, new.shard, new.index))}
         olds = np.flatnonzero(live)
-        news = np.array([key_new[(int(old.pool[g]), int(old.shard[g]), int(old.index[g]))] for g in olds], np.int64)
         if len(olds) == 0:
             return
-        for a_old, n_old, a_new in (("qpos", "nq", "qpos"), ("qvel", "nv", "qvel"), ("ctrl", "nu", "ctrl")):
-            src = concat_ranges(getattr(old, a_old)[olds], getattr(old, n_old)[olds])
-            dst = concat_ranges(getattr(new, a_new)[news], getattr(new, n_old)[news])
-            self._state[dst] = state[src]
-        ok = old.spin_fl[olds] >= 0
-        self._fl[new.spin_fl[news][ok]] = fl[old.spin_fl[olds][ok]]
+        new, ot = self._tables, old.tables
+        news = carry_over(old, self._layout, olds)
+        for a, n in (("qpos", "nq"), ("qvel", "nv"), ("ctrl", "nu")):
+            src = concat_ranges(getattr(ot, a)[olds], getattr(ot, n)[olds])
+            dst = concat_ranges(getattr(new, a)[news], getattr(new, n)[news])
+            self._state[dst] = old.state[src]
+        ok = ot.spin_fl[olds] >= 0
+        self._fl[new.spin_fl[news][ok]] = old.frictionloss[ot.spin_fl[olds][ok]]
         self._policy[new.tree[news]] = SLEEP_NEVER
         self.live[news] = True
         for g_old, g_new in zip(olds, news):
             aid = agents[g_old]
             self.slot_agent[g_new] = aid
             self.agent_slot[aid] = int(g_new)
-        for g in news:
-            lst = self._free[(int(new.pool[g]), int(new.shard[g]))]
-            lst.remove(int(g))
+        taken = set(news.tolist())
+        for k in {(int(new.pool[g]), int(new.shard[g])) for g in news}:
+            self._free[k] = [g for g in self._free[k] if g not in taken]
 
     def _grow(self, needs: dict[int, int]) -> None:
         """Grow pools (pool index -> extra slots per shard) with one recompile."""
         for p, extra in needs.items():
             old = self._pools[p]
-            self._pools[p] = M.Pool(old.index, old.spec, old.capacity + max(extra, self.pool_chunk))
-        prev = (self._tables, self._state.copy(), self._fl.copy(), self.live.copy(), list(self.slot_agent))
+            self._pools[p] = Pool(old.index, old.spec, old.capacity + max(extra, self.pool_chunk))
         log.warning(
             "physics world: pools exhausted (%s), recompiling with more slots",
             ", ".join(f"{self._pools[p].spec.name} +{max(e, self.pool_chunk)}" for p, e in needs.items()),
         )
-        self._compile(prev)
+        self._compile()
         self.counters["pool_grows"] += 1
 
     # ------------------------------------------------------------------ agent set
@@ -725,7 +549,7 @@ class PhysicsWorld:
         return touching, began
 
     @property
-    def tables(self) -> _Tables:
+    def tables(self) -> SlotTables:
         return self._tables
 
 

@@ -1,0 +1,365 @@
+"""Model building for the physics world: pools of slots, the pooled spec, compile, index tables.
+
+A *layout* is one compiled world: the ground plus, per pool (one agent model bucket),
+``capacity`` pre-allocated slots, parked far from the network and asleep, in each of
+``shards`` simulations of the same model (``mujoco.batch.Batch``). ``compile_layout``
+builds it; ``SlotTables`` maps every slot number (0..G-1, pool by pool, slot by slot,
+shard by shard) to its flat indices in the batch state and its physical parameters.
+The per-tick world (``world.PhysicsWorld``) only reads these tables.
+
+Slot ``i`` of pool ``p`` in shard ``s`` has the slot number ``base[p] + i * shards + s``;
+``carry_over`` maps slots of an old layout to the same (pool, shard, index) in a new one,
+so live agents keep their state when pools grow.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, fields
+
+import mujoco
+import mujoco.batch
+import numpy as np
+
+from physics_side import models as M
+
+log = logging.getLogger(__name__)
+
+# Parking lot where unused slots sleep. Far from any SUMO network (whose coordinates are
+# >= 0 after netconvert's offset) and in a grid so parked agents never touch.
+PARK_ORIGIN = (-50_000.0, -50_000.0)
+PARK_SPACING = 25.0  # [m] > the longest bucket (18 m bus)
+PARK_ROW = 200  # slots per parking row
+
+# Joint and actuator names of each kind of model, in the order the tables use them.
+_STEER_JOINTS = {M.KIND_CAR: ("steer_fl", "steer_fr"), M.KIND_BIKE: ("steer_f", "steer_f"), M.KIND_PED: ()}
+_SPIN_JOINTS = {
+    M.KIND_CAR: ("spin_fl", "spin_fr", "spin_rl", "spin_rr"),
+    M.KIND_BIKE: ("spin_f", "spin_f", "spin_r", "spin_r"),  # two brake columns per wheel
+    M.KIND_PED: (),
+}
+# first three actuators of a slot: (steer left, steer right | aux 0, drive, aux 1)
+_ACTUATORS = {
+    M.KIND_CAR: ("steer_fl", "steer_fr", "drive"),
+    M.KIND_BIKE: ("steer", "drive", "stab"),
+    M.KIND_PED: ("fx", "fy", "tz"),
+}
+# qpos width of each MuJoCo joint type (free, ball, slide, hinge)
+_JOINT_NQ = np.array([7, 4, 1, 1])
+
+
+@dataclass(frozen=True)
+class Pool:
+    """One bucket's slots in every shard's model."""
+
+    index: int
+    """Stable pool number (parking row block)."""
+    spec: M.AgentSpec
+    capacity: int
+    """Slots per shard."""
+
+
+def park_position(pool_index: int, slot: int | np.ndarray) -> tuple:
+    """Parking spot [m] of slot ``slot`` of pool ``pool_index`` (stable when pools grow)."""
+    row = pool_index * 1000 + np.asarray(slot) // PARK_ROW
+    x = PARK_ORIGIN[0] + (np.asarray(slot) % PARK_ROW) * PARK_SPACING
+    y = PARK_ORIGIN[1] + row * PARK_SPACING
+    if np.ndim(x) == 0:
+        return float(x), float(y)
+    return x.astype(np.float64), y.astype(np.float64)
+
+
+def slot_prefix(pool_name: str, i: int) -> str:
+    return f"{pool_name}#{i}/"
+
+
+def build_world_spec(pools: list[Pool], timestep: float) -> mujoco.MjSpec:
+    """The world spec: ground plus ``capacity`` parked, initially sleeping copies per pool.
+
+    Slot ``i`` of pool ``p`` is the subtree with prefix ``f"{p.spec.name}#{i}/"``.
+    """
+    s = mujoco.MjSpec()
+    s.copy_during_attach = True
+    M.set_world_options(s, timestep)
+    M.add_ground(s)
+    for p in pools:
+        if p.capacity == 0:
+            continue
+        t = M.template(p.spec)
+        root = t.body("agent")
+        # Parked slots start asleep: no cost until spawned (the world wakes them by
+        # switching their tree's sleep policy to "never").
+        root.sleep = mujoco.mjtSleepPolicy.mjSLEEP_INIT
+        for i in range(p.capacity):
+            x, y = park_position(p.index, i)
+            f = s.worldbody.add_frame(pos=[x, y, 0.0])
+            f.attach_body(root, slot_prefix(p.spec.name, i))
+    return s
+
+
+@dataclass
+class SlotTables:
+    """Per-slot index tables of one compiled layout (every column has length G = total slots).
+
+    Flat indices point into the batch arrays of all shards (``Layout.state``, the expanded
+    ``dof_frictionloss`` / ``tree_sleep_policy``, ``cfrc_ext``); -1 where a kind has no
+    such element.
+    """
+
+    pool: np.ndarray
+    shard: np.ndarray
+    index: np.ndarray
+    """Slot number inside its pool (same in every shard)."""
+    kind: np.ndarray
+    """models.KIND_CAR / KIND_BIKE / KIND_PED."""
+    cls: np.ndarray
+    """AgentClass of the pool's model."""
+    qpos: np.ndarray
+    """Flat state index of the slot's first qpos."""
+    nq: np.ndarray
+    qvel: np.ndarray
+    """Flat state index of the first dof."""
+    nv: np.ndarray
+    ctrl: np.ndarray
+    """Flat state index of the first actuator."""
+    nu: np.ndarray
+    qpos0: np.ndarray
+    """Model index of the first qpos (for ``model.qpos0``)."""
+    dof: np.ndarray
+    """Model dof address of the first dof."""
+    steer_q: np.ndarray
+    """(G, 2) flat qpos index of left/right steer (bicycle: the same twice; pedestrian: -1)."""
+    steer_u: np.ndarray
+    """(G, 2) flat ctrl index of left/right steer."""
+    drive_u: np.ndarray
+    """Flat ctrl index of the drive (pedestrian: force x)."""
+    aux_u: np.ndarray
+    """(G, 2) bicycle: stabiliser, -1; pedestrian: force y, torque z; car: -1."""
+    spin_fl: np.ndarray
+    """(G, 4) flat index into the expanded dof_frictionloss of the brake columns."""
+    spin_v: np.ndarray
+    """(G, 4) flat qvel index of the spin dofs."""
+    brake_share: np.ndarray
+    """(G, 4) share of the total brake torque per brake column."""
+    tree: np.ndarray
+    """Flat index into the expanded tree_sleep_policy."""
+    body: np.ndarray
+    """Flat index of the root body's cfrc_ext force (first of 3)."""
+    park_x: np.ndarray
+    """Parking spot x [m] (pedestrian slide joints are relative to it)."""
+    park_y: np.ndarray
+    length: np.ndarray
+    """[m]."""
+    front: np.ndarray
+    """Body origin -> front bumper [m]."""
+    wheelbase: np.ndarray
+    rear_axle: np.ndarray
+    """Body origin -> rear axle [m] (negative = behind)."""
+    track: np.ndarray
+    r_wheel: np.ndarray
+    m_eff: np.ndarray
+    """Mass seen by the drive [kg]."""
+    mass: np.ndarray
+    """[kg]."""
+    max_steer: np.ndarray
+    """[rad]."""
+    max_drive: np.ndarray
+    """[N*m] (pedestrian: [N])."""
+    max_brake: np.ndarray
+    stab_max: np.ndarray
+    rest_z: np.ndarray
+    """Settled body height on flat ground [m]."""
+    rest_pitch: np.ndarray
+    """[rad]."""
+
+
+@dataclass
+class Layout:
+    """One compiled pooled world and its batch of ``shards`` simulations."""
+
+    pools: list[Pool]
+    shards: int
+    model: mujoco.MjModel
+    batch: mujoco.batch.Batch
+    state: np.ndarray
+    """(shards * nstate,) view of the batch state: every qpos/qvel/ctrl write goes here."""
+    frictionloss: np.ndarray
+    """Flat view of the expanded dof_frictionloss (brakes)."""
+    sleep_policy: np.ndarray
+    """Flat view of the expanded tree_sleep_policy."""
+    cfrc_ext: np.ndarray
+    """Bound cfrc_ext of every shard."""
+    tables: SlotTables
+    base: np.ndarray
+    """First slot number of each pool (by pool index)."""
+    build_s: float
+    """Wall time of spec building + compile [s]."""
+
+    @property
+    def slots(self) -> int:
+        return len(self.tables.pool)
+
+
+def compile_layout(pools: list[Pool], timestep: float, shards: int, threads: int) -> Layout:
+    """Build the world spec of ``pools``, compile it and lay out the slot tables."""
+    t0 = time.perf_counter()
+    model = build_world_spec(pools, timestep).compile()
+    batch = mujoco.batch.Batch(model, shards, nthread=min(threads, shards), persistent=True)
+    batch.reset()
+    base_ptr = batch.state.ctypes.data
+    item = batch.state.itemsize
+
+    def off(name: str) -> int:
+        return (batch.bind(name).ctypes.data - base_ptr) // item
+
+    offsets = (off("qpos"), off("qvel"), off("ctrl"))
+    tables, base = _build_tables(model, pools, shards, batch.nstate, offsets, timestep)
+    dt = time.perf_counter() - t0
+    log.info(
+        "physics world: %d slots in %d pools x %d shards (nq=%d nv=%d) compiled in %.2f s",
+        len(tables.pool), len(pools), shards, model.nq, model.nv, dt,
+    )
+    return Layout(
+        pools=list(pools), shards=shards, model=model, batch=batch, state=batch.state.reshape(-1),
+        frictionloss=batch.expand("dof_frictionloss").reshape(-1),
+        sleep_policy=batch.expand("tree_sleep_policy").reshape(-1), cfrc_ext=batch.bind("cfrc_ext"),
+        tables=tables, base=base, build_s=dt,
+    )
+
+
+def _build_tables(
+    m: mujoco.MjModel, pools: list[Pool], shards: int, nstate: int, offsets: tuple[int, int, int],
+    timestep: float,
+) -> tuple[SlotTables, np.ndarray]:
+    """Columns of ``SlotTables`` for every pool, built per pool with numpy.
+
+    Each slot is one attached copy of its pool's template, so its bodies, joints, dofs
+    and actuators are consecutive and every slot of a pool has the same layout: the
+    addresses of slot ``i`` are those of slot 0 plus ``i`` strides (checked at the last
+    slot by name).
+    """
+    off_qpos, off_qvel, off_ctrl = offsets
+    S = shards
+    cols: dict[str, list[np.ndarray]] = {f.name: [] for f in fields(SlotTables)}
+    base = np.zeros(max((p.index for p in pools), default=-1) + 1, np.int64)
+    g0 = 0
+    for pool in pools:
+        base[pool.index] = g0
+        C = pool.capacity
+        if C == 0:
+            continue
+        spec = pool.spec
+        rest = M.rest_pose(spec, timestep)
+        acts = _ACTUATORS[spec.kind]
+        b0 = m.body(slot_prefix(spec.name, 0) + "agent").id
+        tree0 = int(m.body_treeid[b0])
+        j0 = int(m.body_jntadr[b0])
+        q0, d0 = int(m.jnt_qposadr[j0]), int(m.jnt_dofadr[j0])
+        a0 = m.actuator(slot_prefix(spec.name, 0) + acts[0]).id
+        tree_joints = np.flatnonzero(m.body_treeid[m.jnt_bodyid] == tree0)
+        nq_slot = int(_JOINT_NQ[m.jnt_type[tree_joints]].sum())
+        nv_slot = int(m.tree_dofnum[tree0])
+        nb_slot = int(m.tree_bodynum[tree0])
+        nu_slot = len(acts)
+        rel_act = {n: m.actuator(slot_prefix(spec.name, 0) + n).id - a0 for n in acts}
+        rel_sq = np.array(
+            [m.jnt_qposadr[m.joint(slot_prefix(spec.name, 0) + j).id] - q0 for j in _STEER_JOINTS[spec.kind]],
+            np.int64)
+        rel_sd = np.array(
+            [m.jnt_dofadr[m.joint(slot_prefix(spec.name, 0) + j).id] - d0 for j in _SPIN_JOINTS[spec.kind]],
+            np.int64)
+        last = slot_prefix(spec.name, C - 1)
+        lb = m.body(last + "agent").id
+        if (lb != b0 + (C - 1) * nb_slot or m.actuator(last + acts[0]).id != a0 + (C - 1) * nu_slot
+                or m.jnt_qposadr[m.body_jntadr[lb]] != q0 + (C - 1) * nq_slot):
+            raise RuntimeError(f"pool {spec.name}: slots are not laid out with equal strides")
+        i = np.repeat(np.arange(C, dtype=np.int64), S)  # slot order: pool, index, shard
+        s = np.tile(np.arange(S, dtype=np.int64), C)
+        n = C * S
+        q = q0 + i * nq_slot
+        d = d0 + i * nv_slot
+        a = a0 + i * nu_slot
+        b = b0 + i * nb_slot
+        qb = s * nstate + off_qpos + q
+        vb = s * nstate + off_qvel + d
+        ub = s * nstate + off_ctrl + a
+        neg2 = np.full((n, 2), -1, np.int64)
+        if spec.kind == M.KIND_CAR:
+            steer_q = qb[:, None] + rel_sq[None, :]
+            steer_u = ub[:, None] + np.array([rel_act["steer_fl"], rel_act["steer_fr"]])[None, :]
+            drive_u = ub + rel_act["drive"]
+            aux_u = neg2
+            share = [spec.brake_front / 2] * 2 + [(1 - spec.brake_front) / 2] * 2
+        elif spec.kind == M.KIND_BIKE:
+            steer_q = qb[:, None] + rel_sq[None, :]
+            steer_u = np.repeat((ub + rel_act["steer"])[:, None], 2, axis=1)
+            drive_u = ub + rel_act["drive"]
+            aux_u = np.stack([ub + rel_act["stab"], np.full(n, -1, np.int64)], axis=1)
+            share = [spec.brake_front] * 2 + [1 - spec.brake_front] * 2
+        else:
+            steer_q, steer_u = neg2, neg2.copy()
+            drive_u = ub + rel_act["fx"]
+            aux_u = np.stack([ub + rel_act["fy"], ub + rel_act["tz"]], axis=1)
+            share = [0.0] * 4
+        if len(rel_sd):
+            spin_fl = (s * m.nv + d)[:, None] + rel_sd[None, :]
+            spin_v = vb[:, None] + rel_sd[None, :]
+        else:
+            spin_fl = np.full((n, 4), -1, np.int64)
+            spin_v = np.full((n, 4), -1, np.int64)
+        px, py = park_position(pool.index, i)
+
+        def full(v: float) -> np.ndarray:
+            return np.full(n, v, np.float64)
+
+        def whole(v: int) -> np.ndarray:
+            return np.full(n, v, np.int64)
+
+        part = dict(
+            pool=whole(pool.index), shard=s, index=i, kind=whole(spec.kind), cls=whole(int(spec.cls)),
+            qpos=qb, nq=whole(nq_slot), qvel=vb, nv=whole(nv_slot), ctrl=ub, nu=whole(nu_slot), qpos0=q, dof=d,
+            steer_q=steer_q, steer_u=steer_u, drive_u=drive_u, aux_u=aux_u, spin_fl=spin_fl, spin_v=spin_v,
+            brake_share=np.tile(np.asarray(share, np.float64), (n, 1)),
+            tree=s * m.ntree + (tree0 + i), body=(s * m.nbody + b) * 6 + 3, park_x=px, park_y=py,
+            length=full(spec.length), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
+            rear_axle=full(spec.rear_axle), track=full(spec.track), r_wheel=full(spec.wheel_radius),
+            m_eff=full(spec.effective_mass), mass=full(spec.total_mass),
+            max_steer=full(math.radians(spec.max_steer_deg)),
+            max_drive=full(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force),
+            max_brake=full(spec.max_brake), stab_max=full(spec.stab_max), rest_z=full(rest.z),
+            rest_pitch=full(rest.pitch),
+        )
+        for k, v in part.items():
+            cols[k].append(v)
+        g0 += n
+    return SlotTables(**{k: _concat(k, v) for k, v in cols.items()}), base
+
+
+_WIDTH = {"steer_q": 2, "steer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4}
+_FLOAT = {
+    "brake_share", "park_x", "park_y", "length", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
+    "mass", "max_steer", "max_drive", "max_brake", "stab_max", "rest_z", "rest_pitch",
+}
+
+
+def _concat(name: str, parts: list[np.ndarray]) -> np.ndarray:
+    dtype = np.float64 if name in _FLOAT else np.int64
+    if not parts:
+        w = _WIDTH.get(name)
+        return np.zeros((0, w) if w else 0, dtype)
+    return np.concatenate(parts).astype(dtype, copy=False)
+
+
+def carry_over(old: Layout, new: Layout, slots: np.ndarray) -> np.ndarray:
+    """Slot numbers in ``new`` of the same (pool, shard, index) as ``slots`` of ``old``."""
+    t = old.tables
+    slots = np.asarray(slots, np.int64)
+    return new.base[t.pool[slots]] + t.index[slots] * new.shards + t.shard[slots]
+
+
+__all__ = [
+    "Layout", "PARK_ORIGIN", "PARK_ROW", "PARK_SPACING", "Pool", "SlotTables", "build_world_spec",
+    "carry_over", "compile_layout", "park_position", "slot_prefix",
+]
