@@ -4,6 +4,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# JavaScript for the tests (Khronos glTF validator) and the viewer's three.js, pinned in
+# package-lock.json; npm ci reinstalls them when the lock file changes.
+NODE_STAMP := node_modules/.installed
 
 .PHONY: demo test bench install lint clean
 
@@ -15,7 +18,11 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[all,test]'
 	touch $(STAMP)
 
-install: $(STAMP)
+$(NODE_STAMP): package.json package-lock.json
+	npm ci --no-audit --no-fund --ignore-scripts --loglevel=error
+	touch $(NODE_STAMP)
+
+install: $(STAMP) $(NODE_STAMP)
 
 lint: $(STAMP)
 	$(BIN)/lint-imports
@@ -23,7 +30,7 @@ lint: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/sumoco demo --config configs/demo.toml --out runs/demo
 
-test: $(STAMP)
+test: $(STAMP) $(NODE_STAMP)
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q
 
@@ -32,4 +39,4 @@ bench: $(STAMP)
 	$(BIN)/sumoco bench physics --json
 
 clean:
-	rm -rf $(VENV) runs build *.egg-info
+	rm -rf $(VENV) runs build *.egg-info node_modules

@@ -4,6 +4,7 @@
 |-----------------------------|-------------------|---------------------------------------|
 | <root>/<run>/sumo/step      | SUMO side         | StepMessage, one per SUMO step        |
 | <root>/<run>/sumo/static    | SUMO side (query) | StaticData, answered to `get`         |
+| <root>/<run>/sumo/map       | SUMO side (query) | the network as glTF (SPEC 9)          |
 | <root>/<run>/sumo/alive     | SUMO side         | liveliness token                      |
 | <root>/<run>/sumo/status    | SUMO side (query) | counters (steps, rejected, ego drift) |
 | <root>/<run>/physics/<inst>/state | physics side | PhysicsState, per control tick     |
@@ -60,6 +61,11 @@ class Keys:
     @property
     def static(self) -> str:
         return f"{self.base}/sumo/static"
+
+    @property
+    def sumo_map(self) -> str:
+        """The road network as glTF (SPEC 9), answered next to the static data."""
+        return f"{self.base}/sumo/map"
 
     @property
     def sumo_status(self) -> str:

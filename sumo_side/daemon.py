@@ -40,6 +40,7 @@ from protocol.messages import SCHEMA_VERSION, EgoPose, StepAck
 from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.ego import EgoManager
+from sumo_side.mapmesh import MapService
 from sumo_side.simulation import SumoSim
 from sumoco.common.config import CommonConfig, RunConfig, apply_cli, load_common, replace
 
@@ -132,6 +133,7 @@ class SumoDaemon:
         self._alive: set[str] = set()
         self._last_reject_log = -math.inf
         self._static_bytes = encode(sim.static)
+        self.map = MapService(getattr(sim, "net_file", None), run.id)
         self.last_message = None  # the newest StepMessage (tests, status)
 
     # ------------------------------------------------------------------ control
@@ -152,6 +154,16 @@ class SumoDaemon:
             query.reply(self.keys.static, self._static_bytes)
         except Exception as e:  # the querier may be gone already
             log.debug("static reply failed: %s", e)
+
+    def _on_map_query(self, query: zenoh.Query) -> None:
+        try:
+            reply = self.map.reply(str(query.parameters))
+            if reply is None:
+                query.reply_err(f"map not ready: {self.map.error or 'still building, ask again'}".encode())
+            else:
+                query.reply(self.keys.sumo_map, reply)
+        except Exception as e:  # the querier may be gone already
+            log.debug("map reply failed: %s", e)
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         # Counters for tests and operators (SPEC.md 3.6); read on Zenoh's thread, so copy.
@@ -273,6 +285,7 @@ class SumoDaemon:
         session = self.session
         queryable = session.declare_queryable(keys.static, self._on_static_query)
         status_q = session.declare_queryable(keys.sumo_status, self._on_status_query)
+        map_q = session.declare_queryable(keys.sumo_map, self._on_map_query)
         token = session.liveliness().declare_token(keys.sumo_alive)
         publisher = session.declare_publisher(
             keys.step,
@@ -299,7 +312,8 @@ class SumoDaemon:
             for what, obj in (("ego subscriber", ego_sub), ("ack subscriber", ack_sub),
                               ("liveliness subscriber", alive_sub),
                               ("publisher", publisher), ("queryable", queryable),
-                              ("status queryable", status_q), ("token", token)):
+                              ("status queryable", status_q), ("map queryable", map_q),
+                              ("token", token)):
                 if obj is None:
                     continue
                 try:

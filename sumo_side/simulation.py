@@ -259,7 +259,7 @@ class SumoSim:
             self.end_time = float(api.simulation.getEndTime())
         except Exception:  # older SUMO: no getEndTime
             self.end_time = -1.0
-        net_file = self._net_file()
+        net_file = self.net_file = self._net_file()
         self.static = build_static(
             api, self.graph, self.run_id, self.step_length, net_file,
             list(self.vtypes.types), self.vtypes.length.copy(), self.vtypes.width.copy(), self.tls_ids,

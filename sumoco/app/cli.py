@@ -91,6 +91,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, help="TCP port of the page and its WebSocket (default 8765)")
     p.add_argument("--max-hz", dest="max_hz", type=float, help="frames per second to each browser at most")
 
+    p = sub.add_parser("map", help="the road network as a file for renderers and game engines")
+    msub = p.add_subparsers(dest="map_cmd", required=True)
+    m = msub.add_parser("export", help="write a SUMO network as glTF 2.0 binary (GLB)")
+    m.add_argument("net", help="SUMO network file (.net.xml or .net.xml.gz)")
+    m.add_argument("--out", required=True, help="output file, e.g. map.glb")
+    m.add_argument("--quiet", action="store_true")
+    m.add_argument("--verbose", action="store_true")
+
     p = sub.add_parser("router", help="a Zenoh router (Python session in router mode)")
     p.add_argument("--listen", action="append", default=None)
     p.add_argument("--quiet", action="store_true")
@@ -139,6 +147,8 @@ def _dispatch(args: argparse.Namespace) -> int:
             from sumoco.app.report import cli_main
         elif args.cmd == "view":
             from sumoco.app.viewer.server import cli_main
+        elif args.cmd == "map":
+            from sumoco.app.mapexport import cli_main
         elif args.cmd == "router":
             from sumoco.app.router import cli_main
         else:  # pragma: no cover - argparse enforces the choices
