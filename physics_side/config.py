@@ -1,12 +1,14 @@
 """Typed configuration of the physics side: ``[physics]``, ``[control.paper]``, ``[control.default]``.
 
 Every knob has its unit; ``load_physics_config`` reads the tables of a run config (see
-``sumoco.common.config``), and ``check_rates`` validates the SUMO step / control / MuJoCo step
-ratios once at start-up.
+``sumoco.common.config``), and ``check_rates`` validates the control / MuJoCo step ratio once
+at start-up. The SUMO step length is not configured: every step message carries its own,
+and the daemon simulates up to each step's end time (``ticks_to``), whatever its length.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -15,6 +17,9 @@ from protocol.errors import ConfigError
 from sumoco.common.config import from_dict, section
 
 PRESETS = ("paper", "default", "kinematic")
+MIN_STEP_S = 0.001  # [s] shortest SUMO step length the physics side follows
+MAX_STEP_S = 10.0  # [s] longest (beyond ~1 s tracking degrades: see physics_side/README.md)
+MAX_CONTROL_DT_S = 0.05  # [s] longest control period that still steers a car at city speeds
 TYPES = ("passenger", "taxi", "bus", "bicycle", "pedestrian", "other")
 
 
@@ -25,7 +30,7 @@ class PhysicsConfig:
     instance: str = "main"  # physics instance name in the keys (several can follow one run)
     control_hz: float = 50.0  # [Hz] control tick rate (one tick = controllers + substeps)
     timestep_s: float = 0.005  # [s] MuJoCo integration step (implicitfast)
-    sumo_step_s: float = 0.1  # [s] SUMO step length this config expects (checked per message)
+    sumo_step_s: float = 0.1  # [s] SUMO step length for offline tools (experiments, benches); the daemon follows each message's
     state_every: int = 1  # [ticks] publish PhysicsState every k control ticks
     preset: Literal["paper", "default", "kinematic"] = "default"  # for every type not in `presets`
     presets: dict[str, str] = field(default_factory=dict)  # per type, e.g. {pedestrian="kinematic"}
@@ -34,7 +39,7 @@ class PhysicsConfig:
     sideways_jump_m: float = 1.0  # [m] a slow agent whose SUMO pose moves sideways more than this in one step is placed (0 = off)
     sideways_jump_speed: float = 5.0  # [m/s] "slow" for sideways_jump_m (SUMO's instant lane changes in queues)
     flip_deg: float = 60.0  # [deg] |roll| or |pitch| beyond which an agent is placed upright again
-    max_extrapolation_s: float = 0.3  # [s] reference extrapolation limit past the newest SUMO step
+    max_extrapolation_steps: float = 3.0  # [SUMO steps] reference extrapolation limit past the newest step (scales with the step length)
     stop_decel: float = 3.0  # [m/s^2] deceleration of the safe stop when the SUMO side is gone
     shards: int = 2  # parallel MuJoCo simulations (agents in different shards never touch)
     threads: int = 0  # worker threads for the shards, 0 = one per shard
@@ -75,6 +80,8 @@ class PhysicsConfig:
             raise ConfigError("physics: pool_chunk and step_queue must be >= 1")
         if self.divergence_m <= 0 or self.stop_decel <= 0:
             raise ConfigError("physics: divergence_m and stop_decel must be > 0")
+        if self.max_extrapolation_steps < 1.0:
+            raise ConfigError(f"physics.max_extrapolation_steps: expected >= 1, got {self.max_extrapolation_steps}")
 
     def preset_for(self, type_name: str) -> str:
         return self.presets.get(type_name, self.preset)
@@ -193,7 +200,8 @@ class Rates:
     """Whole-number ratios between the three clocks."""
 
     ticks_per_step: int
-    """Control ticks per SUMO step."""
+    """Control ticks per SUMO step of ``sumo_step_s`` (rounded, >= 1; offline tools only: the
+    daemon counts ticks by time with ``ticks_to``, so any step length works)."""
     substeps: int
     """MuJoCo steps per control tick."""
     control_dt: float
@@ -201,9 +209,11 @@ class Rates:
 
 
 def check_rates(sumo_step_s: float, control_hz: float, timestep_s: float) -> Rates:
-    """Check SUMO step / control period / MuJoCo step are whole-number ratios.
+    """Check the control period is a whole number of MuJoCo steps, and the SUMO step length is sane.
 
     Like dm_control's ``compute_n_steps``: raises ConfigError naming the number to change.
+    The SUMO step need not be a multiple of the control period: ``ticks_to`` spreads ticks
+    over steps by time (0.05 s steps at 50 Hz: 3, 2, 3, 2 ... ticks).
     """
     if sumo_step_s <= 0 or control_hz <= 0 or timestep_s <= 0:
         raise ConfigError("rates: sumo_step_s, control_hz and timestep_s must be > 0")
@@ -216,23 +226,34 @@ def check_rates(sumo_step_s: float, control_hz: float, timestep_s: float) -> Rat
             f"1/control_hz = {dt:g} s; change physics.timestep_s to one of {', '.join(ok)} "
             f"(or change physics.control_hz)"
         )
-    ticks = _ratio(sumo_step_s, dt)
-    if ticks is None:
-        hz = [f"{n / sumo_step_s:g}" for n in range(1, 11)]
+    if not MIN_STEP_S <= sumo_step_s <= MAX_STEP_S:
         raise ConfigError(
-            f"the SUMO step length {sumo_step_s:g} s is not a whole number of control periods "
-            f"(1/control_hz = {dt:g} s); change physics.control_hz to one of {', '.join(hz)} Hz "
-            f"(or the SUMO step length, physics.sumo_step_s)"
+            f"the SUMO step length {sumo_step_s:g} s is outside {MIN_STEP_S:g}..{MAX_STEP_S:g} s; "
+            f"run SUMO with a step length in that range"
+        )
+    if dt > MAX_CONTROL_DT_S + 1e-12:
+        raise ConfigError(
+            f"physics.control_hz = {control_hz:g} Hz is too slow to steer a car (control period "
+            f"{dt:g} s > {MAX_CONTROL_DT_S:g} s); change physics.control_hz to 50"
         )
     if timestep_s > 0.01 + 1e-12:
         raise ConfigError(
             f"physics.timestep_s = {timestep_s:g} s is too coarse: cars roll over at the friction "
             f"limit above 0.01 s; change physics.timestep_s to 0.005"
         )
-    return Rates(ticks_per_step=ticks, substeps=substeps, control_dt=dt)
+    return Rates(ticks_per_step=max(1, round(sumo_step_s / dt)), substeps=substeps, control_dt=dt)
+
+
+def ticks_to(t_now: float, t_end: float, dt: float) -> int:
+    """Control ticks of ``dt`` [s] that bring physics time ``t_now`` nearest to ``t_end`` [s].
+
+    Physics time then stays within dt/2 of SUMO's step end for any step length: a step
+    shorter than ``dt`` gets a tick every few steps, a longer one several.
+    """
+    return max(0, int(math.floor((t_end - t_now) / dt + 0.5 + 1e-9)))
 
 
 __all__ = [
     "ControlConfig", "DefaultControl", "PaperControl", "PhysicsConfig", "PhysicsSettings",
-    "PRESETS", "Rates", "TYPES", "check_rates", "load_physics_config",
+    "MAX_STEP_S", "MIN_STEP_S", "PRESETS", "Rates", "TYPES", "check_rates", "load_physics_config", "ticks_to",
 ]

@@ -5,9 +5,10 @@ receives its Zenoh session, keys and a ``Fleet`` (world + controllers) from outs
 runs, per control tick: apply the latest SUMO step -> controllers -> MuJoCo substeps ->
 publish. Timing:
 
-- ``lockstep``: every step is processed in order; the daemon simulates through the
-  step's length (``ticks_per_step`` control ticks), publishes, then acknowledges the
-  step on ``Keys.ack`` (the SUMO side waits for it before the next step).
+- ``lockstep``: every step is processed in order; the daemon simulates up to the step's
+  end time (``ticks_to``: any step length, 0.05 s steps at 50 Hz get 3, 2, 3, ... ticks),
+  publishes, then acknowledges the step on ``Keys.ack`` (the SUMO side waits for it before
+  the next step). The step length comes from each message; nothing needs to match it.
 - ``realtime``: control ticks are paced by the wall clock; each tick uses the newest
   step received (older queued steps are skipped).
 
@@ -32,7 +33,7 @@ from dataclasses import replace
 import numpy as np
 import zenoh
 
-from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config
+from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config, ticks_to
 from physics_side.fleet import Fleet
 from physics_side.models import TYPE_NAMES
 from physics_side.world import PhysicsWorld
@@ -146,9 +147,10 @@ class PhysicsDaemon:
             except ConfigError as e:
                 self._reject(f"step {msg.step}: {e}")
                 return None
-            if abs(msg.step_length - self.cfg.sumo_step_s) > 1e-9:
-                log.warning("SUMO step length %g s differs from physics.sumo_step_s = %g s; following SUMO",
-                            msg.step_length, self.cfg.sumo_step_s)
+            if len(self._rate_cache) >= 16:  # a few lengths per run at most; stay bounded
+                self._rate_cache.clear()
+            log.info("SUMO step length %g s: %.3g control ticks of %g s per step",
+                     msg.step_length, msg.step_length / rates.control_dt, rates.control_dt)
             self._rate_cache[msg.step_length] = rates
         return msg
 
@@ -173,14 +175,24 @@ class PhysicsDaemon:
                 return False
             log.warning("SUMO step went back from %d to %d: resynchronising", self._last_step, msg.step)
             resync = True
+        # Physics time only moves forward, one control period per tick: in lockstep it stays
+        # within dt/2 of SUMO's step end; in realtime the wall clock paces it and a step may
+        # arrive a tick early or late (then the reference is extrapolated from it by the
+        # difference). Setting it back to each step's time made two states share one time.
+        # It jumps (forward) when physics is behind, and restarts after a resync or when it
+        # ran further ahead than the extrapolation limit (a stalled SUMO side).
+        ahead = self.time - msg.time
+        limit = self.cfg.max_extrapolation_steps * msg.step_length
+        restart = resync or ahead < -self.fleet.dt or ahead > limit
         try:
-            stats = self.fleet.apply_step(msg, resync=resync)
+            stats = self.fleet.apply_step(msg, resync=resync, tau=0.0 if restart else ahead)
         except (ValueError, IndexError, KeyError) as e:
             self._reject(f"step {msg.step}: {type(e).__name__}: {e}")
             return False
         self._resync = False
         self._last_step = msg.step
-        self.time = msg.time
+        if restart:
+            self.time = msg.time
         self.fleet.rates = self._rate_cache[msg.step_length]
         if stats.spawned or stats.parked:
             log.debug("step %d: +%d -%d agents (%d)", msg.step, stats.spawned, stats.parked, self.fleet.n)
@@ -250,7 +262,7 @@ class PhysicsDaemon:
                 msg = self._decode(self._steps.popleft())
                 if msg is None or not self._apply(msg):
                     continue
-                for _ in range(self.fleet.rates.ticks_per_step):
+                for _ in range(ticks_to(self.time, msg.time + msg.step_length, self.fleet.dt)):
                     self._tick()
                 self._ack(msg.step)
                 if self._duration_done():

@@ -104,6 +104,7 @@ class Fleet:
         }
         self._empty()
         self.sumo_step = -1
+        self.step_length = rates.ticks_per_step * rates.control_dt  # [s] of the newest SUMO step
         self.tick_count = 0
         self.stopping = False
 
@@ -136,6 +137,12 @@ class Fleet:
     def n(self) -> int:
         return len(self.ids)
 
+    @property
+    def max_extrapolation(self) -> float:
+        """How far past the newest SUMO sample the reference is extrapolated [s]: a number
+        of SUMO steps, so a late step at any step length is bridged alike."""
+        return self.cfg.max_extrapolation_steps * self.step_length
+
     # ------------------------------------------------------------------ step sync
 
     def _model_class(self, cls: np.ndarray, vtype: np.ndarray, length: np.ndarray, vtypes) -> np.ndarray:
@@ -150,8 +157,10 @@ class Fleet:
             out[i] = int(c)
         return out
 
-    def apply_step(self, msg: StepMessage, resync: bool = False) -> StepStats:
-        """Sync with a SUMO step (see module docstring). ``resync`` after a SUMO restart."""
+    def apply_step(self, msg: StepMessage, resync: bool = False, tau: float = 0.0) -> StepStats:
+        """Sync with a SUMO step (see module docstring). ``resync`` after a SUMO restart;
+        ``tau`` [s]: how far physics time is past the step's time (steps shorter than a
+        control tick, realtime jitter): placements and errors use the reference then."""
         self._cache = None
         self._last_obs = None
         old_ref = self.ref
@@ -177,7 +186,8 @@ class Fleet:
         # previous sample of each agent (yaw rate, sideways jumps, controller state); a
         # resync or a clock that went back (a new SUMO run) has no usable previous sample
         prev = np.fromiter((self._index.get(aid, -1) for aid in ids), np.int64, len(ids))
-        if resync or (old_ref is not None and not 0.0 < msg.time - old_ref.t_k < 1.0):
+        gap_max = max(1.0, 2.5 * msg.step_length)  # [s] beyond this the previous sample is stale
+        if resync or (old_ref is not None and not 0.0 < msg.time - old_ref.t_k < gap_max):
             old_ref = None
             prev[:] = -1
         x, y = a.x[rows], a.y[rows]
@@ -208,14 +218,15 @@ class Fleet:
         mode = np.where(preset == P_KINEMATIC, AgentMode.KINEMATIC, AgentMode.PHYSICAL)
         self.mode = np.where(ego, AgentMode.EXTERNAL, mode).astype(np.uint8)
         self.ref = ref
-        self.tau = 0.0
+        self.step_length = float(msg.step_length)
+        self.tau = max(0.0, float(tau))
         self.state = self.state.take(prev)
         self.stopping = False
         self._params()
 
         # placements: new agents, teleported agents, diverged or flipped physical agents
         obs = w.observe(slots)
-        held = ref.held()
+        held = ref.at(min(self.tau, self.max_extrapolation)) if self.tau > 0 else ref.held()
         e_lon, e_lat = tracking_error(obs.fx, obs.fy, held)
         dist = np.hypot(e_lon, e_lat)
         physical = self.mode == AgentMode.PHYSICAL
@@ -254,7 +265,8 @@ class Fleet:
             log.info("step %d: placed %d diverged and %d flipped agents", msg.step, st.diverged, st.flipped)
         # along-path position of each bumper on the new path (guess for the projection)
         # (``obs`` predates the placements: placed agents sit exactly at s = 0)
-        self.s_act = np.where(place, 0.0, ref.project_far(obs.fx, obs.fy, e_lon)[0]) if len(ids) else e_lon.copy()
+        self.s_act = (np.where(place, held.s, ref.project_far(obs.fx, obs.fy, held.s + e_lon)[0]) if len(ids)
+                      else e_lon.copy())
         n = len(ids)
         self.drive = np.zeros(n)
         self.brake = np.zeros(n)
@@ -348,7 +360,8 @@ class Fleet:
         else:
             obs, proj = w.observe(self.slots), None
         ref = self.ref
-        tau = min(self.tau, self.cfg.max_extrapolation_s)
+        tau_max = self.max_extrapolation
+        tau = min(self.tau, tau_max)
         p = self.params
         if self._groups is None:
             self._groups = self._build_groups()
@@ -413,7 +426,7 @@ class Fleet:
         # tracking error at the end of the tick, against the extrapolated reference
         obs2 = w.observe(self.slots)
         s_guess = self.s_act + np.maximum(obs.speed, 0.0) * self.dt
-        r2, (s2, lat2, pp2) = ref.at_and_project(min(self.tau, self.cfg.max_extrapolation_s), obs2.fx, obs2.fy, s_guess)
+        r2, (s2, lat2, pp2) = ref.at_and_project(min(self.tau, tau_max), obs2.fx, obs2.fy, s_guess)
         self.s_act = s2
         self.err_lon = s2 - r2.s
         self.err_lat = lat2

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from physics_side.config import check_rates, load_physics_config
+from physics_side.config import check_rates, load_physics_config, ticks_to
 from protocol.errors import ConfigError
 from sumoco.common.config import load_toml
 
@@ -51,26 +51,34 @@ lateral = "pursuit"
         _load(tmp_path, '[physics]\npreset = "fast"\n')
 
 
-def test_rates_are_whole_number_ratios():
+def test_rates_any_sumo_step_length():
     r = check_rates(0.1, 50.0, 0.005)
     assert (r.ticks_per_step, r.substeps, r.control_dt) == (5, 4, 0.02)
     assert check_rates(0.05, 100.0, 0.0025).ticks_per_step == 5
+    # SUMO steps need not be whole control periods: ticks are counted by time
+    for step in (0.01, 0.05, 0.2, 0.5, 1.0):
+        check_rates(step, 50.0, 0.005)
+
+
+@pytest.mark.parametrize("step", [0.01, 0.05, 0.07, 0.1, 0.5, 1.0])
+def test_ticks_to_keeps_physics_time_within_half_a_tick(step):
+    dt, t, total = 0.02, 0.0, 0
+    for k in range(1, 200):
+        n = ticks_to(t, k * step, dt)
+        t += n * dt
+        total += n
+        assert abs(t - k * step) <= dt / 2 + 1e-9, (k, t)
+    assert total == pytest.approx(199 * step / dt, abs=1)
 
 
 def test_rate_errors_name_the_number_to_change(tmp_path):
     with pytest.raises(ConfigError, match=r"physics\.timestep_s = 0\.003 s does not divide .* 0\.02 s; change physics\.timestep_s to one of 0\.02, 0\.01"):
         check_rates(0.1, 50.0, 0.003)
-    with pytest.raises(ConfigError, match=r"SUMO step length 0\.1 s is not a whole number .* change physics\.control_hz to one of 10, 20, 30"):
-        check_rates(0.1, 25.0, 0.005)
+    with pytest.raises(ConfigError, match=r"SUMO step length 20 s is outside"):
+        check_rates(20.0, 50.0, 0.005)
+    with pytest.raises(ConfigError, match=r"physics\.control_hz = 10 Hz is too slow"):
+        check_rates(0.1, 10.0, 0.005)
     with pytest.raises(ConfigError, match=r"too coarse.*change physics\.timestep_s to 0\.005"):
         check_rates(0.1, 50.0, 0.02)
     with pytest.raises(ConfigError, match="control_hz"):
-        _load(tmp_path, "[physics]\ncontrol_hz = 25\n")
-
-
-def test_example_config_lists_the_defaults():
-    from physics_side.config import PhysicsSettings
-
-    root = Path(__file__).resolve().parents[1]
-    data, base = load_toml(root / "configs" / "physics.toml")
-    assert load_physics_config(data, base, "configs/physics.toml") == PhysicsSettings()
+        _load(tmp_path, "[physics]\ncontrol_hz = 10\n")

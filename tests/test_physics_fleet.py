@@ -184,3 +184,32 @@ def test_sideways_jumps_slow_agents_are_placed_fast_ones_driven():
         lat.append(f.snapshot().err_lat[0])
     assert abs(lat[-1]) < 0.1 and np.all(np.diff(lat[:10]) > 0)  # closes monotonically at first
     assert max(lat) < 0.3  # without a big overshoot into the next lane
+
+
+def test_any_step_length_and_a_change_mid_run_track_the_circle():
+    """Steps of 0.05 s, then 1.0 s, then 0.01 s (no config to match): physics simulates to
+    each step's end by time, extrapolates along the path, and keeps tracking."""
+    from physics_side.config import ticks_to
+
+    f = _fleet()
+    t, t_sumo, k = None, 0.0, 0
+    worst = {}
+    for step_s, n in ((0.05, 40), (1.0, 5), (0.01, 100)):
+        for _ in range(n):
+            # the same circle traffic at SUMO time t_sumo, step index k
+            moved = circle_traffic(3, 1, step_s=t_sumo, speed=10.0) if t_sumo > 0 else circle_traffic(3, 0)
+            msg = replace(moved, step=k, time=t_sumo, step_length=step_s,
+                          agents=replace(moved.agents, flags=np.full(3, 8 if k == 0 else 0, np.uint8)))
+            t = msg.time if t is None else t
+            f.apply_step(msg, tau=t - msg.time)
+            assert f.max_extrapolation == pytest.approx(3.0 * step_s)
+            for _ in range(ticks_to(t, msg.time + step_s, f.dt)):
+                f.tick()
+                t += f.dt
+            assert abs(t - (msg.time + step_s)) <= f.dt / 2 + 1e-9
+            err = float(np.hypot(f.err_lon, f.err_lat).max())
+            worst[step_s] = max(worst.get(step_s, 0.0), err)
+            t_sumo += step_s
+            k += 1
+    assert f.counters["placements_divergence"] == 0 and f.counters["resyncs"] == 0
+    assert worst[0.05] < 0.1 and worst[1.0] < 0.3 and worst[0.01] < 0.1, worst

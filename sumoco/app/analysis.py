@@ -79,6 +79,24 @@ def _cat(parts, dtype):
 
 def load_run(res: ReadResult) -> RunData:
     """Turn recorded messages into long-format numpy tables."""
+    items = ((Keys.instance_of(m.topic) or "main", m.log_time_ns, msg) for m, msg in iter_decoded(res))
+    return _run_data(items, truncated=res.truncated)
+
+
+def build_run_data(static: StaticData | None, steps: list[StepMessage], states: dict[str, list[PhysicsState]],
+                   wall_s: float = 0.0) -> RunData:
+    """``RunData`` from messages held in memory (an in-process run, e.g. ``sumoco bench fidelity``)."""
+    items: list = [("", 0, static)] if static is not None else []
+    items += [("", 0, m) for m in steps]
+    for inst, lst in states.items():
+        items += [(inst, 0, m) for m in lst]
+    data = _run_data(items)
+    data.wall_span_s = float(wall_s)
+    return data
+
+
+def _run_data(items, truncated: bool = False) -> RunData:
+    """Tables from (physics instance, log time [ns], message) triples in recording order."""
     index: dict[str, int] = {}
     ids: list[str] = []
 
@@ -100,7 +118,7 @@ def load_run(res: ReadResult) -> RunData:
     t_first = t_last = None
     w_first = w_last = None
     first_seen: dict[str, tuple[float, int]] = {}
-    for m, msg in iter_decoded(res):
+    for inst, log_time_ns, msg in items:
         if isinstance(msg, StaticData):
             static = static or msg
         elif isinstance(msg, StepMessage):
@@ -108,8 +126,8 @@ def load_run(res: ReadResult) -> RunData:
             steps += 1
             t_first = msg.time if t_first is None else t_first
             t_last = msg.time
-            w_first = m.log_time_ns if w_first is None else w_first
-            w_last = m.log_time_ns
+            w_first = log_time_ns if w_first is None else w_first
+            w_last = log_time_ns
             ai = aids(a.ids)
             for i, name in enumerate(a.ids):
                 first_seen.setdefault(name, (msg.time, i))  # time, then SUMO's order
@@ -118,7 +136,6 @@ def load_run(res: ReadResult) -> RunData:
             for k in ("x", "y", "angle", "speed", "lane", "cls", "flags"):
                 ref_cols[k].append(getattr(a, k))
         elif isinstance(msg, PhysicsState):
-            inst = Keys.instance_of(m.topic) or "main"
             cols = phys_cols.setdefault(inst, {k: [] for k in (
                 "t", "aid", "cls", "mode", "x", "y", "heading", "speed", "steer", "drive", "brake")})
             a = msg.agents
@@ -147,7 +164,7 @@ def load_run(res: ReadResult) -> RunData:
         static=static, ids=ids, ref=ref, phys=phys, steps=steps,
         sim_span_s=float((t_last or 0.0) - (t_first or 0.0)),
         wall_span_s=float(((w_last or 0) - (w_first or 0)) / 1e9),
-        truncated=res.truncated, first_seen=first_seen,
+        truncated=truncated, first_seen=first_seen,
     )
 
 

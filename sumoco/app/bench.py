@@ -1,4 +1,4 @@
-"""``sumoco bench {sumo,physics,e2e,codec} --json``: benchmark rows as JSON on stdout.
+"""``sumoco bench {sumo,physics,e2e,codec,fidelity} --json``: benchmark rows as JSON on stdout.
 
 Benchmarks measure speed; tests check correctness. Each area owns its benchmark
 function (``sumo_side.bench``, ``physics_side.bench``, ``sumoco.app.e2e_bench``); this module
@@ -56,6 +56,10 @@ def cli_main(args) -> int:
         from physics_side.bench import run_physics_bench
 
         rows = run_physics_bench(quick=quick)
+    elif args.what == "fidelity":
+        from sumoco.app.fidelity_bench import run_fidelity_bench
+
+        rows = run_fidelity_bench(quick=quick)
     elif args.what == "e2e":
         from sumoco.app.e2e_bench import run_e2e_bench
 

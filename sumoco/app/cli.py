@@ -68,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
-    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec"])
+    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity"])
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
     p.add_argument("--quiet", action="store_true")
