@@ -9,6 +9,11 @@ One process, three parts:
 - ``ViewerServer`` serves the page (``static/``) over plain HTTP and a WebSocket on
   ``/ws`` from the same port (websockets' ``process_request`` answers the non-upgrade
   GETs), on 127.0.0.1 by default.
+- Access: every request must name this server in its ``Host`` header (a loopback name or
+  the configured bind address with our port: defeats DNS rebinding); the WebSocket, the
+  map and ``/status`` need the per-run ``token`` (``?token=``, printed in the URL that
+  ``sumoco view`` shows); a WebSocket with an ``Origin`` header must come from a page of
+  this server (any other web page the user opens is refused). Refusals are 403s, counted.
 - Each browser gets a ``Mailbox``: a frame is built at most ``max_hz`` times a second from
   the newest step + newest physics state per instance and *replaces* whatever frame the
   client has not taken yet. A slow browser therefore skips frames; nothing queues up.
@@ -30,9 +35,11 @@ for tests and for checking a deployment with curl.
 from __future__ import annotations
 
 import asyncio
+import hmac
 import ipaddress
 import json
 import logging
+import secrets
 import signal
 import threading
 import time
@@ -71,6 +78,7 @@ class ViewerConfig:
     stale_s: float = 5.0  # [s] forget a physics instance that has been silent this long
     static_timeout_s: float = 2.0  # [s] wait per static-data query
     static_attempts: int = 10  # queries per fetch round before waiting for a SUMO token
+    token: str = ""  # access token of the page's data; "" = a new random one per start
 
     def validate(self) -> None:
         from protocol.errors import ConfigError
@@ -81,6 +89,9 @@ class ViewerConfig:
             raise ConfigError(f"viewer.max_hz: expected 0.5..120 Hz, got {self.max_hz}")
         if self.stale_s <= 0 or self.static_timeout_s <= 0 or self.static_attempts < 1:
             raise ConfigError("viewer: stale_s and static_timeout_s must be > 0, static_attempts >= 1")
+        if self.token and (len(self.token) < 16 or not self.token.replace("-", "").replace("_", "").isalnum()):
+            raise ConfigError("viewer.token: expected at least 16 letters, digits, '-' or '_' (or \"\" for a "
+                              "random one)")
 
 
 # --------------------------------------------------------------------------- newest-only state
@@ -231,6 +242,8 @@ class ViewerServer:
 
     def __init__(self, cfg: ViewerConfig, store: LatestStore, run: str = "", root: str = "") -> None:
         self.cfg, self.store, self.run_id, self.root = cfg, store, run, root
+        self.token = cfg.token or secrets.token_urlsafe(18)
+        self.refused: dict[str, int] = {"host": 0, "origin": 0, "token": 0}
         self.clients: set[Mailbox] = set()
         self.frames_built = 0
         self.frames_sent = 0
@@ -267,10 +280,46 @@ class ViewerServer:
             "physics_received": self.store.physics_received,
             "physics_instances": sorted(self.store.physics),
             "sumo_alive": self.store.sumo_alive,
+            "refused": dict(self.refused),
         }
 
+    @property
+    def url(self) -> str:
+        """The page's address with the access token."""
+        return f"http://{_url_host(self.cfg.host)}:{self.port}/?token={self.token}"
+
+    def _allowed_hosts(self) -> set[str]:
+        names = {"127.0.0.1", "localhost", "[::1]", _url_host(self.cfg.host)}
+        return {f"{n}:{self.port}".lower() for n in names}
+
+    def _refuse(self, why: str, detail: str) -> Response:
+        self.refused[why] += 1
+        log.warning("refused a request: %s", detail)
+        return _response(403, f"forbidden: {detail}\n".encode(), "text/plain; charset=utf-8")
+
+    def _check_access(self, request: Request, path: str, query: str, needs_token: bool) -> Response | None:
+        """None when the request may go on, else the 403 to send."""
+        hosts = request.headers.get_all("Host")
+        host = hosts[0].strip().lower() if len(hosts) == 1 else repr(hosts)
+        if host not in self._allowed_hosts():
+            return self._refuse("host", f"Host {host!r} is not this viewer (expected one of "
+                                        f"{', '.join(sorted(self._allowed_hosts()))})")
+        if path == "/ws":
+            origins = request.headers.get_all("Origin")
+            origin = origins[0] if len(origins) == 1 else (None if not origins else repr(origins))
+            if origin is not None and origin.lower().rstrip("/") not in {f"http://{h}" for h in self._allowed_hosts()}:
+                return self._refuse("origin", f"WebSocket from a page of {origin!r}, not of this viewer")
+        if needs_token:
+            given = _query_value(query, "token") or ""
+            if not hmac.compare_digest(given.encode(), self.token.encode()):
+                return self._refuse("token", f"{path} without the run's token (open the URL that sumoco view printed)")
+        return None
+
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
-        path = request.path.split("?", 1)[0]
+        path, _, query = request.path.partition("?")
+        refusal = self._check_access(request, path, query, needs_token=path in ("/ws", "/status", "/map.glb"))
+        if refusal is not None:
+            return refusal
         if path == "/ws":
             return None  # go on with the WebSocket handshake
         if path == "/status":
@@ -365,7 +414,7 @@ class ViewerServer:
                          max_size=1 << 16,  # the page only ever sends tiny messages
                          ping_interval=20, ping_timeout=20) as server:
             self.port = next(iter(server.sockets)).getsockname()[1]
-            log.info("viewer for run %r at http://%s:%d/", self.run_id, _url_host(self.cfg.host), self.port)
+            log.info("viewer for run %r at %s", self.run_id, self.url)
             if ready is not None:
                 ready(self.port)
             bcast = asyncio.create_task(self._broadcast_loop())
@@ -379,8 +428,15 @@ def _url_host(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
+def _query_value(query: str, name: str) -> str | None:
+    from urllib.parse import parse_qs
+
+    values = parse_qs(query, keep_blank_values=True).get(name)
+    return values[0] if values else None
+
+
 def _response(status: int, body: bytes, content_type: str) -> Response:
-    reason = {200: "OK", 204: "No Content", 404: "Not Found"}.get(status, "")
+    reason = {200: "OK", 204: "No Content", 403: "Forbidden", 404: "Not Found"}.get(status, "")
     headers = Headers([("Content-Type", content_type), ("Content-Length", str(len(body))),
                        ("Cache-Control", "no-cache"), ("Connection", "close")])
     return Response(status, reason, headers, body)
@@ -539,7 +595,8 @@ def cli_main(args: Any) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        await server.run(stop)
+        # The one line of output: where to look (the token makes the data private to this URL).
+        await server.run(stop, ready=lambda port: print(f"sumoco view: open {server.url}", flush=True))
 
     with open_session(common.zenoh) as session:
         feed = ZenohFeed(session, keys, store, vcfg).start()

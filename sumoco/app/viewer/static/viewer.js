@@ -350,7 +350,9 @@
   let retryMs = 500;
 
   function connect() {
-    const url = (location.protocol === 'https:' ? 'wss://' : 'ws://') + location.host + '/ws';
+    const token = new URLSearchParams(location.search).get('token') || '';
+    const url = (location.protocol === 'https:' ? 'wss://' : 'ws://') + location.host + '/ws?token=' +
+      encodeURIComponent(token);
     ws = new WebSocket(url);
     ws.binaryType = 'arraybuffer';
     ws.onopen = () => { stats.connected = true; retryMs = 500; hudConn(); };
