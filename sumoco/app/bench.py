@@ -46,6 +46,10 @@ def run_codec_bench(sizes=(250, 1000, 2500), repeat: int = 200) -> list[dict]:
 
 def cli_main(args) -> int:
     quick = bool(getattr(args, "quick", False))
+    if args.what == "soak":  # streams one row per minute instead of one list at the end
+        from sumoco.app.soak import cli_main as soak_main
+
+        return soak_main(args)
     if args.what == "codec":
         rows = run_codec_bench(repeat=20 if quick else 200)
     elif args.what == "sumo":

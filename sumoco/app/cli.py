@@ -68,8 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
-    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity"])
+    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak"])
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
+    p.add_argument("--config", help="soak: run config (default configs/demo.toml)")
+    p.add_argument("--minutes", type=float, default=60.0, help="soak: wall-clock minutes to run")
+    p.add_argument("--out", help="soak: output folder (default runs/soak)")
+    p.add_argument("--sample-s", dest="sample_s", type=float, help="soak: seconds between rows (default 60)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")
