@@ -371,7 +371,7 @@ def cli_main(args) -> int:
     settings = replace(settings, physics=phys)
     keys = Keys(common.zenoh.root, common.run.id, phys.instance)
     fleet = build_fleet(settings)
-    with open_session(common.zenoh) as session:
+    with open_session(common.zenoh, role="physics") as session:
         daemon = PhysicsDaemon(session, keys, fleet, settings, common.run).start()
         old = {}
 

@@ -471,7 +471,7 @@ def cli_main(args) -> int:
             daemon.request_stop()
 
     try:
-        session = open_session(common.zenoh)
+        session = open_session(common.zenoh, role="sumo")
         daemon = SumoDaemon(session, keys, sim, scfg, common.run)
         if threading.current_thread() is threading.main_thread():
             for s in (signal.SIGINT, signal.SIGTERM):

@@ -19,7 +19,7 @@ from protocol.codec import decode
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepMessage
-from sumoco.common.config import ZenohConfig
+from sumoco.common.config import SecurityConfig, ZenohConfig
 from sumoco.common.transport import free_tcp_port, open_session
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,9 +92,13 @@ class Daemon:
 class Probe:
     """A Zenoh session in the test that decodes and keeps everything of one run."""
 
-    def __init__(self, keys: Keys, connect: list[str]) -> None:
+    def __init__(self, keys: Keys, connect: list[str], security: SecurityConfig | None = None,
+                 role: str = "viewer") -> None:
         self.keys = keys
-        self.session = open_session(ZenohConfig(listen=(endpoint(),), connect=tuple(connect)))
+        zcfg = ZenohConfig(listen=(endpoint(),), connect=tuple(connect))
+        if security is not None:
+            zcfg = ZenohConfig(listen=zcfg.listen, connect=zcfg.connect, security=security)
+        self.session = open_session(zcfg, role)
         self.lock = threading.Lock()
         self.steps: list[StepMessage] = []
         self.physics: dict[str, list[PhysicsState]] = {}

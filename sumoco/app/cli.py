@@ -16,7 +16,8 @@ from sumoco import __version__
 from sumoco.common.errors import ExitCode, MissingExtraError
 
 #: Optional parts: the top-level module a command needs -> the extra that installs it.
-_EXTRAS = {"libsumo": "sumo", "sumo": "sumo", "mujoco": "physics", "matplotlib": "report", "foxglove": "foxglove"}
+_EXTRAS = {"libsumo": "sumo", "sumo": "sumo", "mujoco": "physics", "matplotlib": "report", "foxglove": "foxglove",
+           "cryptography": "secure"}
 
 
 def _env_list(name: str) -> list[str] | None:
@@ -103,6 +104,19 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--quiet", action="store_true")
     m.add_argument("--verbose", action="store_true")
 
+    p = sub.add_parser("certs", help="certificates for the secure profile (configs/secure.toml)")
+    p.add_argument("action", choices=["init"], help="init: a CA and one certificate per role")
+    p.add_argument("dir", help="folder to write ca.pem and <role>.pem/.key into")
+    p.add_argument("--renderer", action="append", metavar="EGO_ID",
+                   help="ego id a renderer certificate may drive (repeatable; default: ego)")
+    p.add_argument("--host", action="append", metavar="NAME_OR_IP",
+                   help="extra DNS name or IP the certificates are valid for (localhost and 127.0.0.1 always)")
+    p.add_argument("--days", type=int, default=365, help="validity [days]")
+    p.add_argument("--users", action="store_true", help="also write users.txt (random passwords per role)")
+    p.add_argument("--force", action="store_true", help="replace certificates already in DIR")
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--verbose", action="store_true")
+
     p = sub.add_parser("router", help="a Zenoh router (Python session in router mode)")
     p.add_argument("--listen", action="append", default=None)
     p.add_argument("--quiet", action="store_true")
@@ -155,6 +169,8 @@ def _dispatch(args: argparse.Namespace) -> int:
             from sumoco.app.mapexport import cli_main
         elif args.cmd == "router":
             from sumoco.app.router import cli_main
+        elif args.cmd == "certs":
+            from sumoco.app.certs import cli_main
         else:  # pragma: no cover - argparse enforces the choices
             return 2
     except ModuleNotFoundError as e:

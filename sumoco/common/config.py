@@ -40,6 +40,27 @@ class RunConfig:
 
 
 @dataclass(frozen=True)
+class SecurityConfig:
+    """``[zenoh.security]``: the secure profile (README, "Secure profile"); off by default."""
+
+    certs: Path | None = None  # folder from `sumoco certs init`; set = TLS with mutual auth on every link
+    acl: bool = True  # with certs: enforce the role access-control policy on everything received
+    renderers: tuple[str, ...] = ("ego",)  # ego ids with a renderer certificate (CN renderer-<id>)
+    users: Path | None = None  # `role:password` lines (`certs init --users`): user/password auth too
+
+    @property
+    def enabled(self) -> bool:
+        return self.certs is not None
+
+    def validate(self) -> None:
+        if self.users is not None and self.certs is None:
+            raise ConfigError("zenoh.security.users: user/password needs zenoh.security.certs (TLS) too")
+        for r in self.renderers:
+            if not r or not all(c.isalnum() or c in "_-." for c in r):
+                raise ConfigError(f"zenoh.security.renderers: expected ego ids (letters, digits, _ - .), got {r!r}")
+
+
+@dataclass(frozen=True)
 class ZenohConfig:
     root: str = "sumoco"  # key-expression root
     mode: Literal["peer", "client", "router"] = "peer"
@@ -47,6 +68,7 @@ class ZenohConfig:
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False  # off: loopback and explicit endpoints only
     shared_memory: bool = True  # same-host payloads >= 3 KB via shared memory
+    security: SecurityConfig = field(default_factory=SecurityConfig)
 
 
 def _type_name(tp: Any) -> str:

@@ -1,0 +1,295 @@
+"""The secure profile: certificates, TLS with mutual authentication, the role ACL.
+
+Real pieces only: certificates made by ``sumoco certs init``, the real SUMO side and
+physics side as OS processes on loopback TLS, and attacker sessions that hold a valid
+certificate of a lesser role. Every attack asserts what the victim received (its counters,
+its published state, what a viewer hears), next to a control that shows the same message
+from the rightful role does arrive, so a test cannot pass because nothing arrives at all.
+"""
+
+from __future__ import annotations
+
+import json
+import stat
+import time
+
+import msgpack
+import pytest
+import zenoh
+from cryptography import x509
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import NameOID
+
+from protocol.codec import encode
+from protocol.errors import ConfigError
+from protocol.keys import Keys
+from protocol.messages import EgoPose, StepAck
+from sumoco.app.certs import init_certs
+from sumoco.app.cli import main as cli
+from sumoco.common.config import SecurityConfig, ZenohConfig, load_common
+from sumoco.common.transport import access_control, open_session, zenoh_config
+from sumoco.testing.synthetic import synthetic_step
+from tests.harness import PAPER_CFG, ROOT, Daemon, Probe, endpoint, wait_until
+
+FORGED_STEP = 900_000  # a step index the real run never reaches
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("certs")
+    init_certs(d, renderers=("ego", "ego2"), users=True)
+    return d
+
+
+def test_certs_init_makes_a_ca_and_one_certificate_per_role(tmp_path):
+    assert cli(["certs", "init", str(tmp_path), "--renderer", "ego", "--renderer", "car7", "--quiet"]) == 0
+    ca = x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes())
+    assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    for role in ("sumo", "physics", "viewer", "renderer-ego", "renderer-car7"):
+        cert = x509.load_pem_x509_certificate((tmp_path / f"{role}.pem").read_bytes())
+        assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == role
+        assert cert.issuer == ca.subject
+        # signed by this CA: verify the signature with the CA's public key
+        ca.public_key().verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(cert.signature_hash_algorithm))
+        assert not cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+        assert stat.S_IMODE((tmp_path / f"{role}.key").stat().st_mode) == 0o600
+    assert stat.S_IMODE((tmp_path / "ca.key").stat().st_mode) == 0o600
+    # a second init would silently replace the trust root: refused (exit 2) unless --force
+    assert cli(["certs", "init", str(tmp_path), "--quiet"]) == 2
+    assert cli(["certs", "init", str(tmp_path), "--force", "--quiet"]) == 0
+    assert x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes()).serial_number != ca.serial_number
+
+
+def test_secure_toml_parses_and_errors_name_the_problem(tmp_path, certs):
+    common, _, _ = load_common(ROOT / "configs" / "secure.toml")
+    sec = common.zenoh.security
+    assert sec.enabled and sec.acl and sec.certs == (ROOT / "runs" / "certs").resolve()
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[zenoh.security]\nusers = "u.txt"\n')
+    with pytest.raises(ConfigError, match="users: user/password needs zenoh.security.certs"):
+        load_common(bad)
+    bad.write_text('[zenoh.security]\ncerts = "c"\nrenderer = ["x"]\n')
+    with pytest.raises(ConfigError, match=r"zenoh.security.renderer: unknown key"):
+        load_common(bad)
+    with pytest.raises(ConfigError, match=r"mallory\.pem not found .*sumoco certs init"):
+        zenoh_config(ZenohConfig(security=SecurityConfig(certs=certs)), role="mallory")
+
+
+def test_policy_denies_unless_allowed_and_grants_each_renderer_its_own_key_only():
+    acl = access_control("sumoco", SecurityConfig(certs=ROOT, renderers=("a", "b")))
+    assert acl["default_permission"] == "deny"
+    rules = {r["id"]: r for r in acl["rules"]}
+    grants = {p["id"]: set(p["rules"]) for p in acl["policies"]}
+    assert grants["viewer"] == {"receive", "read"}
+    assert grants["renderer-a"] == {"receive", "read", "ego-a"}
+    assert rules["ego-a"]["key_exprs"] == ["sumoco/*/ego/a"] and rules["ego-a"]["flows"] == ["ingress"]
+    put_keys = {k for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
+                for k in r["key_exprs"]}
+    assert put_keys == {"sumoco/*/sumo/step", "sumoco/*/physics/*/state", "sumoco/*/physics/*/ack",
+                        "sumoco/*/ego/a", "sumoco/*/ego/b"}
+
+
+# ------------------------------------------------------------------ real sessions, no daemons
+
+
+def _bare_session(connect: str, ca: str | None = None, cert: str | None = None, key: str | None = None):
+    """A Zenoh session configured by hand (not through sumoco): what an outsider would open."""
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("listen/endpoints", "[]")
+    c.insert_json5("connect/endpoints", json.dumps([connect]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    for k, v in (("root_ca_certificate", ca), ("connect_certificate", cert), ("connect_private_key", key)):
+        if v:
+            c.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
+    return zenoh.open(c)
+
+
+def test_a_peer_without_a_valid_certificate_cannot_connect(tmp_path, certs):
+    sec = SecurityConfig(certs=certs, renderers=("ego", "ego2"))
+    ep = endpoint()
+    victim = open_session(ZenohConfig(listen=(ep,), security=sec), role="sumo")
+    got = []
+    sub = victim.declare_subscriber("sumoco/**", lambda s: got.append(str(s.key_expr)))
+    other = tmp_path / "other"
+    init_certs(other)  # a valid-looking certificate from a CA the victim does not trust
+    tls_ep = "tls/" + ep[4:]
+    outsiders = {
+        "plain tcp": _bare_session(ep),
+        "tls, no certificate": _bare_session(tls_ep, ca=str(certs / "ca.pem")),
+        "tls, foreign CA": _bare_session(tls_ep, ca=str(certs / "ca.pem"), cert=str(other / "sumo.pem"),
+                                         key=str(other / "sumo.key")),
+    }
+    insider = open_session(ZenohConfig(connect=(ep,), security=sec), role="sumo")
+    try:
+        wait_until(lambda: list(insider.info.peers_zid()), 10, "the rightful sumo peer to connect")
+        time.sleep(0.5)  # outsiders get the same time to try
+        for name, s in outsiders.items():
+            assert list(s.info.peers_zid()) == [], f"{name}: a link came up"
+            s.put("sumoco/x/sumo/step", name.encode())
+        insider.put("sumoco/x/sumo/step", b"insider")
+        wait_until(lambda: "sumoco/x/sumo/step" in got, 10, "the insider's step at the victim")
+        time.sleep(0.3)
+        assert got == ["sumoco/x/sumo/step"], got
+        assert {str(z) for z in victim.info.peers_zid()} == {str(insider.info.zid())}
+    finally:
+        sub.undeclare()
+        for s in (*outsiders.values(), insider, victim):
+            s.close()
+
+
+def test_user_password_is_checked_on_top_of_the_certificate(tmp_path, certs):
+    sec = SecurityConfig(certs=certs, renderers=("ego", "ego2"), users=certs / "users.txt")
+    ep = endpoint()
+    victim = open_session(ZenohConfig(listen=(ep,), security=sec), role="sumo")
+    wrong = tmp_path / "users.txt"
+    wrong.write_text("".join(f"{line.split(':')[0]}:not-the-password\n"
+                             for line in (certs / "users.txt").read_text().splitlines()))
+    intruder = open_session(ZenohConfig(connect=(ep,), security=SecurityConfig(certs=certs, users=wrong)),
+                            role="sumo")
+    rightful = open_session(ZenohConfig(connect=(ep,), security=sec), role="sumo")
+    try:
+        wait_until(lambda: list(rightful.info.peers_zid()), 10, "the peer with the right password")
+        time.sleep(0.5)
+        assert list(intruder.info.peers_zid()) == []
+        assert {str(z) for z in victim.info.peers_zid()} == {str(rightful.info.zid())}
+    finally:
+        for s in (intruder, rightful, victim):
+            s.close()
+
+
+# ------------------------------------------------------------------ attacks on the real daemons
+
+
+def _config(tmp_path, certs) -> str:
+    p = tmp_path / "secure.toml"
+    p.write_text(f"""
+[run]
+id = "sec"
+timing = "lockstep"
+duration_s = 0.0
+lockstep_timeout_s = 20.0
+[zenoh.security]
+certs = "{certs}"
+renderers = ["ego", "ego2"]
+[sumo]
+sumocfg = "{PAPER_CFG}"
+[physics]
+preset = "kinematic"
+""")
+    return str(p)
+
+
+class SecureRun:
+    def __init__(self, tmp_path, certs):
+        self.certs = certs
+        self.sec = SecurityConfig(certs=certs, renderers=("ego", "ego2"))
+        self.keys = Keys("sumoco", "sec")
+        cfg = _config(tmp_path, certs)
+        self.sumo_ep = endpoint()
+        self.sumo = Daemon("sumo", ["sumo", "--config", cfg, "--listen", self.sumo_ep, "--quiet"], tmp_path)
+        self.physics = Daemon("physics", ["physics", "--config", cfg, "--listen", endpoint(),
+                                          "--connect", self.sumo_ep, "--quiet"], tmp_path)
+        self.viewer = Probe(self.keys, [self.sumo_ep], security=self.sec, role="viewer")
+        wait_until(lambda: self.viewer.last_step() is not None and self.viewer.last_physics() is not None,
+                   60, "steps and physics states at a viewer-role probe", procs=[self.sumo, self.physics])
+
+    def client(self, role: str) -> zenoh.Session:
+        s = open_session(ZenohConfig(connect=(self.sumo_ep,), security=self.sec), role=role)
+        wait_until(lambda: list(s.info.peers_zid()), 10, f"the {role} client to connect")
+        return s
+
+    def status(self) -> dict:
+        for r in self.viewer.session.get(self.keys.sumo_status, timeout=3.0):
+            if r.ok is not None:
+                return msgpack.unpackb(r.ok.payload.to_bytes(), raw=False)["counters"]
+        return {}
+
+    def close(self):
+        codes = {d.name: d.terminate(10) for d in (self.sumo, self.physics)}
+        self.viewer.close()
+        return codes
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, certs):
+    r = SecureRun(tmp_path_factory.mktemp("secure-run"), certs)
+    yield r
+    codes = r.close()
+    assert codes == {"sumo": 0, "physics": 0}, codes
+
+
+def test_viewer_role_subscribes_to_steps_states_and_static_data(run):
+    static = run.viewer.static()
+    assert len(static.lanes.ids) > 10
+    n0 = len(run.viewer.steps)
+    wait_until(lambda: len(run.viewer.steps) > n0 + 20, 20, "live steps at the viewer", procs=[run.sumo])
+    assert run.viewer.last_physics().agents.n > 0
+
+
+def test_renderer_cannot_publish_a_step_that_physics_would_follow(run):
+    attacker = run.client("renderer-ego")
+    try:
+        for i in range(20):
+            attacker.put(run.keys.step, encode(synthetic_step(5, step=FORGED_STEP + i)))
+        s0 = run.viewer.last_physics().tick
+        wait_until(lambda: run.viewer.last_physics().tick > s0 + 100, 20, "physics to keep ticking",
+                   procs=[run.physics])
+    finally:
+        attacker.close()
+    with run.viewer.lock:
+        states = [st for lst in run.viewer.physics.values() for st in lst]
+        steps = list(run.viewer.steps)
+    assert max(st.sumo_step for st in states) < FORGED_STEP
+    assert max(m.step for m in steps) < FORGED_STEP
+    assert states[-1].counters.get("rejected", 0) == 0  # not even seen and rejected: never delivered
+
+
+def test_renderer_cannot_acknowledge_steps_for_physics_and_physics_can(run):
+    attacker = run.client("renderer-ego")
+    try:
+        st = run.status()
+        for i in range(300):
+            attacker.put(Keys("sumoco", "sec", "main").ack, encode(StepAck("sec", st["steps"] + i, 0)))
+        time.sleep(1.0)
+        after = run.status()
+    finally:
+        attacker.close()
+    # lockstep, one instance: one ack per step; 300 forged acks would put acks far above steps
+    assert after["acks"] <= after["steps"] + 1, after
+    control = run.client("physics")  # the same burst from the physics role does arrive
+    try:
+        for i in range(300):
+            control.put(Keys("sumoco", "sec", "intruder").ack, encode(StepAck("sec", 0, 0)))
+        wait_until(lambda: (c := run.status())["acks"] >= c["steps"] + 250, 10, "the physics role's acks")
+    finally:
+        control.close()
+
+
+def test_renderer_may_drive_only_its_own_ego(run):
+    def pose(ego_id: str) -> bytes:
+        m = run.viewer.last_step()
+        i = 0  # next to the first agent SUMO has: on the road
+        return encode(EgoPose(ego_id, float(m.agents.x[i]) + 3.0, float(m.agents.y[i]), float(m.agents.angle[i]), 0.0))
+
+    attacker = run.client("renderer-ego2")
+    try:
+        for _ in range(30):
+            attacker.put(run.keys.ego("ego"), pose("ego"))
+            time.sleep(0.02)
+        time.sleep(0.5)
+        assert run.status()["ego_poses"] == 0
+        with run.viewer.lock:
+            assert not any("ego" in m.agents.ids for m in run.viewer.steps)
+    finally:
+        attacker.close()
+    owner = run.client("renderer-ego")
+    try:
+        def sent_and_seen():
+            owner.put(run.keys.ego("ego"), pose("ego"))
+            m = run.viewer.last_step()
+            return "ego" in m.agents.ids
+        wait_until(sent_and_seen, 20, "the rightful renderer's ego in SUMO's steps", poll_s=0.05)
+        assert run.status()["ego_poses"] > 0
+    finally:
+        owner.close()
