@@ -71,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
     p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak"])
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
-    p.add_argument("--config", help="soak: run config (default configs/demo.toml)")
+    p.add_argument("--config", help="soak: run config (default configs/soak.toml)")
     p.add_argument("--minutes", type=float, default=60.0, help="soak: wall-clock minutes to run")
     p.add_argument("--out", help="soak: output folder (default runs/soak)")
     p.add_argument("--sample-s", dest="sample_s", type=float, help="soak: seconds between rows (default 60)")

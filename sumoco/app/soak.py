@@ -18,6 +18,8 @@ from __future__ import annotations
 import json
 import logging
 import re
+import secrets
+import signal
 import sys
 import threading
 import time
@@ -46,7 +48,7 @@ _DONE_LINE = re.compile(rb"SUMO side done: .*?\brejected=(\d+)")
 @dataclass(frozen=True)
 class SoakConfig:
     minutes: float = 60.0  # [min] wall time of the whole soak
-    config: Path = REPO_CONFIGS / "demo.toml"
+    config: Path = REPO_CONFIGS / "soak.toml"
     presets: tuple[str, ...] = ("paper", "default")  # one physics process each
     sample_period_s: float = 60.0  # [s] between rows
     startup_timeout_s: float = 60.0  # [s] for every process to come up
@@ -186,13 +188,19 @@ def run_soak(cfg: SoakConfig, emit=None) -> list[dict]:
     exits: list[dict] = []
     loops = 0
     sumo_rejected = 0
-    ws = _WsClient(f"ws://127.0.0.1:{view_port}/ws")
+    # The viewer serves its data only with the run's token: give it one we know.
+    token = secrets.token_urlsafe(18)
+    view_cfg = out / "viewer.toml"
+    view_cfg.write_text(f'[zenoh]\nroot = "{common.zenoh.root}"\n[viewer]\ntoken = "{token}"\n')
+    ws = _WsClient(f"ws://127.0.0.1:{view_port}/ws?token={token}")
     zcfg = replace(common.zenoh, mode="peer", listen=(hub_ep,), connect=())
     t0 = time.monotonic()
+    sumo_started = [t0]
 
     def start_sumo() -> None:
         nonlocal loops
         loops += 1
+        sumo_started[0] = time.monotonic()
         procs.start(f"sumo-{loops:03d}", _cli("sumo", *base, "--listen", sumo_ep, "--connect", hub_ep))
 
     def current_sumo():
@@ -215,7 +223,8 @@ def run_soak(cfg: SoakConfig, emit=None) -> list[dict]:
                     "physics", *base, "--duration", "0", "--instance", p, "--preset", p,
                     "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub_ep))
             procs.start("record", _cli("record", *base, "--connect", hub_ep, "--out", str(out / "run.mcap")))
-            procs.start("view", _cli("view", *base, "--connect", hub_ep, "--port", str(view_port)))
+            procs.start("view", _cli("view", "--config", str(view_cfg), "--run", run_id, "--quiet",
+                                     "--connect", hub_ep, "--port", str(view_port)))
             want = {keys.sumo_alive} | {Keys(keys.root, run_id, p).physics_alive for p in cfg.presets}
             wait(lambda: want <= hub.alive, "the SUMO side and the physics instances")
             ws.start()
@@ -240,8 +249,10 @@ def run_soak(cfg: SoakConfig, emit=None) -> list[dict]:
                         exits.append({"process": name, "code": p.returncode})
                 if now >= next_row or now >= t_end:
                     minute += 1
+                    # a SUMO side still loading its scenario would show a partial RSS
+                    sumo_up = now - sumo_started[0] > 5.0
                     rows.append(_row(minute, now - t_first, procs, hub, ws, loops, sumo_rejected,
-                                     exits, log_dir))
+                                     exits, log_dir, sumo_up))
                     emit(rows[-1])
                     next_row += cfg.sample_period_s
                 if now >= t_end:
@@ -259,12 +270,12 @@ def run_soak(cfg: SoakConfig, emit=None) -> list[dict]:
 
 
 def _row(minute: int, elapsed: float, procs: Processes, hub: _Hub, ws: _WsClient, loops: int,
-         sumo_rejected: int, exits: list[dict], log_dir: Path) -> dict:
+         sumo_rejected: int, exits: list[dict], log_dir: Path, sumo_up: bool) -> dict:
     rss = {}
     for name, p in procs.procs.items():
         if name.startswith("sumo-"):
             v = rss_mb(p.pid)
-            if p.poll() is None and v > 1.0:  # a SUMO side that has just started has no RSS yet
+            if p.poll() is None and sumo_up:
                 rss["sumo"] = round(v, 1)
         else:
             rss[name] = round(rss_mb(p.pid), 1)
@@ -329,5 +340,9 @@ def cli_main(args) -> int:
         sys.stdout.write(json.dumps(row) + "\n")
         sys.stdout.flush()
 
+    def on_term(signum, frame):  # stop every process of the soak, as Ctrl-C does
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
     rows = run_soak(cfg, emit)
     return 0 if rows and rows[-1].get("errors") == 0 else 1
