@@ -148,6 +148,7 @@ class Fleet:
     def _model_class(self, cls: np.ndarray, vtype: np.ndarray, length: np.ndarray, vtypes) -> np.ndarray:
         out = cls.astype(np.int64).copy()
         other = np.flatnonzero(cls == AgentClass.OTHER)
+        vtypes = vtypes or []  # None: this step does not carry the table (SPEC 3.1)
         for i in other:
             vclass = vtypes[int(vtype[i])].vclass if int(vtype[i]) < len(vtypes) else "?"
             c = M.model_class_for(vclass, float(length[i]))

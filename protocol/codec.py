@@ -12,6 +12,7 @@ naming the field and the expectation; no other exception escapes ``decode``.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Union
 
 import msgpack
@@ -43,6 +44,56 @@ MAX_AGENTS = 200_000
 MAX_POINTS = 20_000_000
 MAX_STR = 1_024
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024
+MAX_VTYPES = 65_535  # u16 index
+MAX_STATIC_ROWS = 2_000_000  # lanes, junctions, tls links of the largest networks, with margin
+
+
+@dataclass(frozen=True)
+class DecodeLimits:
+    """Bounds applied while msgpack parses, before any array is built (SPEC.md 5).
+
+    ``max_agents`` is the largest agent table a receiver accepts; every msgpack length
+    limit follows from it and from the static-table bounds, so a hostile length prefix
+    fails inside the parser instead of allocating.
+    """
+
+    max_agents: int = MAX_AGENTS
+    """Agents per step or physics message."""
+    max_static_rows: int = MAX_STATIC_ROWS
+    """Lanes, junctions, traffic lights or tls links in static data."""
+    max_points: int = MAX_POINTS
+    """Vertices of one polyline table (paths ahead, lane shapes)."""
+    max_str: int = MAX_STR
+    """Characters of one string (ids)."""
+    max_bytes: int = MAX_MESSAGE_BYTES
+    """Bytes of one message."""
+
+    def __post_init__(self) -> None:
+        for name in ("max_agents", "max_static_rows", "max_points", "max_str", "max_bytes"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"DecodeLimits.{name} must be >= 1, got {getattr(self, name)}")
+
+    @classmethod
+    def for_agents(cls, max_agents: int) -> "DecodeLimits":
+        """Limits for a receiver configured for at most ``max_agents`` agents.
+
+        Paths get up to 200 vertices per agent; static tables keep their own bound.
+        """
+        n = max(1, int(max_agents))
+        return cls(max_agents=n, max_points=max(MAX_POINTS // 100, 200 * n))
+
+    def unpack_kwargs(self) -> dict[str, int]:
+        rows = max(self.max_agents, self.max_static_rows)
+        return {
+            "max_str_len": 4 * self.max_str,  # UTF-8 bytes
+            "max_bin_len": max(16 * self.max_points, 8 * rows) + 16,
+            "max_array_len": rows,
+            "max_map_len": 4_096,  # the widest map is a counters map
+            "max_ext_len": 0,  # no ext types on this wire
+        }
+
+
+DEFAULT_LIMITS = DecodeLimits()
 
 # Column tables: (field name == wire key, little-endian dtype). Order is the SPEC order.
 STEP_AGENT_COLUMNS: tuple[tuple[str, str], ...] = (
@@ -54,8 +105,8 @@ STEP_AGENT_COLUMNS: tuple[tuple[str, str], ...] = (
     ("speed", "<f4"),
     ("accel", "<f4"),
     ("signals", "<u2"),
-    ("la_x", "<f4"),
-    ("la_y", "<f4"),
+    ("la_dx", "<f4"),
+    ("la_dy", "<f4"),
     ("length", "<f4"),
     ("width", "<f4"),
     ("lane", "<i4"),
@@ -87,6 +138,27 @@ TLS_LINK_COLUMNS: tuple[tuple[str, str], ...] = (
     ("via_lane", "<i4"),
 )
 
+#: 1.1 senders put absolute float32 look-ahead points instead of ``la_dx``/``la_dy``.
+STEP_AGENT_COLUMNS_1_1: tuple[tuple[str, str], ...] = tuple(
+    (("la_x" if k == "la_dx" else "la_y" if k == "la_dy" else k), dt) for k, dt in STEP_AGENT_COLUMNS
+)
+
+#: Value bounds per float column [unit of the column]: generous physical limits so that a
+#: corrupt or hostile value is rejected with its field named instead of reaching a solver.
+COORD_LIMIT = 1e8  # [m] absolute positions
+OFFSET_LIMIT = 1e5  # [m] look-ahead / path offsets from the agent's position
+FLOAT_BOUNDS: dict[str, tuple[float, float]] = {
+    "x": (-COORD_LIMIT, COORD_LIMIT), "y": (-COORD_LIMIT, COORD_LIMIT),
+    "la_x": (-COORD_LIMIT, COORD_LIMIT), "la_y": (-COORD_LIMIT, COORD_LIMIT),
+    "la_dx": (-OFFSET_LIMIT, OFFSET_LIMIT), "la_dy": (-OFFSET_LIMIT, OFFSET_LIMIT),
+    "angle": (-720.0, 720.0), "heading": (-720.0, 720.0),
+    "roll": (-720.0, 720.0), "pitch": (-720.0, 720.0), "steer": (-720.0, 720.0),
+    "speed": (-1_000.0, 1_000.0), "accel": (-1e5, 1e5),
+    "length": (0.0, 1_000.0), "width": (0.0, 1_000.0), "z": (-1e5, 1e5),
+    "drive": (-1e9, 1e9), "brake": (-1e9, 1e9),
+    "err_lon": (-COORD_LIMIT, COORD_LIMIT), "err_lat": (-COORD_LIMIT, COORD_LIMIT),
+}
+
 _N_CLASSES = len(AgentClass)
 _N_MODES = len(AgentMode)
 
@@ -107,30 +179,57 @@ def _head(kind: str) -> dict[str, Any]:
 
 
 def _polyline(offsets: np.ndarray, xy: np.ndarray) -> dict[str, bytes]:
-    return {"off": _bin(offsets, "<u4"), "xy": _bin(np.asarray(xy).reshape(-1), "<f4")}
+    """Static polyline: float64 ``xy64`` plus float32 ``xy`` for 1.1 readers."""
+    flat = np.asarray(xy, np.float64).reshape(-1)
+    return {"off": _bin(offsets, "<u4"), "xy": _bin(flat, "<f4"), "xy64": _bin(flat, "<f8")}
+
+
+def _anchored_path(offsets: np.ndarray, xy: np.ndarray, x: np.ndarray, y: np.ndarray) -> dict[str, bytes]:
+    """Path polyline as float32 offsets from its agent's float64 (x, y) (SPEC.md 3.1)."""
+    off = np.asarray(offsets, np.int64)
+    counts = np.diff(off)
+    pts = np.asarray(xy, np.float64).reshape(-1, 2)[off[0]:off[-1]]
+    d = np.empty(pts.shape, np.float32)
+    np.subtract(pts[:, 0], np.repeat(np.asarray(x, np.float64), counts), out=d[:, 0], casting="unsafe")
+    np.subtract(pts[:, 1], np.repeat(np.asarray(y, np.float64), counts), out=d[:, 1], casting="unsafe")
+    return {"off": _bin(off - off[0], "<u4"), "dxy": d.astype("<f4", copy=False).tobytes()}
 
 
 def encode(msg: Message) -> bytes:
     """Encode any protocol message to msgpack bytes."""
     if isinstance(msg, StepMessage):
         a = msg.agents
-        agents = {"n": a.n, "id": list(a.ids), **_columns(a, STEP_AGENT_COLUMNS)}
+        x = np.asarray(a.x, np.float64)
+        y = np.asarray(a.y, np.float64)
+        agents = {"n": a.n, "id": list(a.ids)}
+        for name, dt in STEP_AGENT_COLUMNS:
+            if name == "la_dx":
+                agents[name] = _bin(np.asarray(a.la_x, np.float64) - x, dt)
+            elif name == "la_dy":
+                agents[name] = _bin(np.asarray(a.la_y, np.float64) - y, dt)
+            else:
+                agents[name] = _bin(getattr(a, name), dt)
         if len(a.path_offsets):
-            agents["path"] = _polyline(a.path_offsets, a.path_xy)
+            agents["path"] = _anchored_path(a.path_offsets, a.path_xy, x, y)
+        tls = {
+            "id": list(msg.tls.ids),
+            "state": list(msg.tls.state),
+            "phase": [int(p) for p in msg.tls.phase],
+            "next": [float(s) for s in msg.tls.next_switch],
+        }
+        if msg.tls.program is not None:
+            tls["program"] = list(msg.tls.program)
         d = _head("step") | {
             "run": msg.run,
             "step": int(msg.step),
             "t": float(msg.time),
             "dt": float(msg.step_length),
-            "vtypes": [[v.id, v.vclass] for v in msg.vtypes],
+            "sv": int(msg.static_version),
             "agents": agents,
-            "tls": {
-                "id": list(msg.tls.ids),
-                "state": list(msg.tls.state),
-                "phase": [int(p) for p in msg.tls.phase],
-                "next": [float(s) for s in msg.tls.next_switch],
-            },
+            "tls": tls,
         }
+        if msg.vtypes is not None:
+            d["vtypes"] = [[v.id, v.vclass] for v in msg.vtypes]
     elif isinstance(msg, EgoPose):
         d = _head("ego") | {
             "id": msg.id, "x": float(msg.x), "y": float(msg.y), "angle": float(msg.angle),
@@ -152,6 +251,7 @@ def encode(msg: Message) -> bytes:
         ln = msg.lanes
         d = _head("static") | {
             "run": msg.run,
+            "sv": int(msg.version),
             "dt": float(msg.step_length),
             "net": {
                 "offset": [float(v) for v in msg.net_offset],
@@ -218,13 +318,80 @@ def _float(d: dict, key: str, where: str, lo: float = -math.inf, hi: float = mat
     return v
 
 
-def _str(d: dict, key: str, where: str) -> str:
-    v = _get(d, key, where)
-    if not isinstance(v, str):
-        raise ProtocolError(f"expected a string, got {type(v).__name__}", where + key)
-    if len(v) > MAX_STR:
-        raise ProtocolError(f"expected at most {MAX_STR} characters, got {len(v)}", where + key)
-    return v
+class _Reader:
+    """Field readers bound to one set of ``DecodeLimits``."""
+
+    def __init__(self, lim: DecodeLimits) -> None:
+        self.lim = lim
+
+    def str(self, d: dict, key: str, where: str) -> str:
+        v = _get(d, key, where)
+        if not isinstance(v, str):
+            raise ProtocolError(f"expected a string, got {type(v).__name__}", where + key)
+        if len(v) > self.lim.max_str:
+            raise ProtocolError(f"expected at most {self.lim.max_str} characters, got {len(v)}", where + key)
+        return v
+
+    def strs(self, d: dict, key: str, where: str, n: int | None = None, unique: bool = False) -> list[str]:
+        v = _list(d, key, where, n)
+        m = self.lim.max_str
+        for s in v:
+            if not isinstance(s, str) or len(s) > m:
+                raise ProtocolError(f"expected strings of at most {m} characters", where + key)
+        if unique and len(set(v)) != len(v):
+            seen: set[str] = set()
+            dup = next(s for s in v if s in seen or seen.add(s))  # type: ignore[func-returns-value]
+            raise ProtocolError(f"expected unique ids, {dup!r} appears twice", where + key)
+        return v
+
+    def count(self, d: dict, where: str, limit: int) -> int:
+        return _int(d, "n", where, 0, limit)
+
+    def polyline(self, d: dict, key: str, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+        """Static polyline: prefers float64 ``xy64`` (1.2), else float32 ``xy`` (1.1)."""
+        p = _map(d, key, where)
+        w = f"{where}{key}."
+        off = _col(p, "off", "<u4", n + 1, w)
+        wide = "xy64" in p
+        name, dt, size = ("xy64", "<f8", 16) if wide else ("xy", "<f4", 8)
+        b = _get(p, name, w)
+        if not isinstance(b, bytes) or len(b) % size:
+            raise ProtocolError(f"expected bin of {dt} (x, y) pairs", w + name)
+        m = len(b) // size
+        self._points(m, w + name)
+        xy = _col(p, name, dt, 2 * m, w, (-COORD_LIMIT, COORD_LIMIT)).reshape(m, 2)
+        _check_offsets(off, n, m, w)
+        return off, xy.astype(np.float64)
+
+    def path(self, a: dict, n: int, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Path ahead: float32 offsets ``dxy`` from each agent's (x, y) (1.2) or absolute ``xy`` (1.1)."""
+        p = _map(a, "path", "agents.")
+        w = "agents.path."
+        off = _col(p, "off", "<u4", n + 1, w)
+        rel = "dxy" in p
+        name = "dxy" if rel else "xy"
+        b = _get(p, name, w)
+        if not isinstance(b, bytes) or len(b) % 8:
+            raise ProtocolError("expected bin of float32 (x, y) pairs", w + name)
+        m = len(b) // 8
+        self._points(m, w + name)
+        bound = (-OFFSET_LIMIT, OFFSET_LIMIT) if rel else (-COORD_LIMIT, COORD_LIMIT)
+        xy = _col(p, name, "<f4", 2 * m, w, bound).reshape(m, 2).astype(np.float64)
+        _check_offsets(off, n, m, w)
+        if rel and m:
+            counts = np.diff(off.astype(np.int64))
+            xy[:, 0] += np.repeat(x, counts)
+            xy[:, 1] += np.repeat(y, counts)
+        return off, xy
+
+    def _points(self, m: int, field: str) -> None:
+        if m > self.lim.max_points:
+            raise ProtocolError(f"expected at most {self.lim.max_points} points, got {m}", field)
+
+
+def _check_offsets(off: np.ndarray, n: int, m: int, w: str) -> None:
+    if off[0] != 0 or off[-1] != m or (n and np.any(np.diff(off.astype(np.int64)) < 0)):
+        raise ProtocolError(f"expected offsets rising from 0 to {m}", w + "off")
 
 
 def _map(d: dict, key: str, where: str) -> dict:
@@ -243,15 +410,8 @@ def _list(d: dict, key: str, where: str, n: int | None = None) -> list:
     return v
 
 
-def _strs(d: dict, key: str, where: str, n: int | None = None) -> list[str]:
-    v = _list(d, key, where, n)
-    for s in v:
-        if not isinstance(s, str) or len(s) > MAX_STR:
-            raise ProtocolError(f"expected strings of at most {MAX_STR} characters", where + key)
-    return v
-
-
-def _col(d: dict, key: str, dtype: str, n: int, where: str) -> np.ndarray:
+def _col(d: dict, key: str, dtype: str, n: int, where: str,
+         bounds: tuple[float, float] | None = None) -> np.ndarray:
     b = _get(d, key, where)
     if not isinstance(b, bytes):
         raise ProtocolError(f"expected bin of {n} x {dtype}, got {type(b).__name__}", where + key)
@@ -261,8 +421,14 @@ def _col(d: dict, key: str, dtype: str, n: int, where: str) -> np.ndarray:
             f"expected {n} x {dtype} = {n * size} bytes, got {len(b)}", where + key
         )
     a = np.frombuffer(b, dtype=dtype)
-    if a.dtype.kind == "f" and n and not np.isfinite(a).all():
-        raise ProtocolError("expected finite values, got NaN or inf", where + key)
+    if a.dtype.kind == "f" and n:
+        lo, hi = bounds if bounds is not None else FLOAT_BOUNDS.get(key, (-math.inf, math.inf))
+        amin, amax = float(a.min()), float(a.max())  # NaN propagates into both
+        if not (math.isfinite(amin) and math.isfinite(amax)):
+            raise ProtocolError("expected finite values, got NaN or inf", where + key)
+        if amin < lo or amax > hi:
+            bad = amin if amin < lo else amax
+            raise ProtocolError(f"expected values in {lo:g}..{hi:g}, got {bad:g}", where + key)
     return a
 
 
@@ -270,49 +436,34 @@ def _columns_in(d: dict, spec, n: int, where: str) -> dict[str, np.ndarray]:
     return {name: _col(d, name, dt, n, where) for name, dt in spec}
 
 
-def _count(d: dict, where: str, limit: int = MAX_AGENTS) -> int:
-    return _int(d, "n", where, 0, limit)
-
-
-def _polyline_in(d: dict, key: str, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
-    p = _map(d, key, where)
-    w = f"{where}{key}."
-    off = _col(p, "off", "<u4", n + 1, w)
-    xy_b = _get(p, "xy", w)
-    if not isinstance(xy_b, bytes) or len(xy_b) % 8:
-        raise ProtocolError("expected bin of float32 (x, y) pairs", w + "xy")
-    m = len(xy_b) // 8
-    if m > MAX_POINTS:
-        raise ProtocolError(f"expected at most {MAX_POINTS} points, got {m}", w + "xy")
-    xy = _col(p, "xy", "<f4", 2 * m, w).reshape(m, 2)
-    if off[0] != 0 or off[-1] != m or (n and np.any(np.diff(off.astype(np.int64)) < 0)):
-        raise ProtocolError(f"expected offsets rising from 0 to {m}", w + "off")
-    return off, xy
-
-
 def _check_range(a: np.ndarray, lo: int, hi: int, field: str) -> None:
     if len(a) and (int(a.min()) < lo or int(a.max()) > hi):
-        raise ProtocolError(f"expected values in {lo}..{hi}", field)
+        bad = int(a.min()) if int(a.min()) < lo else int(a.max())
+        raise ProtocolError(f"expected values in {lo}..{hi}, got {bad}", field)
 
 
-def decode(data: bytes | bytearray | memoryview) -> Message:
-    """Decode and validate one message; raises ``ProtocolError`` on anything wrong."""
+def decode(data: bytes | bytearray | memoryview, limits: DecodeLimits = DEFAULT_LIMITS) -> Message:
+    """Decode and validate one message; raises ``ProtocolError`` on anything wrong.
+
+    ``limits`` bound every length while msgpack parses (SPEC.md 5).
+    """
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise ProtocolError(f"expected bytes, got {type(data).__name__}")
-    if len(data) > MAX_MESSAGE_BYTES:
-        raise ProtocolError(f"message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
+    if len(data) > limits.max_bytes:
+        raise ProtocolError(f"message of {len(data)} bytes exceeds {limits.max_bytes}")
     try:
         d = msgpack.unpackb(
-data, raw=False, strict_map_key=True, use_list=True)
+            data, raw=False, strict_map_key=True, use_list=True, **limits.unpack_kwargs()
+        )
     except Exception as e:  # msgpack raises a zoo of types for corrupt input
         raise ProtocolError(f"not a msgpack document ({type(e).__name__}: {e})") from None
     if not isinstance(d, dict):
         raise ProtocolError(f"expected a map at top level, got {type(d).__name__}")
     try:
-        return _decode_map(d)
+        return _decode_map(d, _Reader(limits))
     except ProtocolError:
         raise
-    except (ValueError, TypeError, KeyError, IndexError, OverflowError) as e:
+    except (ValueError, TypeError, KeyError, IndexError, OverflowError, RecursionError) as e:
         raise ProtocolError(f"malformed message ({type(e).__name__}: {e})") from None
 
 
@@ -331,81 +482,103 @@ def _check_version(d: dict) -> None:
         )
 
 
-def _decode_map(d: dict) -> Message:
+def _decode_map(d: dict, r: _Reader) -> Message:
     _check_version(d)
-    kind = _str(d, "kind", "")
+    kind = r.str(d, "kind", "")
     dec = _DECODERS.get(kind)
     if dec is None:
         raise ProtocolError(f"expected one of {sorted(_DECODERS)}, got {kind!r}", "kind")
-    return dec(d)
+    return dec(d, r)
 
 
-def _decode_step(d: dict) -> StepMessage:
+def _vtype_pairs(d: dict, r: _Reader) -> list[VType] | None:
+    if "vtypes" not in d:  # 1.2: only in steps where the table changed
+        return None
     vt_raw = _list(d, "vtypes", "")
-    vtypes = []
+    if len(vt_raw) > MAX_VTYPES:
+        raise ProtocolError(f"expected at most {MAX_VTYPES} vehicle types, got {len(vt_raw)}", "vtypes")
+    m = r.lim.max_str
+    out = []
     for i, pair in enumerate(vt_raw):
         if (
             not isinstance(pair, list) or len(pair) != 2
-            or not all(isinstance(s, str) and len(s) <= MAX_STR for s in pair)
+            or not all(isinstance(s, str) and len(s) <= m for s in pair)
         ):
             raise ProtocolError("expected [vtype id, vclass] string pairs", f"vtypes[{i}]")
-        vtypes.append(VType(pair[0], pair[1]))
+        out.append(VType(pair[0], pair[1]))
+    return out
+
+
+def _decode_step(d: dict, r: _Reader) -> StepMessage:
+    vtypes = _vtype_pairs(d, r)
     a = _map(d, "agents", "")
-    n = _count(a, "agents.")
-    cols = _columns_in(a, STEP_AGENT_COLUMNS, n, "agents.")
+    n = r.count(a, "agents.", r.lim.max_agents)
+    spec = STEP_AGENT_COLUMNS if "la_dx" in a else STEP_AGENT_COLUMNS_1_1
+    cols = _columns_in(a, spec, n, "agents.")
+    x = cols["x"]
+    y = cols["y"]
+    if "la_dx" in cols:  # 1.2: offsets from the agent's position
+        cols["la_x"] = x + cols.pop("la_dx")
+        cols["la_y"] = y + cols.pop("la_dy")
+    else:
+        cols["la_x"] = cols["la_x"].astype(np.float64)
+        cols["la_y"] = cols["la_y"].astype(np.float64)
     _check_range(cols["cls"], 0, _N_CLASSES - 1, "agents.cls")
-    _check_range(cols["vtype"], 0, max(len(vtypes) - 1, 0), "agents.vtype")
-    if n and not vtypes:
-        raise ProtocolError("expected a vtype table when agents are present", "vtypes")
+    if vtypes is not None:
+        if n and not vtypes:
+            raise ProtocolError("expected a vtype table when agents are present", "vtypes")
+        _check_range(cols["vtype"], 0, max(len(vtypes) - 1, 0), "agents.vtype")
     _check_range(cols["lane"], -1, 2**31 - 1, "agents.lane")
     if "path" in a:
-        off, xy = _polyline_in(a, "path", n, "agents.")
+        off, xy = r.path(a, n, x, y)
     else:
-        off, xy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float32)
+        off, xy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float64)
     agents = AgentBatch(
-        ids=_strs(a, "id", "agents.", n), path_offsets=off, path_xy=xy, **cols
+        ids=r.strs(a, "id", "agents.", n, unique=True), path_offsets=off, path_xy=xy, **cols
     )
     t = _map(d, "tls", "")
-    ids = _strs(t, "id", "tls.")
+    ids = r.strs(t, "id", "tls.", None, unique=True)
     k = len(ids)
     phase = _list(t, "phase", "tls.", k)
     nxt = _list(t, "next", "tls.", k)
-    if not all(isinstance(p, int) and not isinstance(p, bool) for p in phase):
-        raise ProtocolError("expected integers", "tls.phase")
-    if not all(isinstance(s, (int, float)) and math.isfinite(s) for s in nxt):
+    if not all(isinstance(p, int) and not isinstance(p, bool) and 0 <= p < 2**31 for p in phase):
+        raise ProtocolError("expected integers 0..2^31-1", "tls.phase")
+    if not all(isinstance(s, (int, float)) and not isinstance(s, bool) and math.isfinite(s) for s in nxt):
         raise ProtocolError("expected finite numbers", "tls.next")
     tls = TrafficLights(
         ids=ids,
-        state=_strs(t, "state", "tls.", k),
+        state=r.strs(t, "state", "tls.", k),
         phase=np.asarray(phase, np.int32) if k else np.zeros(0, np.int32),
         next_switch=np.asarray(nxt, np.float32) if k else np.zeros(0, np.float32),
+        program=r.strs(t, "program", "tls.", k) if "program" in t else None,
     )
     return StepMessage(
-        run=_str(d, "run", ""),
+        run=r.str(d, "run", ""),
         step=_int(d, "step", "", 0),
         time=_float(d, "t", ""),
         step_length=_float(d, "dt", "", 1e-6, 3600.0),
         agents=agents,
         tls=tls,
         vtypes=vtypes,
+        static_version=_int(d, "sv", "", 0) if "sv" in d else 0,
     )
 
 
-def _decode_ego(d: dict) -> EgoPose:
+def _decode_ego(d: dict, r: _Reader) -> EgoPose:
     return EgoPose(
-        id=_str(d, "id", ""),
-        x=_float(d, "x", ""),
-        y=_float(d, "y", ""),
-        angle=_float(d, "angle", ""),
+        id=r.str(d, "id", ""),
+        x=_float(d, "x", "", -COORD_LIMIT, COORD_LIMIT),
+        y=_float(d, "y", "", -COORD_LIMIT, COORD_LIMIT),
+        angle=_float(d, "angle", "", -720.0, 720.0),
         speed=_float(d, "speed", "", -200.0, 200.0),
         time=_float(d, "t", "") if "t" in d else 0.0,
-        vtype=_str(d, "vtype", "") if "vtype" in d else "",
+        vtype=r.str(d, "vtype", "") if "vtype" in d else "",
     )
 
 
-def _decode_physics(d: dict) -> PhysicsState:
+def _decode_physics(d: dict, r: _Reader) -> PhysicsState:
     a = _map(d, "agents", "")
-    n = _count(a, "agents.")
+    n = r.count(a, "agents.", r.lim.max_agents)
     cols = _columns_in(a, PHYSICS_AGENT_COLUMNS, n, "agents.")
     _check_range(cols["cls"], 0, _N_CLASSES - 1, "agents.cls")
     _check_range(cols["mode"], 0, _N_MODES - 1, "agents.mode")
@@ -414,71 +587,75 @@ def _decode_physics(d: dict) -> PhysicsState:
         if not isinstance(v, int) or isinstance(v, bool):
             raise ProtocolError("expected an integer", f"counters.{k}")
     return PhysicsState(
-        run=_str(d, "run", ""),
+        run=r.str(d, "run", ""),
         tick=_int(d, "tick", "", 0),
         time=_float(d, "t", ""),
         sumo_step=_int(d, "sumo_step", "", -1),
-        agents=PhysicsAgents(ids=_strs(a, "id", "agents.", n), **cols),
+        agents=PhysicsAgents(ids=r.strs(a, "id", "agents.", n, unique=True), **cols),
         counters=dict(c),
     )
 
 
-def _decode_ack(d: dict) -> StepAck:
-    return StepAck(run=_str(d, "run", ""), step=_int(d, "step", "", 0), tick=_int(d, "tick", "", 0))
+def _decode_ack(d: dict, r: _Reader) -> StepAck:
+    return StepAck(run=r.str(d, "run", ""), step=_int(d, "step", "", 0), tick=_int(d, "tick", "", 0))
 
 
-def _decode_static(d: dict) -> StaticData:
+def _decode_static(d: dict, r: _Reader) -> StaticData:
+    rows = r.lim.max_static_rows
     net = _map(d, "net", "")
     off = _list(net, "offset", "net.", 2)
     bounds = _list(net, "bounds", "net.", 4)
-    if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in off + bounds):
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in off + bounds):
         raise ProtocolError("expected finite numbers", "net.offset/bounds")
     ln = _map(d, "lanes", "")
-    nl = _count(ln, "lanes.", MAX_POINTS)
+    nl = r.count(ln, "lanes.", rows)
     allow = _list(ln, "allow", "lanes.", nl)
     for i, a in enumerate(allow):
         if not isinstance(a, list) or not all(isinstance(s, str) for s in a):
             raise ProtocolError("expected arrays of vClass strings", f"lanes.allow[{i}]")
-    l_off, l_xy = _polyline_in(ln, "shape", nl, "lanes.")
+    l_off, l_xy = r.polyline(ln, "shape", nl, "lanes.")
     lanes = LaneTable(
-        ids=_strs(ln, "id", "lanes.", nl),
-        edge=_strs(ln, "edge", "lanes.", nl),
-        width=_col(ln, "width", "<f4", nl, "lanes."),
-        length=_col(ln, "length", "<f4", nl, "lanes."),
+        ids=r.strs(ln, "id", "lanes.", nl, unique=True),
+        edge=r.strs(ln, "edge", "lanes.", nl),
+        width=_col(ln, "width", "<f4", nl, "lanes.", (0.0, 1_000.0)),
+        length=_col(ln, "length", "<f4", nl, "lanes.", (0.0, 1e7)),
         allow=allow,
         shape_offsets=l_off,
         shape_xy=l_xy,
     )
     jn = _map(d, "junctions", "")
-    nj = _count(jn, "junctions.", MAX_POINTS)
-    j_off, j_xy = _polyline_in(jn, "shape", nj, "junctions.")
-    tls_ids = _strs(d, "tls", "")
+    nj = r.count(jn, "junctions.", rows)
+    j_off, j_xy = r.polyline(jn, "shape", nj, "junctions.")
+    tls_ids = r.strs(d, "tls", "", None, unique=True)
+    if len(tls_ids) > rows:
+        raise ProtocolError(f"expected at most {rows} traffic lights", "tls")
     tls_links = TlsLinks.empty()
     if "tls_links" in d:  # optional: added in 1.1
         tl = _map(d, "tls_links", "")
-        nt = _count(tl, "tls_links.", MAX_POINTS)
+        nt = r.count(tl, "tls_links.", rows)
         cols = _columns_in(tl, TLS_LINK_COLUMNS, nt, "tls_links.")
         _check_range(cols["tls"], 0, max(len(tls_ids) - 1, 0), "tls_links.tls")
         for k in ("from_lane", "to_lane", "via_lane"):
             _check_range(cols[k], -1, max(nl - 1, -1), f"tls_links.{k}")
         tls_links = TlsLinks(**cols)
     vt = _map(d, "vtypes", "")
-    nv = _count(vt, "vtypes.", 65_535)
-    vids = _strs(vt, "id", "vtypes.", nv)
-    vcls = _strs(vt, "vclass", "vtypes.", nv)
+    nv = r.count(vt, "vtypes.", MAX_VTYPES)
+    vids = r.strs(vt, "id", "vtypes.", nv)
+    vcls = r.strs(vt, "vclass", "vtypes.", nv)
     return StaticData(
-        run=_str(d, "run", ""),
+        run=r.str(d, "run", ""),
         step_length=_float(d, "dt", "", 1e-6, 3600.0),
         net_offset=(float(off[0]), float(off[1])),
-        projection=_str(net, "proj", "net."),
+        projection=r.str(net, "proj", "net."),
         bounds=tuple(float(b) for b in bounds),  # type: ignore[arg-type]
         lanes=lanes,
-        junctions=JunctionTable(_strs(jn, "id", "junctions.", nj), j_off, j_xy),
+        junctions=JunctionTable(r.strs(jn, "id", "junctions.", nj, unique=True), j_off, j_xy),
         vtypes=[VType(i, c) for i, c in zip(vids, vcls)],
-        vtype_length=_col(vt, "length", "<f4", nv, "vtypes."),
-        vtype_width=_col(vt, "width", "<f4", nv, "vtypes."),
+        vtype_length=_col(vt, "length", "<f4", nv, "vtypes.", (0.0, 1_000.0)),
+        vtype_width=_col(vt, "width", "<f4", nv, "vtypes.", (0.0, 1_000.0)),
         tls_ids=tls_ids,
         tls_links=tls_links,
+        version=_int(d, "sv", "", 0) if "sv" in d else 0,
     )
 
 
@@ -491,9 +668,9 @@ _DECODERS = {
 }
 
 
-def decode_as(data: bytes, cls: type) -> Any:
+def decode_as(data: bytes, cls: type, limits: DecodeLimits = DEFAULT_LIMITS) -> Any:
     """Decode and check the message is of type ``cls`` (e.g. ``StepMessage``)."""
-    msg = decode(data)
+    msg = decode(data, limits)
     if not isinstance(msg, cls):
         raise ProtocolError(f"expected a {cls.__name__} message, got {type(msg).__name__}", "kind")
     return msg

@@ -17,7 +17,7 @@ from enum import IntEnum
 import numpy as np
 
 #: Protocol version (major, minor). A different major is rejected by the decoder.
-SCHEMA_VERSION: tuple[int, int] = (1, 1)  # 1.1 added StaticData.tls_links
+SCHEMA_VERSION: tuple[int, int] = (1, 2)  # 1.1: StaticData.tls_links; 1.2: anchored positions, static version
 
 
 class AgentClass(IntEnum):
@@ -70,9 +70,11 @@ def _f32(a) -> np.ndarray:
 class AgentBatch:
     """All agents of one SUMO step, one array per field (length ``n``).
 
-    ``path_offsets`` (uint32, n+1) and ``path_xy`` (float32, (m, 2)) hold each agent's
+    ``path_offsets`` (uint32, n+1) and ``path_xy`` (float64, (m, 2)) hold each agent's
     path ahead: agent i's polyline is ``path_xy[path_offsets[i]:path_offsets[i+1]]``,
-    starting at its front bumper. Both are empty when the sender omits paths.
+    starting at its front bumper. Both are empty when the sender omits paths. Every
+    position here is absolute and float64; the codec sends look-ahead points and paths
+    as float32 offsets from the agent's (x, y) (SPEC.md 3.1).
     """
 
     ids: list[str]
@@ -94,9 +96,9 @@ class AgentBatch:
     signals: np.ndarray
     """SUMO signal bitmask (blinkers, brake light, ...) [uint16]."""
     la_x: np.ndarray
-    """Look-ahead point x [m, float32] (LAD along the path ahead from the SUMO pose)."""
+    """Look-ahead point x [m, float64] (LAD along the path ahead from the SUMO pose)."""
     la_y: np.ndarray
-    """Look-ahead point y [m, float32]."""
+    """Look-ahead point y [m, float64]."""
     length: np.ndarray
     """Length [m, float32]."""
     width: np.ndarray
@@ -107,8 +109,8 @@ class AgentBatch:
     """``AgentFlag`` bits [uint8]."""
     path_offsets: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint32))
     """Start of each agent's path in ``path_xy``, length n+1, or empty [uint32]."""
-    path_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
-    """Path-ahead vertices (x, y) [m, float32, shape (m, 2)]."""
+    path_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float64))
+    """Path-ahead vertices (x, y) [m, float64, shape (m, 2)]."""
 
     @property
     def n(self) -> int:
@@ -120,14 +122,14 @@ class AgentBatch:
         return cls(
             ids=[], cls=z.astype(np.uint8), vtype=z.astype(np.uint16), x=z.copy(), y=z.copy(),
             angle=_f32(z), speed=_f32(z), accel=_f32(z), signals=z.astype(np.uint16),
-            la_x=_f32(z), la_y=_f32(z), length=_f32(z), width=_f32(z),
+            la_x=z.copy(), la_y=z.copy(), length=_f32(z), width=_f32(z),
             lane=z.astype(np.int32), flags=z.astype(np.uint8),
         )
 
     def path(self, i: int) -> np.ndarray:
         """Path-ahead polyline of agent ``i`` as an (k, 2) array (empty if omitted)."""
         if len(self.path_offsets) == 0:
-            return np.zeros((0, 2), np.float32)
+            return np.zeros((0, 2), np.float64)
         return self.path_xy[self.path_offsets[i] : self.path_offsets[i + 1]]
 
 
@@ -143,10 +145,12 @@ class TrafficLights:
     """Current phase index [int32]."""
     next_switch: np.ndarray
     """Time until the next phase switch [s, float32]."""
+    program: list[str] | None = None
+    """Active program id per light (since 1.2; None from 1.1 senders)."""
 
     @classmethod
     def empty(cls) -> "TrafficLights":
-        return cls([], [], np.zeros(0, np.int32), np.zeros(0, np.float32))
+        return cls([], [], np.zeros(0, np.int32), np.zeros(0, np.float32), [])
 
 
 @dataclass(frozen=True)
@@ -173,8 +177,13 @@ class StepMessage:
     """SUMO step length [s]."""
     agents: AgentBatch
     tls: TrafficLights
-    vtypes: list[VType]
-    """Vehicle types referenced by ``agents.vtype`` in this message."""
+    vtypes: list[VType] | None
+    """The vehicle-type table ``agents.vtype`` indexes, or None when this message does not
+    carry it (since 1.2 it travels only when it changes: it is then the table of static
+    version ``static_version``, also served by the static-data queryable)."""
+    static_version: int = 0
+    """Version of the static tables (vtypes, tls links) this step refers to; it changes
+    whenever one of them changes (since 1.2; 0 from 1.1 senders)."""
 
 
 @dataclass(frozen=True)
@@ -279,7 +288,7 @@ class LaneTable:
     shape_offsets: np.ndarray
     """Start of each lane's centre line in ``shape_xy``, length n+1 [uint32]."""
     shape_xy: np.ndarray
-    """Centre-line vertices [m, float32, shape (m, 2)]."""
+    """Centre-line vertices [m, float64, shape (m, 2)]."""
 
 
 @dataclass(frozen=True)
@@ -288,7 +297,7 @@ class JunctionTable:
     shape_offsets: np.ndarray
     """Start of each junction's outline in ``shape_xy``, length n+1 [uint32]."""
     shape_xy: np.ndarray
-    """Outline polygon vertices [m, float32, shape (m, 2)]."""
+    """Outline polygon vertices [m, float64, shape (m, 2)]."""
 
 
 @dataclass(frozen=True)
@@ -313,7 +322,10 @@ class TlsLinks:
 
 @dataclass(frozen=True)
 class StaticData:
-    """Network and type data that does not change during a run (queryable)."""
+    """Network, vehicle types and traffic-light links (queryable).
+
+    The network never changes during a run; the vehicle-type table and the tls links may,
+    and every change gives a new ``version`` (steps carry the version they refer to)."""
 
     run: str
     step_length: float
@@ -327,7 +339,7 @@ class StaticData:
     lanes: LaneTable
     junctions: JunctionTable
     vtypes: list[VType]
-    """Vehicle types known at start-up."""
+    """Vehicle-type table (``StepMessage.agents.vtype`` indexes it)."""
     vtype_length: np.ndarray
     """Length per ``vtypes`` entry [m, float32]."""
     vtype_width: np.ndarray
@@ -336,3 +348,6 @@ class StaticData:
     """Traffic-light ids."""
     tls_links: TlsLinks = field(default_factory=TlsLinks.empty)
     """Lanes controlled by each traffic-light link (since 1.1; empty from 1.0 senders)."""
+    version: int = 0
+    """Static version: equals ``StepMessage.static_version`` of the steps it describes
+    (since 1.2; 0 from older senders)."""

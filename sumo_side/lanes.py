@@ -89,7 +89,7 @@ class LaneGraph:
         counts = np.array([len(s) for s in self.shapes], np.int64)
         off = np.zeros(self.n + 1, np.uint32)
         np.cumsum(counts, out=off[1:])
-        xy = np.concatenate(self.shapes).astype(np.float32) if self.n else np.zeros((0, 2), np.float32)
+        xy = np.concatenate(self.shapes).astype(np.float64) if self.n else np.zeros((0, 2))
         return LaneTable(
             ids=list(self.ids),
             edge=list(self.edges),
@@ -165,12 +165,12 @@ def read_net_location(net_file: Path) -> NetLocation:
 def _junction_shape(api, junction_id: str) -> np.ndarray:
     if junction_id.startswith(":"):
         # Internal junctions have no outline (and TraCI cannot even parse their empty shape).
-        return np.zeros((0, 2), np.float32)
+        return np.zeros((0, 2))
     try:
-        return np.array(api.junction.getShape(junction_id), np.float32).reshape(-1, 2)
+        return np.array(api.junction.getShape(junction_id), np.float64).reshape(-1, 2)
     except Exception as e:  # a shape SUMO cannot serialise: leave it out, keep the id
         log.debug("junction %s: no shape (%s)", junction_id, e)
-        return np.zeros((0, 2), np.float32)
+        return np.zeros((0, 2))
 
 
 def junction_table(api) -> JunctionTable:
@@ -179,8 +179,8 @@ def junction_table(api) -> JunctionTable:
     counts = np.array([len(s) for s in shapes], np.int64)
     off = np.zeros(len(ids) + 1, np.uint32)
     np.cumsum(counts, out=off[1:])
-    xy = np.concatenate(shapes) if shapes else np.zeros((0, 2), np.float32)
-    return JunctionTable(ids, off, xy.astype(np.float32))
+    xy = np.concatenate(shapes) if shapes else np.zeros((0, 2))
+    return JunctionTable(ids, off, xy.astype(np.float64))
 
 
 def tls_link_table(api, graph: LaneGraph, tls_ids: list[str]) -> TlsLinks:

@@ -214,7 +214,7 @@ class LookAhead:
     path_offsets: np.ndarray
     """uint32 (n+1) (empty when paths are off)."""
     path_xy: np.ndarray
-    """float32 (m, 2) (empty when paths are off)."""
+    """float64 (m, 2) [m] (empty when paths are off)."""
     seq: np.ndarray
     """Lane-sequence id per agent, -1 when the agent has none [int64]."""
 
@@ -442,7 +442,7 @@ class PathPlanner:
         if len(st):
             la[st] = la[st] + lad[st, None] * dirs
         if not with_paths:
-            return LookAhead(la, np.zeros(0, np.uint32), np.zeros((0, 2), np.float32), seq)
+            return LookAhead(la, np.zeros(0, np.uint32), np.zeros((0, 2)), seq)
 
         counts = np.zeros(n, np.int64)
         if len(on):
@@ -451,7 +451,7 @@ class PathPlanner:
         counts[st] = 2
         off = np.zeros(n + 1, np.int64)
         np.cumsum(counts, out=off[1:])
-        out = np.empty((int(off[-1]), 2), np.float32)
+        out = np.empty((int(off[-1]), 2))  # float64: UTM-sized coordinates
         if len(on):
             store.write_pieces(out, off[on], c_on, i[0], pts[0], pts[2])
         if len(st):

@@ -24,11 +24,11 @@ import time
 import msgpack
 import zenoh
 
-MAJOR = 1  # SPEC.md section 6: reject other major versions
+MAJOR = 1  # SPEC.md section 6: reject other major versions (this client reads 1.2)
 
 # SPEC.md section 3: column types of the agent tables (little-endian).
 STEP_COLUMNS = {"cls": "B", "vtype": "H", "x": "d", "y": "d", "angle": "f", "speed": "f",
-                "accel": "f", "signals": "H", "la_x": "f", "la_y": "f", "length": "f",
+                "accel": "f", "signals": "H", "la_dx": "f", "la_dy": "f", "length": "f",
                 "width": "f", "lane": "i", "flags": "B"}
 PHYSICS_COLUMNS = {"cls": "B", "mode": "B", "x": "d", "y": "d", "z": "f", "heading": "f",
                    "roll": "f", "pitch": "f", "speed": "f", "steer": "f", "drive": "f",
@@ -45,10 +45,19 @@ def column(raw: bytes, code: str, n: int) -> list:
     return a.tolist()
 
 
-def polylines(p: dict, n: int) -> list[list[tuple[float, float]]]:
+def polylines(p: dict, n: int, anchors: tuple[list, list] | None = None) -> list[list[tuple[float, float]]]:
+    """Polylines of SPEC.md section 3: static shapes (``xy64``) or paths (``dxy`` + anchors)."""
     off = column(p["off"], "I", n + 1)
-    xy = array.array("f")
-    xy.frombytes(p["xy"])
+    if anchors is not None:  # path ahead: float32 offsets from each agent's (x, y)
+        xy = array.array("f")
+        xy.frombytes(p["dxy"])
+        ax, ay = anchors
+        return [[(ax[i] + xy[2 * j], ay[i] + xy[2 * j + 1]) for j in range(off[i], off[i + 1])]
+                for i in range(n)]
+    xy = array.array("d")
+    xy.frombytes(p["xy64"])
+    if sys.byteorder != "little":
+        xy.byteswap()
     return [[(xy[2 * j], xy[2 * j + 1]) for j in range(off[i], off[i + 1])] for i in range(n)]
 
 
@@ -62,8 +71,11 @@ def decode(payload: bytes) -> dict:
         cols = STEP_COLUMNS if kind == "step" else PHYSICS_COLUMNS
         for k, code in cols.items():
             a[k] = column(a[k], code, a["n"])
-        if kind == "step" and "path" in a:
-            a["path"] = polylines(a["path"], a["n"])
+        if kind == "step":
+            a["la_x"] = [x + d for x, d in zip(a["x"], a["la_dx"])]
+            a["la_y"] = [y + d for y, d in zip(a["y"], a["la_dy"])]
+            if "path" in a:
+                a["path"] = polylines(a["path"], a["n"], (a["x"], a["y"]))
     elif kind == "static":
         ln = doc["lanes"]
         ln["width"] = column(ln["width"], "f", ln["n"])
@@ -127,7 +139,7 @@ class Client:
         ]
 
     def publish_ego(self, ego_id: str, x: float, y: float, angle: float, speed: float, vtype: str = "") -> None:
-        doc = {"v": [1, 0], "kind": "ego", "id": ego_id, "x": x, "y": y, "angle": angle,
+        doc = {"v": [1, 2], "kind": "ego", "id": ego_id, "x": x, "y": y, "angle": angle,
                "speed": speed, "t": time.time(), "vtype": vtype}
         self.session.put(f"{self.base}/ego/{ego_id}", msgpack.packb(doc, use_bin_type=True))
 

@@ -128,10 +128,36 @@
     return out;
   }
 
-  function polyline(p, n, name) {
+  // Static shapes: float64 xy64 (protocol 1.2) or float32 xy (1.1). Paths (anchors given):
+  // float32 dxy offsets from each agent's float64 (x, y) (1.2) or absolute float32 xy (1.1).
+  function polyline(p, n, name, anchors) {
     const off = column(p.off, Uint32Array, n + 1, name + '.off');
-    const xy = column(p.xy, Float32Array, -1, name + '.xy');
-    return { off, xy };
+    if (p.xy64) return { off, xy: column(p.xy64, Float64Array, -1, name + '.xy64') };
+    if (anchors && p.dxy) {
+      const d = column(p.dxy, Float32Array, -1, name + '.dxy');
+      const xy = new Float64Array(d.length);
+      for (let i = 0; i < n; i++) {
+        for (let j = off[i]; j < off[i + 1]; j++) {
+          xy[2 * j] = anchors.x[i] + d[2 * j];
+          xy[2 * j + 1] = anchors.y[i] + d[2 * j + 1];
+        }
+      }
+      return { off, xy };
+    }
+    return { off, xy: column(p.xy, Float32Array, -1, name + '.xy') };
+  }
+
+  // The vType table travels only in steps where it changes (protocol 1.2): keep the last.
+  let lastVtypes = [];
+
+  // Look-ahead point: x + la_dx (1.2) or the absolute float32 la_x (1.1).
+  function lookAhead(a, n, base, key, c) {
+    const d = 'la_d' + key;
+    if (!a[d]) return c('la_' + key, Float32Array);
+    const off = c(d, Float32Array);
+    const out = new Float64Array(n);
+    for (let i = 0; i < n; i++) out[i] = base[i] + off[i];
+    return out;
   }
 
   function readStep(d) {
@@ -139,15 +165,17 @@
     const a = d.agents;
     const n = a.n | 0;
     const c = (k, T) => column(a[k], T, n, 'agents.' + k);
+    if (d.vtypes) lastVtypes = d.vtypes;
+    const x = c('x', Float64Array), y = c('y', Float64Array);
     const s = {
-      step: d.step, t: d.t, dt: d.dt, vtypes: d.vtypes || [], n, id: a.id,
+      step: d.step, t: d.t, dt: d.dt, vtypes: lastVtypes, n, id: a.id,
       cls: c('cls', Uint8Array), vtype: c('vtype', Uint16Array),
-      x: c('x', Float64Array), y: c('y', Float64Array), angle: c('angle', Float32Array),
+      x, y, angle: c('angle', Float32Array),
       speed: c('speed', Float32Array), accel: c('accel', Float32Array),
-      signals: c('signals', Uint16Array), la_x: c('la_x', Float32Array), la_y: c('la_y', Float32Array),
+      signals: c('signals', Uint16Array), la_x: lookAhead(a, n, x, 'x', c), la_y: lookAhead(a, n, y, 'y', c),
       length: c('length', Float32Array), width: c('width', Float32Array),
       lane: c('lane', Int32Array), flags: c('flags', Uint8Array),
-      path: a.path ? polyline(a.path, n, 'agents.path') : null,
+      path: a.path ? polyline(a.path, n, 'agents.path', { x, y }) : null,
       tls: d.tls || { id: [], state: [] },
       index: null,
     };
