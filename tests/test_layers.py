@@ -140,3 +140,36 @@ print(json.dumps({"decoded": decoded,
         r = subprocess.run([str(exe), cmd], capture_output=True, text=True, timeout=60, cwd=tmp_path)
         assert r.returncode == 2, (cmd, r.returncode, r.stderr)
         assert f"pip install 'sumoco[{extra}]'" in r.stderr, r.stderr
+    _bare_replay_reaches_a_subscriber(exe, tmp_path)
+
+
+def _bare_replay_reaches_a_subscriber(exe: Path, tmp_path: Path) -> None:
+    """A renderer author's path: the bare install replays a recording; a Zenoh client gets the steps."""
+    from protocol.codec import decode
+    from protocol.keys import Keys
+    from protocol.messages import StepMessage
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
+    from tests.harness import endpoint, wait_until
+    from tests.recording_fixture import make_recording
+
+    rec = tmp_path / "run.mcap"
+    make_recording(rec, steps=10)  # written here (the recorder needs the foxglove extra)
+    keys = Keys("sumoco", "synth")
+    ep = endpoint()
+    proc = subprocess.Popen([str(exe), "replay", str(rec), "--loop", "--listen", ep, "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    got: list[bytes] = []
+    try:
+        with open_session(ZenohConfig(listen=(endpoint(),), connect=(ep,))) as s:
+            s.declare_subscriber(keys.step, lambda smp: got.append(smp.payload.to_bytes()))
+            wait_until(lambda: len(got) >= 5 or proc.poll() is not None, 30.0, "steps from the bare replay")
+            assert proc.poll() is None, proc.communicate()[1]
+            static = [r.ok.payload.to_bytes() for r in s.get(keys.static, timeout=5.0) if r.ok is not None]
+        assert len(static) == 1
+        assert all(isinstance(decode(g), StepMessage) for g in got[:5])
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert json.loads(out.strip().splitlines()[-1])["steps"] >= 5

@@ -82,6 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("record", help="record every key of a run (and a Foxglove scene) to MCAP")
     _add_common(p)
     p.add_argument("--out", required=True, help="output file, e.g. runs/x/run.mcap")
+    p.add_argument("--physics-hz", dest="physics_hz", type=float,
+                   help="physics states kept per instance [Hz of simulated time], 0 = all (default 10)")
+    p.add_argument("--scene-hz", dest="scene_hz", type=float,
+                   help="Foxglove scene updates per key [Hz of simulated time], 0 = all (default 2)")
+    p.add_argument("--no-scene", dest="no_scene", action="store_true", help="no Foxglove /scene channel")
 
     p = sub.add_parser("report", help="rebuild summary.json, figures and report.md from a recording")
     p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
@@ -89,6 +94,41 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-sweep", action="store_true", help="skip the LAD_min replay figure")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")
+
+    p = sub.add_parser("replay", help="republish a recording on Zenoh as the daemons did (no SUMO/MuJoCo needed)")
+    p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed factor (1 = as recorded)")
+    p.add_argument("--loop", action="store_true", help="start over at the end until stopped")
+    p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None,
+                   help="TOML config file for the [zenoh] table [env SUMOCO_CONFIG]")
+    p.add_argument("--listen", action="append", default=None,
+                   help="zenoh endpoint to listen on (repeatable) [env SUMOCO_LISTEN, comma-separated]")
+    p.add_argument("--connect", action="append", default=None,
+                   help="zenoh endpoint to connect to (repeatable) [env SUMOCO_CONNECT]")
+    p.add_argument("--mode", choices=["peer", "client", "router"], default=os.environ.get("SUMOCO_MODE") or None,
+                   help="zenoh session mode [env SUMOCO_MODE]")
+    p.add_argument("--duration", type=float, help="replay only the first N seconds of the recording [s]")
+    p.add_argument("--quiet", action="store_true", help="warnings and errors only")
+    p.add_argument("--verbose", action="store_true", help="debug logging")
+
+    p = sub.add_parser("gateway", help="a run's keys over one WebSocket (for engines without Zenoh)")
+    _add_common(p)
+    p.add_argument("--host", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="TCP port (default 8766, 0 = any free port)")
+    p.add_argument("--allow-origin", dest="allow_origin", action="append", default=None, metavar="ORIGIN",
+                   help="also accept browser pages from this Origin, e.g. http://myhost:8080 (repeatable)")
+    p.add_argument("--allow-host", dest="allow_host", action="append", default=None, metavar="HOST",
+                   help="also accept this Host header name (when serving on a non-loopback address)")
+    p.add_argument("--token-file", dest="token_file",
+                   help="write the per-run token here (mode 0600); the token is also in the printed URL "
+                        "[env SUMOCO_GATEWAY_TOKEN fixes it]")
+
+    p = sub.add_parser("foxglove", help="live 3D scene of a run for the Foxglove app (needs the foxglove extra)")
+    _add_common(p)
+    p.add_argument("--host", help="address of the Foxglove WebSocket server (default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="its TCP port (default 8767, 0 = any free port)")
+    p.add_argument("--scene-hz", dest="scene_hz", type=float,
+                   help="scene updates per key at most [Hz of simulated time], 0 = all (default 10)")
 
     p = sub.add_parser("view", help="live top-down view of a run in the browser")
     _add_common(p)
@@ -163,6 +203,12 @@ def _dispatch(args: argparse.Namespace) -> int:
             from sumoco.app.record import record_cli as cli_main
         elif args.cmd == "report":
             from sumoco.app.report import cli_main
+        elif args.cmd == "replay":
+            from sumoco.app.replay import cli_main
+        elif args.cmd == "gateway":
+            from sumoco.app.gateway import cli_main
+        elif args.cmd == "foxglove":
+            from sumoco.app.foxglove_live import cli_main
         elif args.cmd == "view":
             from sumoco.app.viewer.server import cli_main
         elif args.cmd == "map":

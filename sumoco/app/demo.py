@@ -23,7 +23,7 @@ import zenoh
 
 from protocol.keys import Keys
 from sumoco.common.config import CommonConfig, ZenohConfig, apply_cli, load_common, replace, section
-from sumoco.app.record import LiveRecorder, McapRecorder
+from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig
 from sumoco.common.transport import free_tcp_port, open_session
 
 log = logging.getLogger(__name__)
@@ -118,8 +118,11 @@ def _wait_for(cond, timeout_s: float, what: str, procs: Processes) -> None:
 
 
 def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfig,
-             sumocfg: str | None = None, quiet: bool = False) -> dict:
-    """Run the whole demo; returns the summary dict."""
+             sumocfg: str | None = None, quiet: bool = False, record: RecordConfig | None = None) -> dict:
+    """Run the whole demo; returns the summary dict.
+
+    ``record`` defaults to every physics state (the report's figures follow the 50 Hz ticks).
+    """
     from sumoco.app.report import write_report
 
     out.mkdir(parents=True, exist_ok=True)
@@ -141,7 +144,8 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
     old = signal.signal(signal.SIGTERM, _on_sigint)
     try:
         with open_session(zcfg) as session:
-            live = LiveRecorder(session, keys, recorder, on_message=progress).start()
+            live = LiveRecorder(session, keys, recorder, on_message=progress,
+                                config=record or RecordConfig(physics_hz=0.0)).start()
             alive = set()
             tok_sub = session.liveliness().declare_subscriber(
                 f"{keys.base}/**", lambda s: (alive.add(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT
@@ -231,9 +235,10 @@ def cli_main(args) -> int:
     demo = section(data, "demo", DemoConfig, base, str(config))
     if getattr(args, "wall", None):
         demo = replace(demo, wall_limit_s=float(args.wall))
+    record = section(data, "record", RecordConfig, base, str(config)) if "record" in data else None
     out = Path(args.out)
     summary = run_demo(config, out, common, demo, sumocfg=getattr(args, "sumocfg", None),
-                       quiet=bool(args.quiet))
+                       quiet=bool(args.quiet), record=record)
     print(f"report: {out / 'report.md'}", file=sys.stderr)
     for inst, p in summary["presets"].items():
         e = p["error_m"]["overall"]

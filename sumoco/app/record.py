@@ -2,33 +2,43 @@
 
 Every key under ``<root>/<run>/**`` is written as it arrives: the raw msgpack payload
 (channel = key expression, schema name = message kind, message encoding ``msgpack``),
-stamped with the receive time. The static data is fetched once with a query and
-recorded on its key. Chunks are small so a crash loses at most the last chunk, and the
-reader stops cleanly at a truncated end and says how much it read.
+stamped with the receive time, plus a Foxglove ``/scene`` channel (``scene.py``). Writing
+goes through foxglove-sdk's MCAP writer (zstd chunks), the same SDK and scene code as the
+live ``sumoco foxglove`` server. The static data is fetched once with a query and
+recorded on its key.
+
+The recorder never blocks the transport: Zenoh's callback only appends the payload to a
+bounded FIFO (a full queue drops the message and counts it); a writer thread thins the
+physics states to ``physics_hz`` by simulated time and writes; the scene is built on its
+own drop-oldest worker. Reading is streamed: ``open_recording`` yields messages one at a
+time and stops cleanly at a truncated end (a crash loses at most the last chunk).
 """
 
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
+import msgpack
 import zenoh
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
 
 from protocol.codec import decode
-from protocol.errors import ProtocolError, SumocoError
+from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
 
 log = logging.getLogger(__name__)
 
 MESSAGE_ENCODING = "msgpack"
 SPEC_URL = "protocol/SPEC.md"
+CHUNK_BYTES = 1024 * 1024  # [B] uncompressed chunk: what a crash can lose at most
+_RESTART_S = 1.0  # [s] simulated time going back this far means the run restarted
 
 
 class RecordingError(SumocoError):
@@ -49,36 +59,59 @@ def kind_of_topic(topic: str) -> str:
     return "unknown"
 
 
-class McapRecorder:
-    """Writes raw messages to an MCAP file; thread-safe ``write``."""
+@dataclass(frozen=True)
+class RecordConfig:
+    """``[record]``: what the recorder keeps."""
 
-    def __init__(self, path: str | Path, chunk_size: int = 64 * 1024) -> None:
+    physics_hz: float = 10.0  # [Hz] physics states kept per instance, by simulated time; 0 = every one
+    scene: bool = True  # also write the Foxglove /scene channel (needs foxglove-sdk)
+    scene_hz: float = 2.0  # [Hz] scene updates per key, by simulated time; 0 = every message
+    queue: int = 4096  # [messages] bound of the transport -> writer queue (full: drop + count)
+    scene_queue: int = 8  # [messages] bound of the scene worker's queue (full: drop oldest)
+    flush_s: float = 2.0  # [s] wall clock between forced chunk ends: what a crash can lose at most
+
+    def __post_init__(self) -> None:
+        for name in ("physics_hz", "scene_hz", "flush_s"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"[record] {name} must be >= 0 (0 keeps every message), got {getattr(self, name)}")
+        for name in ("queue", "scene_queue"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"[record] {name} must be >= 1, got {getattr(self, name)}")
+
+
+class McapRecorder:
+    """Writes raw messages to MCAP through foxglove-sdk (thread-safe ``write``).
+
+    ``context`` is the recorder's own ``foxglove.Context``: channels logged in it (the raw
+    keys and the scene) go to this file only.
+    """
+
+    def __init__(self, path: str | Path, chunk_size: int = CHUNK_BYTES) -> None:
+        import foxglove
+        from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = self.path.open("wb")
-        self._w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.NONE)
-        self._w.start(profile="sumoco", library="sumoco")
-        self._schemas: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
-        self._seq: dict[int, int] = {}
+        self.context = foxglove.Context()
+        self._foxglove = foxglove
+        self._w = foxglove.open_mcap(
+            self.path, allow_overwrite=True, context=self.context,
+            writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd, chunk_size=chunk_size,
+                                            profile="sumoco", compression_threads=0),
+        )
+        self._channels: dict[str, object] = {}
         self._lock = threading.Lock()
         self.count = 0
         self.closed = False
 
-    def _channel(self, topic: str, schema: str, encoding: str = MESSAGE_ENCODING,
-                 schema_encoding: str = "", schema_data: bytes = b"") -> int:
+    def _channel(self, topic: str, schema: str):
         ch = self._channels.get(topic)
         if ch is None:
-            sid = self._schemas.get(schema)
-            if sid is None:
-                sid = self._w.register_schema(
-                    name=schema, encoding=schema_encoding,
-                    data=schema_data or f"sumoco {schema} message, see {SPEC_URL}".encode(),
-                )
-                self._schemas[schema] = sid
-            ch = self._w.register_channel(topic=topic, message_encoding=encoding, schema_id=sid)
+            fg = self._foxglove
+            ch = fg.Channel(topic, message_encoding=MESSAGE_ENCODING, context=self.context,
+                            schema=fg.Schema(name=schema, encoding="",
+                                             data=f"sumoco {schema} message, see {SPEC_URL}".encode()))
             self._channels[topic] = ch
-            self._seq[ch] = 0
         return ch
 
     def write(self, topic: str, payload: bytes, stamp_ns: int | None = None,
@@ -87,81 +120,121 @@ class McapRecorder:
         with self._lock:
             if self.closed:
                 return
-            ch = self._channel(topic, schema or kind_of_topic(topic))
-            self._seq[ch] += 1
-            self._w.add_message(channel_id=ch, log_time=stamp, publish_time=stamp,
-                                data=payload, sequence=self._seq[ch])
+            self._channel(topic, schema or kind_of_topic(topic)).log(payload, log_time=stamp)
             self.count += 1
 
-    def write_encoded(self, topic: str, payload: bytes, schema: str, encoding: str,
-                      schema_encoding: str, schema_data: bytes, stamp_ns: int) -> None:
-        """Write a message of a foreign encoding (e.g. a Foxglove JSON scene)."""
+    def flush(self) -> None:
+        """End the current chunk and write it out (a crash then loses nothing before this)."""
         with self._lock:
-            if self.closed:
-                return
-            ch = self._channel(topic, schema, encoding, schema_encoding, schema_data)
-            self._seq[ch] += 1
-            self._w.add_message(channel_id=ch, log_time=stamp_ns, publish_time=stamp_ns,
-                                data=payload, sequence=self._seq[ch])
-            self.count += 1
+            if not self.closed:
+                self._w.flush()
 
     def close(self) -> None:
         with self._lock:
             if self.closed:
                 return
             self.closed = True
-            self._w.finish()
-            self._f.close()
+            for ch in self._channels.values():
+                ch.close()
+            self._w.close()
+
+
+def _sim_time(payload: bytes) -> float | None:
+    """Simulated time ``t`` [s] of a msgpack message, without building the agent arrays."""
+    try:
+        d = msgpack.unpackb(payload, raw=False)
+        t = d.get("t") if isinstance(d, dict) else None
+        return float(t) if isinstance(t, (int, float)) else None
+    except Exception:  # undecodable: recorded as it came, the reader reports it
+        return None
 
 
 class LiveRecorder:
     """Subscribes to every key of a run and records it (use ``start``/``stop``).
 
-    With ``scene=True`` (and foxglove-sdk installed) it also writes a Foxglove 3D scene
-    channel built from the step and physics messages as they arrive.
+    Counters: ``received``, ``dropped`` (queue full), ``thinned`` (physics states skipped by
+    ``physics_hz``), ``written``; ``scene_errors`` and ``scene_dropped`` for the scene.
     """
 
     def __init__(self, session: zenoh.Session, keys: Keys, recorder: McapRecorder,
-                 on_message=None, scene: bool = True) -> None:
+                 on_message=None, scene: bool | None = None, config: RecordConfig | None = None) -> None:
         from sumoco.app import scene as scene_mod
 
         self.session, self.keys, self.rec = session, keys, recorder
+        self.config = config or RecordConfig()
         self._on_message = on_message
         self._sub = None
-        self._scene = scene_mod if scene and scene_mod.available() else None
-        self._sizes: dict[str, tuple[float, float]] = {}
-        self.scene_errors = 0
+        want_scene = self.config.scene if scene is None else scene
+        self._scene = None
+        self._scene_worker = None
+        if want_scene and scene_mod.available():
+            period = 1.0 / self.config.scene_hz if self.config.scene_hz > 0 else 0.0
+            self._scene = scene_mod.ScenePublisher(recorder.context, min_period_s=period)
+            self._scene_worker = scene_mod.LatestWorker(self._scene.feed, self.config.scene_queue, "record-scene")
+        self._q: queue.Queue = queue.Queue(self.config.queue)
+        self._period = 1.0 / self.config.physics_hz if self.config.physics_hz > 0 else 0.0
+        self._last_t: dict[str, float] = {}
+        self.received = self.dropped = self.thinned = self.written = 0
+        self._writer = threading.Thread(target=self._write_loop, name="record-writer", daemon=True)
+        self._writer.start()
+
+    @property
+    def scene_errors(self) -> int:
+        return self._scene.errors if self._scene else 0
+
+    @property
+    def scene_dropped(self) -> int:
+        return self._scene_worker.dropped if self._scene_worker else 0
 
     def _cb(self, sample: zenoh.Sample) -> None:
-        payload = sample.payload.to_bytes()
-        topic = str(sample.key_expr)
-        stamp = time.time_ns()
-        self.rec.write(topic, payload, stamp)
-        if self._scene is not None:
-            self._write_scene(topic, payload, stamp)
-        if self._on_message is not None:
-            self._on_message(topic, payload)
-
-    def _write_scene(self, topic: str, payload: bytes, stamp: int) -> None:
-        kind = kind_of_topic(topic)
-        if kind not in ("step", "physics", "static"):
-            return
+        # Zenoh's thread: copy the bytes and hand them over, nothing else.
+        self.received += 1
+        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
         try:
-            msg = decode(payload)
-            if kind == "step":
-                a = msg.agents
-                self._sizes = dict(zip(a.ids, zip(a.length.tolist(), a.width.tolist())))
-                data = self._scene.step_scene(msg)
-            elif kind == "physics":
-                data = self._scene.physics_scene(msg, Keys.instance_of(topic), self._sizes)
-            else:
-                data = self._scene.network_scene(msg)
-        except Exception as e:  # a scene problem must never stop the raw recording
-            self.scene_errors += 1
-            log.debug("scene update failed for %s: %s", topic, e)
-            return
-        name, enc, sch = self._scene.schema()
-        self.rec.write_encoded(self._scene.SCENE_TOPIC, data, name, "protobuf", enc, sch, stamp)
+            self._q.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
+        if self._on_message is not None:
+            self._on_message(item[0], item[1])
+
+    def _keep(self, topic: str, payload: bytes) -> bool:
+        if not self._period or not topic.endswith("/state"):
+            return True
+        t = _sim_time(payload)
+        if t is None:
+            return True
+        last = self._last_t.get(topic)
+        # A time well before the last kept one is a restarted run: keep it and start over.
+        if last is not None and last - _RESTART_S <= t < last + self._period - 1e-6:
+            self.thinned += 1
+            return False
+        self._last_t[topic] = t
+        return True
+
+    def _write_loop(self) -> None:
+        next_flush = time.monotonic() + self.config.flush_s
+        while True:
+            if self.config.flush_s and time.monotonic() >= next_flush:
+                self.rec.flush()
+                next_flush = time.monotonic() + self.config.flush_s
+            try:
+                item = self._q.get(timeout=self.config.flush_s or None)
+            except queue.Empty:
+                continue
+            try:
+                if item is None:
+                    return
+                topic, payload, stamp, schema = item if len(item) == 4 else (*item, None)
+                if not self._keep(topic, payload):
+                    continue
+                self.rec.write(topic, payload, stamp, schema=schema)
+                self.written += 1
+                if self._scene_worker is not None:
+                    self._scene_worker.put(topic, payload, stamp)
+            except Exception:  # a write problem is logged and counted; recording goes on
+                log.exception("recording %s failed", item[0] if item else "?")
+            finally:
+                self._q.task_done()
 
     def start(self) -> "LiveRecorder":
         self._sub = self.session.declare_subscriber(self.keys.everything, self._cb)
@@ -174,29 +247,51 @@ class LiveRecorder:
             for reply in self.session.get(self.keys.static, timeout=min(2.0, timeout_s)):
                 if reply.ok is not None:
                     data = reply.ok.payload.to_bytes()
-                    stamp = time.time_ns()
-                    self.rec.write(self.keys.static, data, stamp, schema="static")
-                    if self._scene is not None:
-                        self._write_scene(self.keys.static, data, stamp)
+                    self._q.put((self.keys.static, data, time.time_ns(), "static"))
                     return data
             time.sleep(0.05)
         return None
 
-    def stop(self) -> None:
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Stop listening, then write what is queued (bounded wait)."""
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None
+        if self._writer.is_alive():
+            self._q.put(None)
+            self._writer.join(timeout_s)
+        if self._scene_worker is not None:
+            self._scene_worker.close(timeout_s)
+            self._scene_worker = None
+        if self.dropped:
+            log.warning("recorder dropped %d of %d messages (writer queue full)", self.dropped, self.received)
+
+    def stats(self) -> dict[str, int]:
+        return {"received": self.received, "written": self.written, "dropped": self.dropped,
+                "thinned": self.thinned, "scene_errors": self.scene_errors, "scene_dropped": self.scene_dropped}
 
 
 def record_cli(args) -> int:
     """``sumoco record --out run.mcap``: record a live run until Ctrl-C or --duration."""
+    import json
     import signal
 
-    from sumoco.common.config import apply_cli, load_common, CommonConfig
+    from sumoco.common.config import CommonConfig, apply_cli, load_common, replace, section
     from sumoco.common.transport import open_session
 
-    common = load_common(args.config)[0] if args.config else CommonConfig()
+    cfg = RecordConfig()
+    if args.config:
+        common, data, base = load_common(args.config)
+        cfg = section(data, "record", RecordConfig, base, str(args.config))
+    else:
+        common = CommonConfig()
     common = apply_cli(common, args)
+    changes = {k: v for k, v in (("physics_hz", getattr(args, "physics_hz", None)),
+                                 ("scene_hz", getattr(args, "scene_hz", None))) if v is not None}
+    if getattr(args, "no_scene", False):
+        changes["scene"] = False
+    if changes:
+        cfg = replace(cfg, **changes)
     keys = Keys(common.zenoh.root, common.run.id)
     rec = McapRecorder(args.out)
     stop = threading.Event()
@@ -204,7 +299,7 @@ def record_cli(args) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         with open_session(common.zenoh) as session:
-            live = LiveRecorder(session, keys, rec).start()
+            live = LiveRecorder(session, keys, rec, config=cfg).start()
             if live.fetch_static(timeout_s=10.0) is None:
                 log.warning("no static data answered on %s (recording the live keys anyway)", keys.static)
             limit = float(args.duration) if getattr(args, "duration", None) else None
@@ -213,6 +308,7 @@ def record_cli(args) -> int:
     finally:
         rec.close()
     log.info("recorded %d messages to %s", rec.count, args.out)
+    print(json.dumps({"out": str(args.out), **live.stats()}))
     return 0
 
 
@@ -224,6 +320,51 @@ class RecordedMessage:
     data: bytes
 
 
+class Recording:
+    """A recording read as a stream: iterate ``messages`` (any number of times).
+
+    Memory does not grow with the file's length. After an iteration, ``truncated`` and
+    ``error`` say whether the file ended early (what came before is yielded).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise RecordingError(f"{self.path}: recording not found")
+        self.truncated = False
+        self.error = ""
+
+    @property
+    def messages(self) -> Iterator[RecordedMessage]:
+        schemas: dict[int, str] = {}
+        channels: dict[int, tuple[str, int]] = {}
+        n = 0
+        self.truncated, self.error = False, ""
+        with self.path.open("rb") as f:
+            try:
+                # The streaming reader yields records as it meets them, so everything before a
+                # truncated end is kept (the indexed readers need the footer).
+                for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
+                    if isinstance(rec, Message):
+                        topic, sid = channels.get(rec.channel_id, ("", 0))
+                        n += 1
+                        yield RecordedMessage(topic, schemas.get(sid, ""), rec.log_time, rec.data)
+                    elif isinstance(rec, Schema):
+                        schemas[rec.id] = rec.name
+                    elif isinstance(rec, Channel):
+                        channels[rec.id] = (rec.topic, rec.schema_id)
+            except Exception as e:  # truncated chunk/record: keep what was read
+                self.truncated = True
+                self.error = f"{type(e).__name__}: {e}"
+        if not n and self.truncated:
+            raise RecordingError(f"{self.path}: no readable messages ({self.error})")
+
+
+def open_recording(path: str | Path) -> Recording:
+    """A streamed recording (``Recording``); raises ``RecordingError`` if the file is missing."""
+    return Recording(path)
+
+
 @dataclass
 class ReadResult:
     messages: list[RecordedMessage] = field(default_factory=list)
@@ -232,34 +373,13 @@ class ReadResult:
 
 
 def read_recording(path: str | Path) -> ReadResult:
-    """Read all messages; a truncated file yields what it holds with ``truncated=True``."""
-    p = Path(path)
-    if not p.is_file():
-        raise RecordingError(f"{p}: recording not found")
-    out = ReadResult()
-    schemas: dict[int, str] = {}
-    channels: dict[int, tuple[str, int]] = {}
-    with p.open("rb") as f:
-        try:
-            # The streaming reader yields records as it meets them, so everything before a
-            # truncated end is kept (the indexed readers need the footer).
-            for rec in StreamReader(f, skip_magic=False, emit_chunks=False).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec.name
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = (rec.topic, rec.schema_id)
-                elif isinstance(rec, Message):
-                    topic, sid = channels.get(rec.channel_id, ("", 0))
-                    out.messages.append(RecordedMessage(topic, schemas.get(sid, ""), rec.log_time, rec.data))
-        except Exception as e:  # truncated chunk/record: keep what was read
-            out.truncated = True
-            out.error = f"{type(e).__name__}: {e}"
-    if not out.messages and out.truncated:
-        raise RecordingError(f"{p}: no readable messages ({out.error})")
-    return out
+    """Read all messages into memory (small files, tests); ``open_recording`` streams."""
+    rec = Recording(path)
+    msgs = list(rec.messages)
+    return ReadResult(msgs, rec.truncated, rec.error)
 
 
-def iter_decoded(res: ReadResult, kinds: tuple[str, ...] = ("step", "physics", "static")
+def iter_decoded(res: ReadResult | Recording, kinds: tuple[str, ...] = ("step", "physics", "static")
                  ) -> Iterator[tuple[RecordedMessage, object]]:
     """Decoded protocol messages of the given kinds; undecodable ones are skipped."""
     for m in res.messages:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from sumoco.app import figures as figs
 from sumoco.app.analysis import load_run, summarise
-from sumoco.app.record import read_recording
+from sumoco.app.record import open_recording
 
 log = logging.getLogger(__name__)
 
@@ -21,7 +21,7 @@ def write_report(recording: str | Path, out_dir: str | Path, lad_sweep: bool = T
     """Rebuild summary.json, the figures and report.md from a recording."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    res = read_recording(recording)
+    res = open_recording(recording)  # streamed: memory does not grow with the file
     data = load_run(res)
     summary = summarise(data)
     figures: list[str] = []

@@ -1,0 +1,351 @@
+"""``sumoco gateway``: a run's Zenoh keys over one WebSocket, for engines without a Zenoh binding.
+
+Unity has no official C# Zenoh binding and a browser would need a router plugin; both
+speak WebSocket. The gateway relays the **same msgpack payloads** the daemons publish,
+each tagged with its key, and takes ego poses upstream. Wire format (SPEC.md, "WebSocket
+gateway"):
+
+- binary frame = ``u16`` little-endian key length, the key (UTF-8), the payload bytes
+  (unchanged msgpack, SPEC 3.x), in both directions;
+- text frame = one JSON object: requests ``{"op": "subscribe" | "unsubscribe", "key":
+  pattern}``, ``{"op": "static"}``; answers ``{"op": "hello" | "subscribed" |
+  "unsubscribed" | "error", ...}``. Patterns are Zenoh key expressions relative to the
+  run (``sumo/step``, ``physics/*/state``, ``**``).
+
+Trust: listens on 127.0.0.1 by default; the handshake must carry the per-run token
+(``?token=``, printed at start or taken from ``SUMOCO_GATEWAY_TOKEN``), a ``Host`` that
+names this server (against DNS rebinding) and, when a browser sends one, an ``Origin``
+from the allowed list (loopback pages by default). Every client has a bounded outbox
+that drops its oldest frame when the client lags (counted); upstream frames are size-
+bounded, decoded before they are forwarded, and only ``ego/<id>`` keys are accepted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import hmac
+import json
+import logging
+import secrets
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from urllib.parse import parse_qs, urlsplit
+
+import zenoh
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+
+from protocol.codec import decode
+from protocol.errors import ConfigError, ProtocolError
+from protocol.keys import Keys, check_chunk
+from protocol.messages import EgoPose
+
+log = logging.getLogger(__name__)
+
+PATH = "/ws"
+MAX_UPSTREAM_BYTES = 64 * 1024  # [B] an EgoPose is ~100 B; anything near this is not one
+_KEY_LEN = struct.Struct("<H")
+_LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
+
+
+def pack_frame(key: str, payload: bytes) -> bytes:
+    """One binary frame: u16 LE key length, key, payload."""
+    k = key.encode()
+    return _KEY_LEN.pack(len(k)) + k + payload
+
+
+def unpack_frame(frame: bytes) -> tuple[str, bytes]:
+    """Inverse of ``pack_frame``; ``ProtocolError`` when the frame is too short or the key is not UTF-8."""
+    if len(frame) < 2:
+        raise ProtocolError(f"expected at least 2 bytes (key length), got {len(frame)}", "gateway frame")
+    (n,) = _KEY_LEN.unpack_from(frame)
+    if len(frame) < 2 + n:
+        raise ProtocolError(f"key length {n} exceeds the frame ({len(frame)} bytes)", "gateway frame")
+    try:
+        key = frame[2:2 + n].decode()
+    except UnicodeDecodeError:
+        raise ProtocolError("key is not UTF-8", "gateway frame") from None
+    return key, frame[2 + n:]
+
+
+@dataclass(frozen=True)
+class GatewayConfig:
+    host: str = "127.0.0.1"  # loopback by default; another address exposes the run to that network
+    port: int = 8766  # [TCP port] 0 = any free port
+    token: str = ""  # per-run token; empty = a random one at start
+    allow_origins: tuple[str, ...] = ()  # extra allowed Origin values (scheme://host:port)
+    allow_hosts: tuple[str, ...] = ()  # extra allowed Host header names (besides loopback)
+    outbox: int = 256  # [frames] per client; full: drop the oldest (counted)
+
+
+class Outbox:
+    """A client's bounded frame queue: drops the oldest frame when full (counted)."""
+
+    def __init__(self, maxlen: int) -> None:
+        self._q: collections.deque = collections.deque(maxlen=maxlen)
+        self._ev = asyncio.Event()
+        self.dropped = 0
+        self.sent = 0
+
+    def put(self, frame: bytes | str) -> None:
+        if len(self._q) == self._q.maxlen:
+            self.dropped += 1
+        self._q.append(frame)
+        self._ev.set()
+
+    async def get(self) -> bytes | str:
+        while not self._q:
+            self._ev.clear()
+            await self._ev.wait()
+        return self._q.popleft()
+
+
+@dataclass(eq=False)  # identity: clients live in a set
+class _Client:
+    ws: ServerConnection
+    box: Outbox
+    subs: dict[str, object] = field(default_factory=dict)
+    upstream: int = 0
+    rejected: int = 0
+
+
+class Gateway:
+    """WebSocket server relaying one run's keys; ``run`` serves until ``stop`` is set."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, cfg: GatewayConfig) -> None:
+        self.session, self.keys, self.cfg = session, keys, cfg
+        self.token = cfg.token or secrets.token_urlsafe(24)
+        self.clients: set[_Client] = set()
+        self.port = cfg.port
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.refused = 0
+        self.relayed = 0
+        self.ego_forwarded = 0
+        self._ego_pubs: dict[str, zenoh.Publisher] = {}
+        self._lock = threading.Lock()
+
+    # --- handshake checks -------------------------------------------------------------
+    def _hosts(self) -> set[str]:
+        names = {*_LOOPBACK, *self.cfg.allow_hosts}
+        if self.cfg.host not in ("0.0.0.0", "::"):
+            names.add(self.cfg.host)
+        return {f"{h}:{self.port}" for h in names} | set(self.cfg.allow_hosts)
+
+    def _origin_ok(self, origin: str) -> bool:
+        if origin in self.cfg.allow_origins:
+            return True
+        u = urlsplit(origin)
+        return u.scheme in ("http", "https") and u.hostname in ("127.0.0.1", "localhost", "::1")
+
+    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        url = urlsplit(request.path)
+        reason = None
+        if url.path == "/status":
+            return _response(200, json.dumps(self.status()).encode(), "application/json")
+        if url.path != PATH:
+            reason = (404, f"not found: {url.path} (the WebSocket is at {PATH})")
+        elif request.headers.get("Host", "") not in self._hosts():
+            reason = (403, f"Host {request.headers.get('Host', '')!r} is not this gateway")
+        elif "Origin" in request.headers and not self._origin_ok(request.headers["Origin"]):
+            reason = (403, f"Origin {request.headers['Origin']!r} is not allowed (--allow-origin)")
+        else:
+            token = parse_qs(url.query).get("token", [""])[0]
+            if not hmac.compare_digest(token.encode(), self.token.encode()):
+                reason = (401, "missing or wrong token (?token=...)")
+        if reason is None:
+            return None
+        self.refused += 1
+        log.warning("refused a WebSocket from %s: %s", connection.remote_address, reason[1])
+        return _response(reason[0], (reason[1] + "\n").encode(), "text/plain; charset=utf-8")
+
+    # --- relaying ----------------------------------------------------------------------
+    def _pattern(self, rel: str) -> str:
+        rel = str(rel).strip("/")
+        if not rel or rel.startswith(self.keys.base + "/"):
+            rel = rel[len(self.keys.base) + 1:] if rel else ""
+        if not rel:
+            raise ProtocolError("expected a key pattern relative to the run, e.g. 'sumo/step'", "key")
+        full = f"{self.keys.base}/{rel}"
+        zenoh.KeyExpr(full)  # raises on an invalid key expression
+        return full
+
+    def _on_sample(self, client: _Client, sample: zenoh.Sample) -> None:
+        # Zenoh's thread: frame it and hand it to the event loop; never wait here.
+        frame = pack_frame(str(sample.key_expr), sample.payload.to_bytes())
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._deliver, client, frame)
+
+    def _deliver(self, client: _Client, frame: bytes) -> None:
+        if client in self.clients:
+            client.box.put(frame)
+            self.relayed += 1
+
+    async def _static(self, client: _Client) -> None:
+        def fetch() -> list[tuple[str, bytes]]:
+            return [(str(r.ok.key_expr), r.ok.payload.to_bytes())
+                    for r in self.session.get(self.keys.static, timeout=5.0) if r.ok is not None]
+
+        replies = await asyncio.to_thread(fetch)
+        if not replies:
+            client.box.put(json.dumps({"op": "error", "error": f"no static data answered on {self.keys.static}"}))
+        for key, data in replies[:1]:
+            client.box.put(pack_frame(key, data))
+
+    def _upstream(self, client: _Client, frame: bytes) -> None:
+        key, payload = unpack_frame(frame)
+        rel = key[len(self.keys.base) + 1:] if key.startswith(self.keys.base + "/") else key
+        parts = rel.split("/")
+        if len(parts) != 2 or parts[0] != "ego":
+            raise ProtocolError(f"expected 'ego/<id>' (only ego poses go upstream), got {key!r}", "key")
+        ego_id = check_chunk(parts[1], "ego id")
+        msg = decode(payload)
+        if not isinstance(msg, EgoPose):
+            raise ProtocolError(f"expected an ego pose message, got {type(msg).__name__}", key)
+        full = self.keys.ego(ego_id)
+        pub = self._ego_pubs.get(full)
+        if pub is None:
+            pub = self._ego_pubs[full] = self.session.declare_publisher(full)
+        pub.put(payload)
+        client.upstream += 1
+        self.ego_forwarded += 1
+
+    def _request(self, client: _Client, text: str) -> None:
+        try:
+            req = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ProtocolError(f"expected a JSON object ({e.msg})", "request") from None
+        if not isinstance(req, dict):
+            raise ProtocolError("expected a JSON object", "request")
+        op = req.get("op")
+        if op == "subscribe":
+            full = self._pattern(req.get("key", ""))
+            if full not in client.subs:
+                client.subs[full] = self.session.declare_subscriber(
+                    full, lambda s, c=client: self._on_sample(c, s))
+            client.box.put(json.dumps({"op": "subscribed", "key": full}))
+        elif op == "unsubscribe":
+            full = self._pattern(req.get("key", ""))
+            sub = client.subs.pop(full, None)
+            if sub is not None:
+                sub.undeclare()
+            client.box.put(json.dumps({"op": "unsubscribed", "key": full}))
+        elif op == "static":
+            asyncio.get_running_loop().create_task(self._static(client))
+        else:
+            raise ProtocolError(f"expected op 'subscribe', 'unsubscribe' or 'static', got {op!r}", "op")
+
+    async def _handler(self, ws: ServerConnection) -> None:
+        client = _Client(ws, Outbox(self.cfg.outbox))
+        self.clients.add(client)
+        client.box.put(json.dumps({"op": "hello", "root": self.keys.root, "run": self.keys.run,
+                                   "base": self.keys.base, "format": "u16le key length, key, msgpack payload"}))
+        sender = asyncio.create_task(self._send_loop(client))
+        log.info("client connected from %s (%d connected)", ws.remote_address, len(self.clients))
+        try:
+            async for msg in ws:
+                try:
+                    if isinstance(msg, str):
+                        self._request(client, msg)
+                    else:
+                        self._upstream(client, msg)
+                except (ProtocolError, zenoh.ZError, ValueError) as e:
+                    # Bad input: say what was wrong, count it, keep the connection.
+                    client.rejected += 1
+                    client.box.put(json.dumps({"op": "error", "error": str(e)}))
+                    log.info("rejected a message from %s: %s", ws.remote_address, e)
+        except ConnectionClosed:
+            pass
+        finally:
+            self.clients.discard(client)
+            sender.cancel()
+            for sub in client.subs.values():
+                sub.undeclare()
+            log.info("client %s left: %d frames sent, %d dropped, %d ego poses, %d rejected",
+                     ws.remote_address, client.box.sent, client.box.dropped, client.upstream, client.rejected)
+
+    async def _send_loop(self, client: _Client) -> None:
+        try:
+            while True:
+                frame = await client.box.get()
+                await client.ws.send(frame)
+                client.box.sent += 1
+        except (ConnectionClosed, asyncio.CancelledError):
+            pass
+
+    def status(self) -> dict:
+        return {"run": self.keys.run, "clients": len(self.clients), "relayed": self.relayed,
+                "dropped": sum(c.box.dropped for c in self.clients), "refused": self.refused,
+                "ego_forwarded": self.ego_forwarded,
+                "rejected": sum(c.rejected for c in self.clients)}
+
+    def url(self) -> str:
+        host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
+        return f"ws://{host}:{self.port}{PATH}?token={self.token}"
+
+    async def run(self, stop: asyncio.Event, ready=None) -> None:
+        self._loop = asyncio.get_running_loop()
+        async with serve(self._handler, self.cfg.host, self.cfg.port, process_request=self._process_request,
+                         compression=None, max_size=MAX_UPSTREAM_BYTES, max_queue=16,
+                         ping_interval=20, ping_timeout=20) as server:
+            self.port = next(iter(server.sockets)).getsockname()[1]
+            if ready is not None:
+                ready(self)
+            await stop.wait()
+        for pub in self._ego_pubs.values():
+            pub.undeclare()
+
+
+def _response(status: int, body: bytes, ctype: str) -> Response:
+    reason = {200: "OK", 401: "Unauthorized", 403: "Forbidden", 404: "Not Found"}.get(status, "")
+    return Response(status, reason, Headers([("Content-Type", ctype), ("Content-Length", str(len(body))),
+                                             ("Cache-Control", "no-store")]), body)
+
+
+def cli_main(args) -> int:
+    """``sumoco gateway``: serve until Ctrl-C; prints the client URL (with the token) as JSON."""
+    import os
+    import signal
+
+    from sumoco.common.config import CommonConfig, apply_cli, load_common
+    from sumoco.common.transport import open_session
+
+    common = load_common(args.config)[0] if args.config else CommonConfig()
+    common = apply_cli(common, args)
+    token = os.environ.get("SUMOCO_GATEWAY_TOKEN", "")
+    if token and len(token) < 16:
+        raise ConfigError("SUMOCO_GATEWAY_TOKEN must be at least 16 characters")
+    cfg = GatewayConfig(host=args.host or "127.0.0.1", port=8766 if args.port is None else args.port, token=token,
+                        allow_origins=tuple(args.allow_origin or ()), allow_hosts=tuple(args.allow_host or ()))
+    keys = Keys(common.zenoh.root, common.run.id)
+    logging.getLogger("websockets").setLevel(logging.WARNING)
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+
+        def ready(gw: Gateway) -> None:
+            print(json.dumps({"url": gw.url(), "run": keys.run}), flush=True)
+            if args.token_file:
+                fd = os.open(args.token_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                with os.fdopen(fd, "w") as f:
+                    f.write(gw.token + "\n")
+
+        limit = getattr(args, "duration", None)
+        if limit:
+            loop.call_later(float(limit), stop.set)
+        await gw.run(stop, ready)
+
+    with open_session(common.zenoh) as session:
+        gw = Gateway(session, keys, cfg)
+        t0 = time.monotonic()
+        asyncio.run(main())
+        log.info("gateway stopped after %.0f s: %s", time.monotonic() - t0, gw.status())
+    return 0

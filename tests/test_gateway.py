@@ -1,0 +1,153 @@
+"""``sumoco gateway``: a run's keys over one WebSocket, with real clients in Python and Node."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+import subprocess
+import threading
+
+import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from protocol.codec import decode, encode
+from protocol.errors import ProtocolError
+from protocol.keys import Keys
+from protocol.messages import EgoPose, StaticData, StepMessage
+from sumoco.app.gateway import pack_frame, unpack_frame
+from sumoco.common.config import ZenohConfig
+from sumoco.common.transport import open_session
+from sumoco.testing.feed import FakePublisher
+from sumoco.testing.synthetic import FakeRun
+from tests.harness import ROOT, Daemon, endpoint, wait_until
+
+KEYS = Keys("sumoco", "synth")
+
+
+def test_frame_round_trip_and_bad_frames():
+    f = pack_frame("sumoco/x/sumo/step", b"\x81\xa1v\x01")
+    assert f[:2] == (18).to_bytes(2, "little")
+    assert unpack_frame(f) == ("sumoco/x/sumo/step", b"\x81\xa1v\x01")
+    for bad in (b"", b"\x05", b"\x09\x00abc", b"\x02\x00\xff\xfe"):
+        with pytest.raises(ProtocolError):
+            unpack_frame(bad)
+
+
+@pytest.fixture()
+def run_and_gateway(tmp_path):
+    """A synthetic run on Zenoh and a gateway process connected to it."""
+    ep = endpoint()
+    session = open_session(ZenohConfig(listen=(ep,)))
+    pub = FakePublisher(session, FakeRun(grid=1, n=15, run="synth"), instances=("main",)).start()
+    egos: list[bytes] = []
+    session.declare_subscriber(KEYS.ego_all, lambda s: egos.append(s.payload.to_bytes()))
+    gw = Daemon("gateway", ["gateway", "--run", "synth", "--connect", ep, "--listen", endpoint(),
+                            "--port", "0", "--token-file", str(tmp_path / "token")], tmp_path)
+    try:
+        line = wait_until(lambda: next((ln for ln in gw.tail(50).splitlines() if ln.startswith('{"url"')), None),
+                          20.0, "the gateway's URL", procs=[gw])
+        url = json.loads(line)["url"]
+        token = (tmp_path / "token").read_text().strip()
+        assert url.endswith(f"?token={token}") and len(token) >= 16
+        assert (tmp_path / "token").stat().st_mode & 0o077 == 0
+        yield url, egos, gw
+    finally:
+        pub.stop()
+        code = gw.terminate(5)
+        session.close()
+        assert code == 0, gw.tail()
+
+
+@pytest.mark.integration
+def test_python_client_subscribes_gets_static_and_sends_ego(run_and_gateway):
+    url, egos, _ = run_and_gateway
+    with connect(url, max_size=None, open_timeout=10) as ws:
+        hello = json.loads(ws.recv(timeout=5))
+        assert hello["op"] == "hello" and hello["base"] == KEYS.base
+        ws.send(json.dumps({"op": "subscribe", "key": "sumo/step"}))
+        ws.send(json.dumps({"op": "static"}))
+        ego = EgoPose(id="py", x=1.0, y=2.0, angle=90.0, speed=3.0)
+        ws.send(pack_frame("ego/py", encode(ego)))
+        steps, static, texts = [], None, []
+        while len(steps) < 5 or static is None:
+            m = ws.recv(timeout=10)
+            if isinstance(m, str):
+                texts.append(json.loads(m))
+                continue
+            key, payload = unpack_frame(m)
+            if key == KEYS.static:
+                static = decode(payload)
+            else:
+                assert key == KEYS.step
+                steps.append(decode(payload))
+        assert {"op": "subscribed", "key": KEYS.step} in texts
+        assert isinstance(static, StaticData) and len(static.lanes.ids) > 0
+        assert all(isinstance(s, StepMessage) for s in steps)
+        assert [s.step for s in steps] == sorted(s.step for s in steps)
+        wait_until(lambda: egos, 5.0, "the ego pose on Zenoh")
+        assert decode(egos[0]) == ego
+        # Bad input gets an error naming the problem; the connection stays usable.
+        ws.send(pack_frame("sumo/step", encode(ego)))
+        ws.send("{not json")
+        ws.send(json.dumps({"op": "subscribe", "key": "sumo/**/x/**/bad?"}))
+        errors = []
+        while len(errors) < 3:
+            m = ws.recv(timeout=10)
+            if isinstance(m, str) and json.loads(m)["op"] == "error":
+                errors.append(json.loads(m)["error"])
+        assert "ego/<id>" in errors[0] and "JSON" in errors[1]
+        ws.send(json.dumps({"op": "unsubscribe", "key": "sumo/step"}))
+
+
+@pytest.mark.integration
+def test_handshake_checks_token_origin_and_host(run_and_gateway):
+    url, _, _ = run_and_gateway
+    base, token = url.split("?token=")
+    for u, headers, status in (
+        (base + "?token=wrong" + "x" * 20, None, 401),
+        (base, None, 401),
+        (url, {"Origin": "http://evil.example"}, 403),
+        (url.replace("127.0.0.1", "localhost"), {"Origin": "http://localhost:5173"}, None),
+    ):
+        if status is None:
+            with connect(u, additional_headers=headers, open_timeout=10) as ws:
+                assert json.loads(ws.recv(timeout=5))["op"] == "hello"
+            continue
+        with pytest.raises(InvalidStatus) as e:
+            connect(u, additional_headers=headers, open_timeout=10)
+        assert e.value.response.status_code == status
+    # DNS rebinding: a page from another name resolving to 127.0.0.1 sends its own Host.
+    import socket
+
+    port = int(base.rsplit(":", 1)[1].split("/")[0])
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall((f"GET /ws?token={token} HTTP/1.1\r\nHost: evil.example:{port}\r\nUpgrade: websocket\r\n"
+                   "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                   "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+        assert s.recv(100).startswith(b"HTTP/1.1 403")
+
+
+NODE = shutil.which("node")
+
+
+@pytest.mark.integration
+def test_node_client_from_the_examples(run_and_gateway):
+    assert NODE, "node is needed for the gateway's JavaScript client test (apt install nodejs)"
+    url, egos, _ = run_and_gateway
+    ego = EgoPose(id="js", x=5.0, y=6.0, angle=180.0, speed=1.5)
+    r = subprocess.run([NODE, "--experimental-websocket", str(ROOT / "examples" / "gateway_client" / "client.mjs"),
+                        url, "4", base64.b64encode(encode(ego)).decode()],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    lines = [json.loads(ln) for ln in r.stdout.splitlines() if ln.startswith("{")]
+    frames = [ln for ln in lines if "key" in ln]
+    steps = [decode(base64.b64decode(f["b64"])) for f in frames if f["key"] == KEYS.step]
+    static = [decode(base64.b64decode(f["b64"])) for f in frames if f["key"] == KEYS.static]
+    assert len(steps) >= 4 and all(isinstance(s, StepMessage) for s in steps)
+    assert len(static) == 1 and isinstance(static[0], StaticData)
+    assert all(f["bytes"] == len(base64.b64decode(f["b64"])) for f in frames)
+    wait_until(lambda: egos, 5.0, "the Node client's ego pose on Zenoh")
+    assert decode(egos[-1]) == ego
