@@ -18,7 +18,7 @@ import numpy as np
 
 from protocol.keys import Keys
 from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsState, StaticData, StepMessage
-from sumoco.app.record import ReadResult, iter_decoded, read_recording
+from sumoco.app.record import ReadResult, Recording, iter_decoded, read_recording
 
 log = logging.getLogger(__name__)
 
@@ -77,10 +77,12 @@ def _cat(parts, dtype):
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
 
 
-def load_run(res: ReadResult) -> RunData:
-    """Turn recorded messages into long-format numpy tables."""
+def load_run(res: ReadResult | Recording) -> RunData:
+    """Turn recorded messages into long-format numpy tables (a ``Recording`` is read as a stream)."""
     items = ((Keys.instance_of(m.topic) or "main", m.log_time_ns, msg) for m, msg in iter_decoded(res))
-    return _run_data(items, truncated=res.truncated)
+    data = _run_data(items)
+    data.truncated = res.truncated  # known only once a stream has been read to its end
+    return data
 
 
 def build_run_data(static: StaticData | None, steps: list[StepMessage], states: dict[str, list[PhysicsState]],
