@@ -293,7 +293,7 @@ def control_default(
     else:
         r = ref.at(tau)
         if proj is None:
-            proj = ref.project(obs.fx, obs.fy, r.s)
+            proj = ref.project(obs.fx, obs.fy, r.s, tau)
     s_act, e_lat, pp = proj
     e_s = r.s - s_act  # + = behind the reference
     v_ref, a_ref = r.speed, r.accel
@@ -316,10 +316,10 @@ def control_default(
 
     if cfg.lateral == "stanley":
         # heading of the path where the bumper will be after the steering lag
-        ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s) if cfg.preview_s else pp
+        ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s, tau) if cfg.preview_s else pp
         # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
         # leads the body by beta_ss = asin(kappa * d) in a steady turn
-        heading_err = wrap_pi(obs.yaw - ahead.heading)
+        heading_err = wrap_pi(obs.yaw - ahead.heading - ref.drift_angle(tau))
         steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase,
                                math.radians(cfg.max_correction_deg))
         if cfg.k_yaw:
@@ -328,7 +328,7 @@ def control_default(
     else:
         # front-axle pure pursuit: target LAD ahead of the bumper's projection on the path
         L = lad(obs.speed, cfg.lad_min, cfg.lad_max, cfg.k_lad)
-        tgt = ref.point_at(s_act + L)
+        tgt = ref.point_at(s_act + L, tau)
         c, s = np.cos(obs.yaw), np.sin(obs.yaw)
         ax_x = obs.cx + (p.rear_axle + p.wheelbase) * c
         ax_y = obs.cy + (p.rear_axle + p.wheelbase) * s

@@ -198,6 +198,16 @@ class Fleet:
             had = prev >= 0
             yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
         ref = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
+        side_rate = np.zeros(len(ids))
+        if old_ref is not None and len(ids):
+            had = prev >= 0
+            p0 = np.maximum(prev, 0)
+            gap = msg.time - old_ref.t_k
+            # SUMO's sideways motion off its lane's centre line (continuous lane change); a
+            # hop, or the step where the lane switches (the offset flips sides), is no drift
+            side = (ref.side_offset - old_ref.side_offset[p0]) / gap
+            side_rate = np.where(had & (np.abs(side) < self.cfg.max_side_speed), side, 0.0)
+            ref.set_side_rate(side_rate)
 
         slots = w.slot_of(ids)
         new = np.flatnonzero(slots < 0)
@@ -248,6 +258,10 @@ class Fleet:
             if slow.any():
                 _, side = tracking_error(x, y, _Pose(old_ref.x[p0], old_ref.y[p0], old_ref.yaw[p0]))
                 jumped |= slow & (np.abs(side) > self.cfg.sideways_jump_m) & ~is_new & physical
+                # ... or slides sideways while (nearly) standing (a continuous lane change in a
+                # queue): once it is further off than a car can make up by driving, placed too
+                sliding = slow & (np.abs(side_rate) > 0.05) & (np.abs(e_lat) > self.cfg.sideways_slide_m)
+                jumped |= sliding & ~is_new & physical
         flip = math.radians(self.cfg.flip_deg)
         flipped = ~is_new & ~jumped & physical & ((np.abs(obs.roll) > flip) | (np.abs(obs.pitch) > flip))
         diverged = ~is_new & ~jumped & ~flipped & physical & (dist > self.cfg.divergence_m)
@@ -266,7 +280,7 @@ class Fleet:
             log.info("step %d: placed %d diverged and %d flipped agents", msg.step, st.diverged, st.flipped)
         # along-path position of each bumper on the new path (guess for the projection)
         # (``obs`` predates the placements: placed agents sit exactly at s = 0)
-        self.s_act = (np.where(place, held.s, ref.project_far(obs.fx, obs.fy, held.s + e_lon)[0]) if len(ids)
+        self.s_act = (np.where(place, held.s, ref.project_far(obs.fx, obs.fy, held.s + e_lon, tau=self.tau)[0]) if len(ids)
                       else e_lon.copy())
         n = len(ids)
         self.drive = np.zeros(n)

@@ -30,6 +30,7 @@ _BIG = 1.0e6  # [m] arc-length gap between agents in the global search key (> an
 SYNTH_LENGTH = 60.0  # [m] length of a synthesised path
 SYNTH_STEP = 2.0  # [m] vertex spacing of a synthesised path
 BLEND_M = 2.0  # [m] half-length over which the heading turns at a polyline vertex
+LANE_WIDTH_M = 3.5  # [m] a sideways drift away from the path's centre line ends after this
 
 
 @dataclass(frozen=True)
@@ -298,6 +299,44 @@ class Reference:
         self._dy = self.y - p0.y
         self._dyaw = wrap_pi(self.yaw - p0.heading)
         self._last_at: tuple[float, ReferencePoint] | None = None
+        # sideways drift of the sample off its path (SUMO's continuous lane change), left of
+        # the path start [m/s], and how far it may go before the path's centre line [m]
+        self.nx, self.ny = -np.sin(p0.heading), np.cos(p0.heading)  # left normal of the path start
+        self.side_rate = np.zeros(n)
+        self._side_cap = np.full(n, np.inf)
+        self._drift = False
+
+    def set_side_rate(self, rate: np.ndarray) -> None:
+        """Extrapolate a sideways drift of ``rate`` [m/s, + left of the path] (from the last two
+        samples): a continuous lane change moves the sample off its lane's centre line at
+        SUMO's lateral speed. The drift stops at the path's centre line when it moves towards
+        it (the target lane reached) and after ``LANE_WIDTH_M`` otherwise."""
+        rate = np.nan_to_num(np.asarray(rate, np.float64))
+        off = self.side_offset
+        towards = np.sign(rate) == -np.sign(off)
+        self._side_cap = np.where(towards, np.abs(off), np.maximum(LANE_WIDTH_M - np.abs(off), 0.0))
+        self.side_rate = np.where(self._side_cap > 0.0, rate, 0.0)
+        self._drift = bool(np.any(self.side_rate != 0.0))
+        self._last_at = None
+
+    @property
+    def side_offset(self) -> np.ndarray:
+        """The sample's offset left of its path's start (its lane's centre line) [m]."""
+        return self._dx * self.nx + self._dy * self.ny
+
+    def drift_angle(self, tau: float) -> np.ndarray | float:
+        """Heading of the sideways drift relative to the path [rad] while it lasts at ``tau`` [s]."""
+        if not self._drift:
+            return 0.0
+        on = np.abs(self.side_rate) * tau < self._side_cap
+        return np.where(on, np.arctan2(self.side_rate, np.maximum(self.speed, 1.0)), 0.0)
+
+    def _shift(self, tau: float) -> tuple[np.ndarray | float, np.ndarray | float]:
+        """World-frame offset [m] the sideways drift adds ``tau`` [s] after the sample."""
+        if not self._drift or tau <= 0.0:
+            return 0.0, 0.0
+        d = np.clip(self.side_rate * tau, -self._side_cap, self._side_cap)
+        return d * self.nx, d * self.ny
 
     @classmethod
     def from_batch(cls, t_k: float, agents, rows: np.ndarray | None = None, yaw_rate=None) -> "Reference":
@@ -337,13 +376,14 @@ class Reference:
 
     def _at(self, tau: float) -> ReferencePoint:
         s, v = stopping_distance(self.speed, self.accel, tau)
-        return self._point(s, v, self.path.at(s))
+        return self._point(s, v, self.path.at(s), tau)
 
-    def _point(self, s: np.ndarray, v: np.ndarray, p: PathPoint) -> ReferencePoint:
+    def _point(self, s: np.ndarray, v: np.ndarray, p: PathPoint, tau: float = 0.0) -> ReferencePoint:
         """The reference point at arc length ``s`` and speed ``v``; ``p``: the path there."""
         a = np.where(v > 0.0, self.accel, 0.0)
-        return ReferencePoint(p.x + self._dx, p.y + self._dy, wrap_pi(p.heading + self._dyaw), v, a, p.curvature, s,
-                              p.heading)
+        sx, sy = self._shift(tau)
+        return ReferencePoint(p.x + self._dx + sx, p.y + self._dy + sy, wrap_pi(p.heading + self._dyaw), v, a,
+                              p.curvature, s, p.heading)
 
     def at_and_project(
         self, tau: float, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray,
@@ -352,21 +392,25 @@ class Reference:
         every control tick needs both)."""
         s_guess = np.asarray(s_guess, np.float64)
         if self._last_at is not None and self._last_at[0] == tau:
-            return self._last_at[1], self.project(px, py, s_guess)
+            return self._last_at[1], self.project(px, py, s_guess, tau)
         s, v = stopping_distance(self.speed, self.accel, tau)
         p = self.path.at(np.array([s, s_guess]))
-        r = self._point(s, v, PathPoint(p.x[0], p.y[0], p.heading[0], p.curvature[0]))
+        r = self._point(s, v, PathPoint(p.x[0], p.y[0], p.heading[0], p.curvature[0]), tau)
         self._last_at = (tau, r)
-        g = PathPoint(p.x[1] + self._dx, p.y[1] + self._dy, p.heading[1], p.curvature[1])
+        sx, sy = self._shift(tau)
+        g = PathPoint(p.x[1] + self._dx + sx, p.y[1] + self._dy + sy, p.heading[1], p.curvature[1])
         return r, self._project(px, py, s_guess, g)
 
-    def point_at(self, s: np.ndarray) -> PathPoint:
-        """Path (shifted by the sample's offset from its start) at arc length s [m]; its
-        heading is the path tangent."""
+    def point_at(self, s: np.ndarray, tau: float = 0.0) -> PathPoint:
+        """Path (shifted by the sample's offset from its start, and its sideways drift until
+        ``tau`` [s]) at arc length s [m]; its heading is the path tangent."""
         p = self.path.at(s)
-        return PathPoint(p.x + self._dx, p.y + self._dy, p.heading, p.curvature)
+        sx, sy = self._shift(tau)
+        return PathPoint(p.x + self._dx + sx, p.y + self._dy + sy, p.heading, p.curvature)
 
-    def project(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray) -> tuple[np.ndarray, np.ndarray, PathPoint]:
+    def project(
+        self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray, tau: float = 0.0,
+    ) -> tuple[np.ndarray, np.ndarray, PathPoint]:
         """Project points on the path near ``s_guess``: (s, lateral offset + left, path point at s).
 
         One evaluation at the guess, then the tangent line there: exact on straight
@@ -375,7 +419,7 @@ class Reference:
         ``project_far`` for a rough guess.
         """
         s_guess = np.asarray(s_guess, np.float64)
-        return self._project(px, py, s_guess, self.point_at(s_guess))
+        return self._project(px, py, s_guess, self.point_at(s_guess, tau))
 
     def _project(self, px, py, s_guess: np.ndarray, g: PathPoint) -> tuple[np.ndarray, np.ndarray, PathPoint]:
         """``project`` with ``g`` = ``point_at(s_guess)`` already evaluated."""
@@ -386,12 +430,13 @@ class Reference:
         p = PathPoint(g.x + ds * c, g.y + ds * sn, wrap_pi(g.heading + g.curvature * ds), g.curvature)
         return s_guess + ds, lat, p
 
-    def project_far(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray, iterations: int = 2):
+    def project_far(self, px: np.ndarray, py: np.ndarray, s_guess: np.ndarray, iterations: int = 2,
+                    tau: float = 0.0):
         """``project`` refined ``iterations`` times (for guesses metres off)."""
         s = np.asarray(s_guess, np.float64)
         for _ in range(iterations - 1):
-            s = self.project(px, py, s)[0]
-        return self.project(px, py, s)
+            s = self.project(px, py, s, tau)[0]
+        return self.project(px, py, s, tau)
 
 
 def tracking_error(px, py, ref) -> tuple[np.ndarray, np.ndarray]:

@@ -20,6 +20,7 @@ class SumoConfig:
     step_length_s: float = 0.1  # [s] SUMO step length (passed as --step-length)
     gui: bool = False  # sumo-gui through TraCI instead of embedded libsumo (needs a display)
     extra_args: tuple[str, ...] = ()  # further SUMO command-line options, verbatim
+    lanechange_duration_s: float = 3.0  # [s] continuous lane changes when the scenario sets neither lanechange.duration nor lateral-resolution (0 = SUMO's one-step hop)
 
     # Look-ahead distance (paper 3.3.2): LAD = lad_min if v < lad_min else min(v*k_lad, lad_max)
     lad_min_m: float = 7.0  # [m] LAD_min
@@ -46,6 +47,8 @@ class SumoConfig:
     def validate(self) -> None:
         if not 0.001 <= self.step_length_s <= 10.0:
             raise ConfigError(f"sumo.step_length_s: expected 0.001..10 s, got {self.step_length_s}")
+        if not 0.0 <= self.lanechange_duration_s <= 30.0:
+            raise ConfigError(f"sumo.lanechange_duration_s: expected 0..30 s, got {self.lanechange_duration_s}")
         if self.lad_min_m <= 0 or self.lad_max_m < self.lad_min_m:
             raise ConfigError(
                 f"sumo.lad_min_m/lad_max_m: expected 0 < lad_min_m <= lad_max_m, "

@@ -162,6 +162,32 @@ def check_sumocfg(path: Path) -> Path:
     return p.resolve()
 
 
+#: SUMO options that decide how lateral motion looks: either one set means the scenario chose.
+LATERAL_OPTIONS = ("lanechange.duration", "lateral-resolution")
+
+
+def lane_change_args(sumocfg: Path, extra_args: tuple[str, ...], duration_s: float) -> list[str]:
+    """``--lanechange.duration`` for a scenario that sets neither it nor the sublane model.
+
+    SUMO's default lane change is a whole lane width in one step, which no physics vehicle
+    can drive; a continuous one over ``duration_s`` [s] is. The scenario's own choice (in
+    its .sumocfg or the run's extra arguments) stands; ``duration_s`` 0 keeps SUMO's default.
+    """
+    if duration_s <= 0:
+        return []
+    if any(a.lstrip("-").split("=")[0] in LATERAL_OPTIONS for a in extra_args):
+        return []
+    try:
+        root = ET.parse(sumocfg).getroot()
+    except (ET.ParseError, OSError):
+        return []  # check_sumocfg reports it
+    if any(el.tag in LATERAL_OPTIONS for el in root.iter()):
+        return []
+    log.info("the scenario sets neither lanechange.duration nor lateral-resolution: "
+             "continuous lane changes over %g s (--lanechange.duration)", duration_s)
+    return ["--lanechange.duration", f"{duration_s:g}"]
+
+
 def sumo_binary(gui: bool) -> str:
     try:
         from sumo_side.scenarios import find_sumo_binary
@@ -215,6 +241,7 @@ class SumoSim:
             "--seed", str(self.seed),
             "--no-step-log", "true",
             *cfg.extra_args,
+            *lane_change_args(path, cfg.extra_args, cfg.lanechange_duration_s),
         ]
         if cfg.gui:
             if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
