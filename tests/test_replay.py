@@ -114,15 +114,24 @@ def test_replay_republishes_keys_static_and_tokens(recording, tmp_path):
 
 
 @pytest.mark.integration
-def test_replay_at_double_speed_ends_by_itself(recording, tmp_path):
-    ep = endpoint()
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "replay", str(recording), "--speed", "4",
-                        "--listen", ep, "--quiet"], capture_output=True, text=True, timeout=30, cwd=ROOT)
-    assert r.returncode == 0, r.stderr
+def test_replay_at_four_times_speed_waits_for_a_subscriber_and_ends(recording, tmp_path):
     import json
+
+    ep = endpoint()
+    got: list[bytes] = []
+    when: list[float] = []
+    with open_session(ZenohConfig(listen=(ep,))) as s:
+        s.declare_subscriber(KEYS.step, lambda smp: (got.append(smp.payload.to_bytes()), when.append(time.monotonic())))
+        r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "replay", str(recording), "--speed", "4",
+                            "--connect", ep, "--listen", endpoint(), "--wait-subscriber", "10", "--quiet"],
+                           capture_output=True, text=True, timeout=30, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
     stats = json.loads(r.stdout.strip().splitlines()[-1])
-    n_steps = sum(1 for m in read_recording(recording).messages if m.topic == KEYS.step)
-    assert stats["steps"] == n_steps and stats["loops"] == 1
+    steps = [m for m in read_recording(recording).messages if m.topic == KEYS.step]
+    assert stats["steps"] == len(steps) and stats["loops"] == 1
+    assert got == [m.data for m in steps]  # every step, byte-exact, in order
+    rec_dt = np.median(np.diff([m.log_time_ns for m in steps])) / 1e9
+    assert abs(np.median(np.diff(when)) - rec_dt / 4) < 0.01  # paced at 4x, not 1x
 
 
 def test_replay_rejects_a_missing_file_and_a_bad_speed(tmp_path, recording):

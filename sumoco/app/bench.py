@@ -64,6 +64,14 @@ def cli_main(args) -> int:
         from sumoco.app.fidelity_bench import run_fidelity_bench
 
         rows = run_fidelity_bench(quick=quick)
+    elif args.what == "record":
+        from sumoco.app.record_bench import run_record_bench
+
+        rows = run_record_bench(quick=quick)
+    elif args.what == "gateway":
+        from sumoco.app.record_bench import run_gateway_bench
+
+        rows = run_gateway_bench(quick=quick)
     elif args.what == "e2e":
         from sumoco.app.e2e_bench import run_e2e_bench
 

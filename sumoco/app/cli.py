@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
-    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak"])
+    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway"])
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
     p.add_argument("--config", help="soak: run config (default configs/soak.toml)")
     p.add_argument("--minutes", type=float, default=60.0, help="soak: wall-clock minutes to run")
@@ -99,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
     p.add_argument("--speed", type=float, default=1.0, help="playback speed factor (1 = as recorded)")
     p.add_argument("--loop", action="store_true", help="start over at the end until stopped")
+    p.add_argument("--wait-subscriber", dest="wait_subscriber", type=float, default=0.0, metavar="S",
+                   help="hold the first step until a subscriber to the steps appears, at most S seconds")
     p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None,
                    help="TOML config file for the [zenoh] table [env SUMOCO_CONFIG]")
     p.add_argument("--listen", action="append", default=None,

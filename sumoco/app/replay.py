@@ -56,7 +56,7 @@ class Replayer:
     """Publishes a recording on a Zenoh session; ``run`` blocks until done or ``stop``."""
 
     def __init__(self, session: zenoh.Session, path, speed: float = 1.0, loop: bool = False,
-                 limit_s: float | None = None) -> None:
+                 limit_s: float | None = None, wait_subscriber_s: float = 0.0) -> None:
         if not speed > 0:
             raise ConfigError(f"replay speed must be > 0 (1 = as recorded), got {speed}")
         self.session = session
@@ -64,6 +64,7 @@ class Replayer:
         self.speed = float(speed)
         self.loop = loop
         self.limit_s = limit_s
+        self.wait_subscriber_s = float(wait_subscriber_s)
         self.stats = ReplayStats()
         self._stop = threading.Event()
         self._pubs: dict[str, zenoh.Publisher] = {}
@@ -96,6 +97,18 @@ class Replayer:
             key = self._static[0]
             self._decl.append(self.session.declare_queryable(key, self._on_query))
             self._token(key.rsplit("/", 1)[0] + "/alive")
+            if self.wait_subscriber_s > 0:
+                self._wait_for_subscriber(key.rsplit("/", 1)[0] + "/step")
+
+    def _wait_for_subscriber(self, step_key: str) -> None:
+        """Hold the first put until someone subscribes to the steps (bounded)."""
+        pub = self._pubs[step_key] = self.session.declare_publisher(step_key)
+        deadline = time.monotonic() + self.wait_subscriber_s
+        while not pub.matching_status.matching and time.monotonic() < deadline:
+            if self._stop.wait(0.02):
+                return
+        if not pub.matching_status.matching:
+            log.warning("no subscriber to %s after %.1f s: replaying anyway", step_key, self.wait_subscriber_s)
 
     def _put(self, m: RecordedMessage) -> None:
         pub = self._pubs.get(m.topic)
@@ -174,7 +187,7 @@ def cli_main(args) -> int:
         raise ConfigError(str(e)) from None
     with open_session(common.zenoh) as session:
         rep = Replayer(session, rep_path, speed=args.speed, loop=args.loop,
-                       limit_s=getattr(args, "duration", None))
+                       limit_s=getattr(args, "duration", None), wait_subscriber_s=args.wait_subscriber)
         signal.signal(signal.SIGTERM, lambda *_: rep.stop())
         signal.signal(signal.SIGINT, lambda *_: rep.stop())
         try:
