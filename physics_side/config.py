@@ -50,6 +50,7 @@ class PhysicsConfig:
     )  # [slots per shard] pre-allocated parked slots per type (its default size bucket)
     pool_chunk: int = 32  # [slots] a pool that runs out grows by at least this many per shard
     step_queue: int = 64  # [messages] bounded FIFO of received SUMO steps
+    step_queue_mb: float = 64.0  # [MiB] byte bound of that FIFO (full: the oldest step is dropped)
     log_every_s: float = 1.0  # [s] status line period (wall clock)
 
     def validate(self) -> None:
@@ -80,6 +81,8 @@ class PhysicsConfig:
             raise ConfigError("physics: shards must be >= 1 and threads >= 0")
         if self.pool_chunk < 1 or self.step_queue < 1:
             raise ConfigError("physics: pool_chunk and step_queue must be >= 1")
+        if self.step_queue_mb <= 0:
+            raise ConfigError(f"physics.step_queue_mb: expected > 0 MiB, got {self.step_queue_mb}")
         if self.divergence_m <= 0 or self.stop_decel <= 0:
             raise ConfigError("physics: divergence_m and stop_decel must be > 0")
         if self.max_extrapolation_steps < 1.0:

@@ -42,6 +42,7 @@ from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StepAck, StepMessage
 from sumoco.common.config import RunConfig
+from sumoco.common.queues import DropOldest
 
 log = logging.getLogger("physics")
 
@@ -64,7 +65,8 @@ class PhysicsDaemon:
         self.run_cfg = run
         self.lockstep = run.timing == "lockstep"
         self.rates = fleet.rates
-        self._steps: collections.deque[bytes] = collections.deque(maxlen=self.cfg.step_queue)
+        # Bounded in messages and bytes (SPEC 5.1): full -> the oldest step is dropped, counted.
+        self._steps: DropOldest[bytes] = DropOldest(self.cfg.step_queue, int(self.cfg.step_queue_mb * (1 << 20)))
         self._alive_events: collections.deque[bool] = collections.deque(maxlen=64)
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -84,9 +86,8 @@ class PhysicsDaemon:
     # ------------------------------------------------------------------ zenoh plumbing
 
     def _on_step(self, sample: zenoh.Sample) -> None:
-        if len(self._steps) == self._steps.maxlen:
-            self.counters["dropped_steps"] += 1
-        self._steps.append(sample.payload.to_bytes())
+        self._steps.put(sample.payload.to_bytes())
+        self.counters["dropped_steps"] = self._steps.dropped + self._steps.refused
         self._wake.set()
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -259,7 +260,7 @@ class PhysicsDaemon:
                     self._wake.wait(IDLE_WAIT_S)
                     self._wake.clear()
                     continue
-                msg = self._decode(self._steps.popleft())
+                msg = self._decode(self._steps.get())
                 if msg is None or not self._apply(msg):
                     continue
                 for _ in range(ticks_to(self.time, msg.time + msg.step_length, self.fleet.dt)):
@@ -271,7 +272,7 @@ class PhysicsDaemon:
             else:
                 newest = None
                 while self._steps:
-                    m = self._decode(self._steps.popleft())
+                    m = self._decode(self._steps.get())
                     if m is not None:
                         newest = m
                 if newest is not None and self._apply(newest):

@@ -22,7 +22,6 @@ from __future__ import annotations
 import gc
 import logging
 import math
-import queue
 import signal
 import threading
 import time
@@ -42,9 +41,14 @@ from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.ego import EgoManager
 from sumo_side.mapmesh import MapService
 from sumo_side.simulation import SumoSim
+from sumoco.common.queues import LatestPerKey
 from sumoco.common.config import CommonConfig, RunConfig, apply_cli, load_common, replace
 
 log = logging.getLogger("sumo_side")
+
+
+#: An acknowledgement is ~40 bytes; bigger payloads on an ack key are refused unread [bytes].
+MAX_ACK_BYTES = 1024
 
 
 class LockstepTimeout(SumocoError):
@@ -127,9 +131,13 @@ class SumoDaemon:
         self.ego = EgoManager(sim.api, cfg, clock)
         self.counters = Counters()
         self._stop = threading.Event()
-        self._acks: queue.SimpleQueue = queue.SimpleQueue()
+        # Bounded hand-over from Zenoh's threads (SPEC 5.1): the newest ack and liveliness
+        # change per key, at most [sumo] max_peer_keys keys (more are refused, counted).
+        waited = [Keys(keys.root, keys.run, i) for i in cfg.lockstep_instances]
+        self._acks: LatestPerKey[bytes] = LatestPerKey(cfg.max_peer_keys, frozenset(k.ack for k in waited))
         self._acked: dict[str, int] = {}
-        self._alive_events: queue.SimpleQueue = queue.SimpleQueue()
+        self._alive_events: LatestPerKey[bool] = LatestPerKey(
+            cfg.max_peer_keys, frozenset(k.physics_alive for k in waited))
         self._alive: set[str] = set()
         self._last_reject_log = -math.inf
         self._static_bytes = encode(sim.static)
@@ -174,10 +182,13 @@ class SumoDaemon:
             log.debug("status reply failed: %s", e)
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
-        self._acks.put((str(sample.key_expr), sample.payload.to_bytes()))
+        if len(sample.payload) > MAX_ACK_BYTES:  # an ack is ~40 bytes: do not even copy a big one
+            self._acks.refused += 1
+            return
+        self._acks.put(str(sample.key_expr), sample.payload.to_bytes())
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
-        self._alive_events.put((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+        self._alive_events.put(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
 
     # ------------------------------------------------------------------ incoming
 
@@ -208,16 +219,16 @@ class SumoDaemon:
             if not self.ego.accepts(msg.id):
                 self._reject(f"ego pose on {key}", f"ego id {msg.id!r} is not [sumo] ego_id {self.cfg.ego_id!r}")
                 continue
+            if msg.id not in self.ego.egos and len(self.ego.egos) >= self.cfg.ego_max:
+                # ego_id "*" takes any id: without a cap, poses under many ids would each add a vehicle
+                self._reject(f"ego pose on {key}", f"{len(self.ego.egos)} egos already, the most "
+                                                   f"[sumo] ego_max allows; ego {msg.id!r} not added")
+                continue
             self.ego.offer(msg)
 
     def _drain_acks(self, timeout: float = 0.0) -> None:
         """Take acks from the queue (blocking up to ``timeout`` for the first one)."""
-        try:
-            item = self._acks.get(timeout=timeout) if timeout > 0 else self._acks.get_nowait()
-        except queue.Empty:
-            return
-        while True:
-            key, payload = item
+        for key, payload in self._acks.drain(timeout).items():
             try:
                 msg = decode(payload)
                 if not isinstance(msg, StepAck):
@@ -231,17 +242,9 @@ class SumoDaemon:
                 self.counters.acks += 1
                 if msg.step > self._acked.get(inst, -1):
                     self._acked[inst] = msg.step
-            try:
-                item = self._acks.get_nowait()
-            except queue.Empty:
-                return
 
     def _update_alive(self) -> None:
-        while True:
-            try:
-                key, up = self._alive_events.get_nowait()
-            except queue.Empty:
-                return
+        for key, up in self._alive_events.drain().items():
             inst = Keys.instance_of(key)
             if up:
                 self._alive.add(inst)
@@ -419,6 +422,8 @@ class SumoDaemon:
             "rejected": c.rejected,
             "acks": c.acks,
             "lag_resets": c.lag_resets,
+            "acks_coalesced": self._acks.replaced,
+            "peer_keys_refused": self._acks.refused + self._alive_events.refused,
             **self.sim.counters,
             **self.ego.counters,
             "ego_drift_max_m": round(self.ego.drift_max_m, 4),

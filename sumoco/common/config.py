@@ -68,7 +68,12 @@ class ZenohConfig:
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False  # off: loopback and explicit endpoints only
     shared_memory: bool = True  # same-host payloads >= 3 KB via shared memory
+    max_message_mb: float = 64.0  # [MiB] largest message a session takes in; Zenoh drops bigger ones
     security: SecurityConfig = field(default_factory=SecurityConfig)
+
+    def validate(self) -> None:
+        if not 1.0 <= self.max_message_mb <= 1024.0:
+            raise ConfigError(f"zenoh.max_message_mb: expected 1..1024 MiB, got {self.max_message_mb}")
 
 
 def _type_name(tp: Any) -> str:

@@ -143,6 +143,8 @@ def zenoh_config(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Config:
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    # Bounds what one peer can make us buffer while reassembling a message (default 1 GiB).
+    conf.insert_json5("transport/link/rx/max_message_size", json.dumps(int(cfg.max_message_mb * (1 << 20))))
     return conf
 
 
