@@ -19,7 +19,7 @@ import numpy as np
 from physics_side import control as C
 from physics_side.config import PhysicsSettings, check_rates
 from physics_side.fleet import Fleet
-from physics_side.models import BUCKETS, DEFAULT_BUCKET
+from physics_side.models import default_spec
 from physics_side.reference import PathSet
 from physics_side.world import PhysicsWorld
 from protocol.frames import yaw_to_sumo_angle
@@ -232,7 +232,7 @@ def track_reference(
         ctl = replace(ctl, default=replace(ctl.default, lateral=lateral))
     settings = PhysicsSettings(phys, ctl)
     rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
-    spec = BUCKETS[cls][DEFAULT_BUCKET[cls]] if cls != AgentClass.OTHER else BUCKETS[AgentClass.PASSENGER][2]
+    spec = default_spec(cls if cls != AgentClass.OTHER else AgentClass.PASSENGER)
     length = spec.length if length is None else length
     world = PhysicsWorld(phys.timestep_s, rates.substeps, shards=1, initial={cls if cls != AgentClass.OTHER else AgentClass.PASSENGER: 1})
     fleet = Fleet(world, settings, rates)

@@ -95,6 +95,7 @@ class Fleet:
         self.rates = rates
         self.dt = rates.control_dt
         self._warned_vclass: set[str] = set()
+        self._vtypes: list = []
         # preset code per wire class (the config names presets per agent type)
         self._preset_lut = np.array(
             [_PRESET_CODE[self.cfg.preset_for(_TYPE_NAME[c])] for c in AgentClass], np.int8)
@@ -145,17 +146,19 @@ class Fleet:
 
     # ------------------------------------------------------------------ step sync
 
-    def _model_class(self, cls: np.ndarray, vtype: np.ndarray, length: np.ndarray, vtypes) -> np.ndarray:
-        out = cls.astype(np.int64).copy()
-        other = np.flatnonzero(cls == AgentClass.OTHER)
-        vtypes = vtypes or []  # None: this step does not carry the table (SPEC 3.1)
-        for i in other:
-            vclass = vtypes[int(vtype[i])].vclass if int(vtype[i]) < len(vtypes) else "?"
-            c = M.model_class_for(vclass, float(length[i]))
-            if vclass not in self._warned_vclass:
-                self._warned_vclass.add(vclass)
-                log.warning("vClass %r has no model of its own: using the %s model", vclass, c.name.lower())
-            out[i] = int(c)
+    def _families(self, cls: np.ndarray, vtype: np.ndarray, length: np.ndarray) -> list[str]:
+        """Model family of each agent from its vType's vClass (the newest table SUMO sent)."""
+        vt = self._vtypes
+        out = []
+        for c, t, L in zip(cls.tolist(), vtype.tolist(), length.tolist()):
+            vclass = vt[t].vclass if t < len(vt) else ""
+            out.append(M.family_for(c, vclass, L))
+        if AgentClass.OTHER in cls:
+            for c, t, f in zip(cls.tolist(), vtype.tolist(), out):
+                vclass = vt[t].vclass if t < len(vt) else "?"
+                if c == AgentClass.OTHER and vclass not in self._warned_vclass:
+                    self._warned_vclass.add(vclass)
+                    log.info("vClass %r has no wire class of its own: driven by the %s model", vclass, f)
         return out
 
     def apply_step(self, msg: StepMessage, resync: bool = False, tau: float = 0.0) -> StepStats:
@@ -174,7 +177,8 @@ class Fleet:
         ids = [a.ids[i] for i in rows]
         cls = a.cls[rows]
         flags = a.flags[rows]
-        model_cls = self._model_class(cls, a.vtype[rows], a.length[rows], msg.vtypes)
+        if msg.vtypes is not None:  # a step carries the table only when it changed (SPEC 3.1)
+            self._vtypes = list(msg.vtypes)
         preset = self._preset_lut[cls]
         ego = (flags & AgentFlag.EGO) != 0
 
@@ -212,7 +216,9 @@ class Fleet:
         slots = w.slot_of(ids)
         new = np.flatnonzero(slots < 0)
         if len(new):
-            pools = np.array([w.pool_for(AgentClass(int(model_cls[i])), float(a.length[rows[i]])) for i in new])
+            fam = self._families(cls[new], a.vtype[rows[new]], a.length[rows[new]])
+            pools = np.array([w.pool_for(f, float(a.length[rows[i]]), float(a.width[rows[i]]))
+                              for f, i in zip(fam, new)])
             gen = w.generation
             new_slots = w.allocate([ids[i] for i in new], pools, x[new], y[new])
             if w.generation != gen:  # the model grew: every slot number changed

@@ -18,8 +18,11 @@ Every agent is one kinematic tree rooted at a body named ``agent``:
 - **pedestrian**: a capsule on two world-aligned slide joints (x, y) and a yaw hinge,
   moved by three motors with bounded force/torque; no wheels, no gravity load.
 
-Sizes: agents are sized from the message's length by *buckets* (one pool per bucket);
-the model's own length is the nearest bucket's, and the physics side reports the
+Sizes: every agent gets its SUMO length and width (from its vType, sent per agent): a
+model *family* per vClass (``VCLASS_FAMILY``: car, taxi, van, truck, bus, tram,
+motorcycle, bicycle, pedestrian) builds the body, wheelbase, mass and actuators for the
+size, quantised to a 4 % geometric grid (one pool per family and grid size, within 2 %
+of SUMO's length and width); the physics side reports the
 model's own front bumper. Wheels are spheres (one contact each, the cheapest collision
 pair) because the ground is a plane.
 
@@ -63,10 +66,10 @@ BODY_CONTACT = dict(solref=[0.1, 1.0], solimp=[0.9, 0.95, 0.01, 0.5, 2.0])
 
 @dataclass(frozen=True)
 class AgentSpec:
-    """Physical parameters of one model bucket (all SI units)."""
+    """Physical parameters of one model size (all SI units)."""
 
     name: str
-    """Pool name, e.g. ``passenger_5.0`` (unique per bucket)."""
+    """Pool name, e.g. ``car_5x1.8`` (unique per family and size)."""
     kind: int
     """KIND_CAR, KIND_BIKE or KIND_PED."""
     cls: AgentClass
@@ -140,33 +143,36 @@ class AgentSpec:
         return self.total_mass + self.n_wheels * self.wheel_inertia / self.wheel_radius**2
 
 
-def _car(cls: AgentClass, length: float, width: float, **kw) -> AgentSpec:
-    name = f"{cls.name.lower()}_{length:g}"
+def _car(cls: AgentClass, length: float, width: float, name: str = "", **kw) -> AgentSpec:
     # Wheelbase ~0.6 of the length, front overhang = rear overhang (symmetric body).
     return AgentSpec(
-        name=name, kind=KIND_CAR, cls=cls, length=length, width=width,
+        name=name or f"{cls.name.lower()}_{length:g}", kind=KIND_CAR, cls=cls, length=length, width=width,
         height=kw.pop("height", 1.5), mass=kw.pop("mass", 1300.0 * length * width / 9.0),
         wheelbase=kw.pop("wheelbase", 0.6 * length), track=kw.pop("track", width - 0.25),
         wheel_radius=kw.pop("wheel_radius", 0.32), **kw,
     )
 
 
-def _bus(length: float) -> AgentSpec:
-    mass = 11_000.0 * length / 12.0
+def _heavy(cls: AgentClass, length: float, width: float, name: str, mass: float, height: float,
+           wheelbase: float) -> AgentSpec:
+    """Bus, coach, truck, tram: 0.5 m wheels, high COM, ~2 m/s^2 drive, ~9 m/s^2 brakes."""
     return _car(
-        AgentClass.BUS, length, 2.5, height=3.0, mass=mass, com_height=1.0,
-        wheelbase=0.5 * length, track=2.1, wheel_radius=0.5, wheel_mass=120.0,
-        clearance=0.35, max_steer_deg=40.0,
-        # ~2 m/s^2 of drive and ~9 m/s^2 of braking for the mass at 0.5 m radius.
+        cls, length, width, name=name, height=height, mass=mass, com_height=1.0, wheelbase=wheelbase,
+        track=max(width - 0.4, 1.2), wheel_radius=0.5, wheel_mass=120.0, clearance=0.35, max_steer_deg=40.0,
         max_drive=2.0 * mass * 0.5 * 1.3, max_brake=9.0 * mass * 0.5 * 1.2,
         steer_kp=20_000.0, steer_kv=1_500.0,
     )
 
 
-def _bike(length: float) -> AgentSpec:
+def _bus(length: float, width: float = 2.5, name: str = "") -> AgentSpec:
+    return _heavy(AgentClass.BUS, length, width, name or f"bus_{length:g}", 11_000.0 * length / 12.0, 3.0,
+                  0.5 * length)
+
+
+def _bike(length: float, width: float = 0.65, name: str = "") -> AgentSpec:
     return AgentSpec(
-        name=f"bicycle_{length:g}", kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length,
-        width=0.65, height=1.7, mass=85.0, com_height=1.0, wheelbase=0.62 * length,
+        name=name or f"bicycle_{length:g}", kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length,
+        width=width, height=1.7, mass=85.0, com_height=1.0, wheelbase=0.62 * length,
         wheel_radius=0.34, wheel_mass=2.0, clearance=0.3, max_steer_deg=35.0,
         # COM 1 m high over a 1 m wheelbase: beyond ~4.9 m/s^2 a bicycle lifts a wheel,
         # so drive (~3 m/s^2) and brakes (~4 m/s^2, half on each wheel) stay below that.
@@ -175,59 +181,118 @@ def _bike(length: float) -> AgentSpec:
     )
 
 
-def _ped() -> AgentSpec:
+def _moto(length: float, width: float, name: str) -> AgentSpec:
+    """Motorcycle / moped: a heavier, lower single-track vehicle (280 kg with rider)."""
     return AgentSpec(
-        name="pedestrian_0.3", kind=KIND_PED, cls=AgentClass.PEDESTRIAN, length=0.3,
-        width=0.5, height=1.75, mass=70.0, com_height=0.95, wheel_radius=0.0,
+        name=name, kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length, width=width, height=1.5, mass=260.0,
+        com_height=0.7, wheelbase=0.65 * length, wheel_radius=0.32, wheel_mass=10.0, clearance=0.3,
+        max_steer_deg=35.0,
+        # ~4 m/s^2 of drive and ~6 m/s^2 of braking (a stoppie needs g * wheelbase / 2 / COM ~ 10)
+        max_drive=4.0 * 280.0 * 0.32, max_brake=6.0 * 280.0 * 0.32, brake_front=0.6,
+        steer_kp=800.0, steer_kv=40.0, stab_max=4000.0,
+    )
+
+
+def _ped(length: float = 0.3, width: float = 0.5, name: str = "pedestrian_0.3") -> AgentSpec:
+    return AgentSpec(
+        name=name, kind=KIND_PED, cls=AgentClass.PEDESTRIAN, length=length,
+        width=width, height=1.75, mass=70.0, com_height=0.95, wheel_radius=0.0,
         wheel_mass=0.0, max_drive=300.0, max_brake=0.0, ped_max_force=300.0,
     )
 
 
-#: Size buckets per agent class: the spec whose length is nearest the agent's is used.
-BUCKETS: dict[AgentClass, tuple[AgentSpec, ...]] = {
-    AgentClass.PASSENGER: tuple(
-        _car(AgentClass.PASSENGER, L, W) for L, W in ((4.0, 1.7), (4.5, 1.75), (5.0, 1.8), (5.5, 1.9))
-    ),
-    AgentClass.TAXI: tuple(_car(AgentClass.TAXI, L, 1.8) for L in (4.5, 5.0)),
-    AgentClass.BUS: tuple(_bus(L) for L in (10.0, 12.0, 15.0, 18.0)),
-    AgentClass.BICYCLE: tuple(_bike(L) for L in (1.6, 2.2)),
-    AgentClass.PEDESTRIAN: (_ped(),),
+# --------------------------------------------------------------------------- sizes
+
+#: Model families: how an agent drives (body proportions, mass, drive, steering); the
+#: size comes from its SUMO vType. Each builds an ``AgentSpec`` from length and width [m].
+FAMILIES: dict[str, object] = {
+    "car": lambda L, W, n: _car(AgentClass.PASSENGER, L, W, name=n),
+    "taxi": lambda L, W, n: _car(AgentClass.TAXI, L, W, name=n),
+    # delivery vans (SUMO: 6.5 x 2.16 m): taller, heavier, COM 0.8 m
+    "van": lambda L, W, n: _car(AgentClass.PASSENGER, L, W, name=n, height=2.5,
+                                mass=3500.0 * L * W / (6.5 * 2.16), com_height=0.8, wheelbase=0.55 * L,
+                                wheel_radius=0.36, wheel_mass=30.0, max_drive=3.0 * 3800.0 * 0.36,
+                                max_brake=9.0 * 3800.0 * 0.36, steer_kp=8000.0, steer_kv=400.0),
+    "bus": lambda L, W, n: _bus(L, W, n),
+    # trucks (SUMO: 7.1 x 2.4 m), trailers as one rigid 16.5 m body, ~12 t per 7 m
+    "truck": lambda L, W, n: _heavy(AgentClass.BUS, L, W, n, 12_000.0 * L / 7.1, 3.4, 0.55 * L),
+    "tram": lambda L, W, n: _heavy(AgentClass.BUS, L, W, n, 1_300.0 * L * W / 2.65, 3.3, 0.45 * L),
+    "motorcycle": lambda L, W, n: _moto(L, W, n),
+    "bicycle": lambda L, W, n: _bike(L, W, n),
+    "pedestrian": lambda L, W, n: _ped(L, W, n),
 }
 
-#: The bucket a type's pre-allocated slots go to (SUMO's default lengths).
-DEFAULT_BUCKET: dict[AgentClass, int] = {
-    AgentClass.PASSENGER: 2, AgentClass.TAXI: 1, AgentClass.BUS: 1,
-    AgentClass.BICYCLE: 0, AgentClass.PEDESTRIAN: 0,
+#: SUMO vClass -> model family (every vClass in SUMO's documentation; others by size).
+VCLASS_FAMILY: dict[str, str] = {
+    "passenger": "car", "private": "car", "evehicle": "car", "emergency": "car", "authority": "car",
+    "vip": "car", "hov": "car", "custom1": "car", "custom2": "car", "taxi": "taxi",
+    "delivery": "van", "army": "truck", "truck": "truck", "trailer": "truck",
+    "bus": "bus", "coach": "bus", "tram": "tram", "rail_urban": "tram", "rail": "tram",
+    "rail_electric": "tram", "rail_fast": "tram", "cable_car": "tram", "subway": "tram",
+    "motorcycle": "motorcycle", "moped": "motorcycle", "bicycle": "bicycle", "scooter": "bicycle",
+    "e_scooter": "bicycle", "pedestrian": "pedestrian", "wheelchair": "pedestrian",
 }
 
-#: Nearest model for SUMO vClasses without their own model (AgentClass.OTHER).
-OTHER_VCLASS_MODEL: dict[str, AgentClass] = {
-    "truck": AgentClass.BUS, "trailer": AgentClass.BUS, "coach": AgentClass.BUS,
-    "tram": AgentClass.BUS, "rail_urban": AgentClass.BUS, "rail": AgentClass.BUS,
-    "army": AgentClass.BUS, "delivery": AgentClass.PASSENGER, "emergency": AgentClass.PASSENGER,
-    "authority": AgentClass.PASSENGER, "vip": AgentClass.PASSENGER, "hov": AgentClass.PASSENGER,
-    "custom1": AgentClass.PASSENGER, "custom2": AgentClass.PASSENGER,
-    "motorcycle": AgentClass.BICYCLE, "moped": AgentClass.BICYCLE, "scooter": AgentClass.BICYCLE,
-    "e_scooter": AgentClass.BICYCLE, "wheelchair": AgentClass.PEDESTRIAN,
+#: Family of each wire class when the vClass is unknown.
+CLASS_FAMILY: dict[AgentClass, str] = {
+    AgentClass.PASSENGER: "car", AgentClass.TAXI: "taxi", AgentClass.BUS: "bus",
+    AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian",
 }
 
+#: SUMO's default size of each wire class (length, width) [m]: the pre-allocated pools'.
+DEFAULT_SIZE: dict[AgentClass, tuple[float, float]] = {
+    AgentClass.PASSENGER: (5.0, 1.8), AgentClass.TAXI: (5.0, 1.8), AgentClass.BUS: (12.0, 2.5),
+    AgentClass.BICYCLE: (1.6, 0.65), AgentClass.PEDESTRIAN: (0.215, 0.478),
+}
 
-def model_class_for(vclass: str, length: float) -> AgentClass:
-    """Nearest modelled class for an OTHER vClass: by name, else by length."""
-    c = OTHER_VCLASS_MODEL.get(vclass)
-    if c is not None:
-        return c
+SIZE_RATIO = 1.04  # a size is the nearest of a geometric grid: length and width within 2 % of SUMO's
+_SIZE_BASE = 5.0  # [m] a grid point (SUMO's default car length)
+
+
+def family_for(cls: AgentClass | int, vclass: str, length: float) -> str:
+    """Model family of an agent: by wire class, for OTHER by vClass, else by length."""
+    f = CLASS_FAMILY.get(AgentClass(int(cls))) or VCLASS_FAMILY.get(vclass)
+    if f is not None:
+        return f
     if length >= 7.5:
-        return AgentClass.BUS
+        return "truck"
     if length <= 2.5:
-        return AgentClass.BICYCLE
-    return AgentClass.PASSENGER
+        return "bicycle"
+    return "car"
 
 
-def bucket_index(cls: AgentClass, length: np.ndarray) -> np.ndarray:
-    """Nearest bucket (by length) of class ``cls`` for each length [m] (vectorised)."""
-    lens = np.array([s.length for s in BUCKETS[cls]])
-    return np.abs(np.asarray(length, float)[:, None] - lens[None, :]).argmin(axis=1)
+def _grid(x: float) -> int:
+    return int(round(math.log(max(float(x), 0.05) / _SIZE_BASE) / math.log(SIZE_RATIO)))
+
+
+def size_key(family: str, length: float, width: float) -> tuple[str, int, int]:
+    """Pool key of a family at a size: (family, length step, width step) on the size grid."""
+    if family not in FAMILIES:
+        raise ValueError(f"unknown model family {family!r} (expected one of {', '.join(FAMILIES)})")
+    return family, _grid(length), _grid(width)
+
+
+@functools.lru_cache(maxsize=None)
+def spec_for_key(key: tuple[str, int, int]) -> AgentSpec:
+    """The model of a pool key (cached: one spec per family and grid size)."""
+    family, li, wi = key
+    L = round(_SIZE_BASE * SIZE_RATIO**li, 3)
+    W = round(_SIZE_BASE * SIZE_RATIO**wi, 3)
+    return FAMILIES[family](L, W, f"{family}_{L:g}x{W:g}")
+
+
+def spec_for_size(family: str, length: float, width: float) -> AgentSpec:
+    """The model of a family nearest to a SUMO size (length, width [m])."""
+    return spec_for_key(size_key(family, length, width))
+
+
+def default_key(cls: AgentClass) -> tuple[str, int, int]:
+    """Pool key of a wire class at SUMO's default size (the pre-allocated pools)."""
+    return size_key(CLASS_FAMILY[AgentClass(cls)], *DEFAULT_SIZE[AgentClass(cls)])
+
+
+def default_spec(cls: AgentClass) -> AgentSpec:
+    return spec_for_key(default_key(cls))
 
 
 # --------------------------------------------------------------------------- templates
@@ -416,16 +481,12 @@ def rest_pose(spec: AgentSpec, timestep: float = 0.005) -> RestPose:
     return RestPose(float(d.qpos[2]), float(pitch))
 
 
-def spec_for(cls: AgentClass, bucket: int) -> AgentSpec:
-    return BUCKETS[cls][bucket]
-
-
 def with_awd(spec: AgentSpec, awd: bool) -> AgentSpec:
     return spec if spec.awd == awd else replace(spec, awd=awd, name=spec.name + ("_awd" if awd else ""))
 
 
 __all__ = [
-    "AgentSpec", "BUCKETS", "DEFAULT_BUCKET", "KIND_BIKE", "KIND_CAR", "KIND_PED", "RestPose",
-    "TYPE_NAMES", "add_ground", "bucket_index", "model_class_for", "rest_pose", "set_world_options",
-    "spec_for", "template", "with_awd",
+    "AgentSpec", "CLASS_FAMILY", "DEFAULT_SIZE", "FAMILIES", "KIND_BIKE", "KIND_CAR", "KIND_PED", "RestPose",
+    "SIZE_RATIO", "TYPE_NAMES", "VCLASS_FAMILY", "add_ground", "default_key", "default_spec", "family_for",
+    "rest_pose", "set_world_options", "size_key", "spec_for_key", "spec_for_size", "template", "with_awd",
 ]

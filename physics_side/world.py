@@ -2,7 +2,7 @@
 
 The world is ``shards`` MuJoCo simulations of one model (``mujoco.batch.Batch``, stepped
 on a thread pool; persistent because sleeping needs it), built by ``layout``: *pools* of
-pre-allocated slots, one pool per size bucket (``models.BUCKETS``). Unused slots sit
+pre-allocated slots, one pool per model family and size (``models.size_key``). Unused slots sit
 asleep in a parking lot far from the network; spawning wakes a slot and places it,
 parking puts it back. A pool that runs out grows by at least ``pool_chunk`` slots per
 shard with one recompile (off the hot path); live agents keep their exact state.
@@ -160,11 +160,11 @@ class PhysicsWorld:
         self.pool_chunk = int(pool_chunk)
         self.awd = frozenset(awd)
         self._pools: list[Pool] = []
-        self._pool_key: dict[tuple[int, int], int] = {}
+        self._pool_key: dict[tuple[str, int, int], int] = {}
         initial = initial or {}
         for cls, n in initial.items():
             if n > 0:
-                self._add_pool(AgentClass(cls), M.DEFAULT_BUCKET[AgentClass(cls)], n)
+                self._add_pool(M.default_key(AgentClass(cls)), n)
         self.generation = 0
         self.agent_slot: dict[str, int] = {}
         self.slot_agent: list[str | None] = []
@@ -177,18 +177,18 @@ class PhysicsWorld:
 
     # ------------------------------------------------------------------ pools / compile
 
-    def _spec_of(self, cls: AgentClass, bucket: int) -> M.AgentSpec:
-        return M.with_awd(M.spec_for(cls, bucket), cls in self.awd)
+    def _spec_of(self, key: tuple[str, int, int]) -> M.AgentSpec:
+        spec = M.spec_for_key(key)
+        return M.with_awd(spec, spec.cls in self.awd and spec.kind == M.KIND_CAR)
 
-    def _add_pool(self, cls: AgentClass, bucket: int, capacity: int) -> int:
-        key = (int(cls), int(bucket))
+    def _add_pool(self, key: tuple[str, int, int], capacity: int) -> int:
         if key in self._pool_key:
             p = self._pool_key[key]
             old = self._pools[p]
             self._pools[p] = Pool(old.index, old.spec, old.capacity + capacity)
             return p
         p = len(self._pools)
-        self._pools.append(Pool(p, self._spec_of(cls, bucket), capacity))
+        self._pools.append(Pool(p, self._spec_of(key), capacity))
         self._pool_key[key] = p
         return p
 
@@ -270,13 +270,12 @@ class PhysicsWorld:
 
     # ------------------------------------------------------------------ agent set
 
-    def pool_for(self, cls: AgentClass, length: float) -> int:
-        """Pool index for an agent of class ``cls`` (PASSENGER..PEDESTRIAN) and length [m]."""
-        b = int(M.bucket_index(cls, np.array([length]))[0])
-        key = (int(cls), b)
+    def pool_for(self, family: str, length: float, width: float) -> int:
+        """Pool index for an agent of a model family (``models.FAMILIES``) and size [m]."""
+        key = M.size_key(family, length, width)
         p = self._pool_key.get(key)
         if p is None:
-            p = self._add_pool(cls, b, 0)
+            p = self._add_pool(key, 0)
         return p
 
     def allocate(self, ids: list[str], pools: np.ndarray, near_x: np.ndarray, near_y: np.ndarray) -> np.ndarray:

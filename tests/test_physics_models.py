@@ -4,6 +4,7 @@ unless stated): acceleration, braking, kinematic-bicycle yaw rate, parked agents
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ def _world(cls=AgentClass.PASSENGER, n=2, **kw) -> PhysicsWorld:
 
 
 def _one(w: PhysicsWorld, cls=AgentClass.PASSENGER, speed=0.0, aid="a", x=0.0, y=0.0):
-    pool = w.pool_for(cls, M.BUCKETS[cls][M.DEFAULT_BUCKET[cls]].length)
+    pool = w.pool_for(M.CLASS_FAMILY[cls], *M.DEFAULT_SIZE[cls])
     s = w.allocate([aid], np.array([pool]), np.array([x]), np.array([y]))
     w.place(s, np.array([x]), np.array([y]), np.zeros(1), np.array([speed]))
     return s
@@ -40,7 +41,7 @@ def _run(w, s, seconds, steer=0.0, drive=0.0, brake=0.0, every=None):
 def test_straight_line_acceleration_matches_torque_over_effective_mass():
     w = _world()
     s = _one(w)
-    spec = M.BUCKETS[AgentClass.PASSENGER][M.DEFAULT_BUCKET[AgentClass.PASSENGER]]
+    spec = M.default_spec(AgentClass.PASSENGER)
     T = 1200.0  # [N*m] well below wheel spin
     x0 = w.observe(s).fx[0]
     _run(w, s, 3.0, drive=T)
@@ -52,7 +53,7 @@ def test_straight_line_acceleration_matches_torque_over_effective_mass():
 
 
 def test_braking_distance_from_brake_torque_and_friction_limit():
-    spec = M.BUCKETS[AgentClass.PASSENGER][M.DEFAULT_BUCKET[AgentClass.PASSENGER]]
+    spec = M.default_spec(AgentClass.PASSENGER)
     v0 = 20.0
     # moderate brake: decel = B / (r m_eff)
     w = _world()
@@ -76,7 +77,7 @@ def test_braking_distance_from_brake_torque_and_friction_limit():
 
 @pytest.mark.parametrize("cls", [AgentClass.PASSENGER, AgentClass.BUS, AgentClass.BICYCLE])
 def test_yaw_rate_matches_kinematic_bicycle_at_low_lateral_acceleration(cls):
-    spec = M.BUCKETS[cls][M.DEFAULT_BUCKET[cls]]
+    spec = M.default_spec(cls)
     v = 5.0
     delta = math.atan(spec.wheelbase * 0.6 / v**2)  # ~0.6 m/s^2 lateral
     w = _world(cls)
@@ -123,7 +124,7 @@ def test_pool_growth_keeps_live_agents_exactly():
     o = w.observe(s)
     gen = w.generation
     # a second passenger does not fit: the pool grows with a recompile
-    pool = w.pool_for(AgentClass.PASSENGER, 5.0)
+    pool = w.pool_for("car", 5.0, 1.8)
     w.allocate(["b"], np.array([pool]), np.array([100.0]), np.array([0.0]))
     assert w.generation == gen + 1 and w.counters["pool_grows"] == 1
     s2 = w.slot_of(["a"])
@@ -136,7 +137,7 @@ def test_pool_growth_keeps_live_agents_exactly():
 
 def test_agents_in_contact_are_counted_once_per_contact():
     w = _world(n=2)
-    pool = w.pool_for(AgentClass.PASSENGER, 5.0)
+    pool = w.pool_for("car", 5.0, 1.8)
     s = w.allocate(["a", "b"], np.array([pool, pool]), np.array([0.0, 30.0]), np.array([0.0, 0.0]))
     # b stands 20 m ahead of a; a drives into it at 8 m/s
     w.place(s, np.array([0.0, 25.0]), np.zeros(2), np.zeros(2), np.array([8.0, 0.0]))
@@ -159,7 +160,7 @@ def test_agents_in_contact_are_counted_once_per_contact():
 def test_pedestrian_force_is_bounded():
     w = _world(AgentClass.PEDESTRIAN)
     s = _one(w, AgentClass.PEDESTRIAN)
-    spec = M.BUCKETS[AgentClass.PEDESTRIAN][0]
+    spec = M.default_spec(AgentClass.PEDESTRIAN)
     v = []
     for _ in range(25):
         w.command_pedestrians(s, np.array([spec.ped_max_force]), np.zeros(1), np.zeros(1))
@@ -173,7 +174,7 @@ def test_pedestrian_force_is_bounded():
 @pytest.mark.parametrize("cls", [AgentClass.PASSENGER, AgentClass.BUS, AgentClass.BICYCLE])
 def test_no_roll_over_at_a_hard_lateral_acceleration(cls):
     """Steady circle near 0.45 g (bicycle: stabilised lean) - no flip, no explosion."""
-    spec = M.BUCKETS[cls][M.DEFAULT_BUCKET[cls]]
+    spec = M.default_spec(cls)
     R, a_lat = 25.0, 4.4
     v = math.sqrt(a_lat * R)
     d = spec.front_offset - spec.rear_axle
@@ -201,3 +202,39 @@ def test_no_roll_over_at_a_hard_lateral_acceleration(cls):
     else:
         assert worst < 6.0  # body roll of a rigid chassis on soft contacts
     assert o.speed[0] * abs(o.yaw_rate[0]) == pytest.approx(a_lat, rel=0.2)
+
+
+SUMO_VCLASSES = ("passenger", "taxi", "bus", "coach", "delivery", "truck", "trailer", "motorcycle", "moped",
+                 "bicycle", "pedestrian", "emergency", "evehicle", "tram")
+
+
+def test_every_default_vclass_gets_a_model_of_its_sumo_size(tmp_path):
+    """SUMO's own default vType of each vClass (read from real libsumo): a sensible model
+    family whose footprint is SUMO's within 5 %, which settles upright on the ground."""
+    import libsumo as t
+
+    from protocol.messages import VCLASS_TO_AGENT_CLASS
+
+    root = Path(__file__).resolve().parents[1]
+    net = root / "configs" / "scenarios" / "paper" / "paper.net.xml"
+    add = tmp_path / "types.add.xml"
+    add.write_text("<additional>" + "".join(f'<vType id="t_{v}" vClass="{v}"/>' for v in SUMO_VCLASSES)
+                   + "</additional>")
+    t.start(["sumo", "-n", str(net), "-a", str(add), "--no-step-log", "true"])
+    try:
+        sizes = {v: (t.vehicletype.getLength(f"t_{v}"), t.vehicletype.getWidth(f"t_{v}")) for v in SUMO_VCLASSES}
+    finally:
+        t.close()
+    kinds = {"pedestrian": M.KIND_PED, "bicycle": M.KIND_BIKE, "motorcycle": M.KIND_BIKE, "moped": M.KIND_BIKE}
+    for vclass, (length, width) in sizes.items():
+        cls = VCLASS_TO_AGENT_CLASS.get(vclass, AgentClass.OTHER)
+        family = M.family_for(cls, vclass, length)
+        spec = M.spec_for_size(family, length, width)
+        assert abs(spec.length / length - 1) <= 0.05 and abs(spec.width / width - 1) <= 0.05, (vclass, spec)
+        assert spec.kind == kinds.get(vclass, M.KIND_CAR), vclass
+        if spec.kind != M.KIND_PED:
+            assert 0.4 * length <= spec.wheelbase < length and spec.total_mass > 50.0, vclass
+            rest = M.rest_pose(spec)
+            assert 0.2 < rest.z < 1.0 and abs(rest.pitch) < 0.05, (vclass, rest)
+    assert M.family_for(AgentClass.OTHER, "truck", 7.1) == "truck" and M.family_for(AgentClass.OTHER, "tram", 22) == "tram"
+    assert M.family_for(AgentClass.OTHER, "delivery", 6.5) == "van"
