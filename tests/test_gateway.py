@@ -25,6 +25,7 @@ from sumoco.testing.synthetic import FakeRun
 from tests.harness import ROOT, Daemon, endpoint, wait_until
 
 KEYS = Keys("sumoco", "synth")
+MAP_REPLY = b"\x81\xa4kind\xa3map"  # stands in for the SUMO side's map answer (SPEC 9)
 
 
 def test_frame_round_trip_and_bad_frames():
@@ -44,6 +45,8 @@ def run_and_gateway(tmp_path):
     pub = FakePublisher(session, FakeRun(grid=1, n=15, run="synth"), instances=("main",)).start()
     egos: list[bytes] = []
     session.declare_subscriber(KEYS.ego_all, lambda s: egos.append(s.payload.to_bytes()))
+    session.declare_queryable(KEYS.sumo_map, lambda q: q.reply(KEYS.sumo_map, MAP_REPLY) if "sha256=" not in
+                              str(q.parameters) else q.reply_err(b"map not ready"))
     gw = Daemon("gateway", ["gateway", "--run", "synth", "--connect", ep, "--listen", endpoint(),
                             "--port", "0", "--token-file", str(tmp_path / "token")], tmp_path)
     try:
@@ -100,6 +103,17 @@ def test_python_client_subscribes_gets_static_and_sends_ego(run_and_gateway):
                 errors.append(json.loads(m)["error"])
         assert "ego/<id>" in errors[0] and "JSON" in errors[1]
         ws.send(json.dumps({"op": "unsubscribe", "key": "sumo/step"}))
+        # Any queryable of the run through "get"; an error answer is passed on with its text.
+        ws.send(json.dumps({"op": "get", "key": "sumo/map"}))
+        ws.send(json.dumps({"op": "get", "key": "sumo/map", "parameters": "sha256=ab"}))
+        answers = []
+        while len(answers) < 2:
+            m = ws.recv(timeout=10)
+            if isinstance(m, bytes) and unpack_frame(m)[0] == KEYS.sumo_map:
+                answers.append(unpack_frame(m)[1])
+            elif isinstance(m, str) and json.loads(m)["op"] == "error":
+                answers.append(json.loads(m)["error"])
+        assert MAP_REPLY in answers and any(isinstance(a, str) and "map not ready" in a for a in answers)
 
 
 @pytest.mark.integration

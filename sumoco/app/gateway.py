@@ -9,7 +9,8 @@ gateway"):
   (unchanged msgpack, SPEC 3.x), in both directions;
 - text frame = one JSON object: requests ``{"op": "subscribe" | "unsubscribe", "key":
   pattern}``, ``{"op": "static"}``; answers ``{"op": "hello" | "subscribed" |
-  "unsubscribed" | "error", ...}``. Patterns are Zenoh key expressions relative to the
+  "unsubscribed" | "error", ...}``, ``{"op": "get", "key": "sumo/map", "parameters": ""}``
+  for any queryable of the run. Patterns are Zenoh key expressions relative to the
   run (``sumo/step``, ``physics/*/state``, ``**``).
 
 Trust: listens on 127.0.0.1 by default; the handshake must carry the per-run token
@@ -186,16 +187,24 @@ class Gateway:
             client.box.put(frame)
             self.relayed += 1
 
-    async def _static(self, client: _Client) -> None:
-        def fetch() -> list[tuple[str, bytes]]:
-            return [(str(r.ok.key_expr), r.ok.payload.to_bytes())
-                    for r in self.session.get(self.keys.static, timeout=5.0) if r.ok is not None]
+    async def _get(self, client: _Client, key: str, parameters: str = "") -> None:
+        """One Zenoh query; the first answer goes to the client as a binary frame."""
+        def fetch() -> tuple[list[tuple[str, bytes]], list[str]]:
+            ok, err = [], []
+            sel = f"{key}?{parameters}" if parameters else key
+            for r in self.session.get(sel, timeout=5.0):
+                if r.ok is not None:
+                    ok.append((str(r.ok.key_expr), r.ok.payload.to_bytes()))
+                else:
+                    err.append(r.err.payload.to_string())
+            return ok, err
 
-        replies = await asyncio.to_thread(fetch)
+        replies, errors = await asyncio.to_thread(fetch)
         if not replies:
-            client.box.put(json.dumps({"op": "error", "error": f"no static data answered on {self.keys.static}"}))
-        for key, data in replies[:1]:
-            client.box.put(pack_frame(key, data))
+            why = "; ".join(errors) or "no answer within 5 s"
+            client.box.put(json.dumps({"op": "error", "key": key, "error": f"{key}: {why}"}))
+        for k, data in replies[:1]:
+            client.box.put(pack_frame(k, data))
 
     def _upstream(self, client: _Client, frame: bytes) -> None:
         key, payload = unpack_frame(frame)
@@ -236,9 +245,13 @@ class Gateway:
                 sub.undeclare()
             client.box.put(json.dumps({"op": "unsubscribed", "key": full}))
         elif op == "static":
-            asyncio.get_running_loop().create_task(self._static(client))
+            asyncio.get_running_loop().create_task(self._get(client, self.keys.static))
+        elif op == "get":
+            full = self._pattern(req.get("key", ""))
+            params = str(req.get("parameters", ""))
+            asyncio.get_running_loop().create_task(self._get(client, full, params))
         else:
-            raise ProtocolError(f"expected op 'subscribe', 'unsubscribe' or 'static', got {op!r}", "op")
+            raise ProtocolError(f"expected op 'subscribe', 'unsubscribe', 'static' or 'get', got {op!r}", "op")
 
     async def _handler(self, ws: ServerConnection) -> None:
         client = _Client(ws, Outbox(self.cfg.outbox))

@@ -52,6 +52,8 @@ def kind_of_topic(topic: str) -> str:
         return "step"
     if parts[-2:] == ["sumo", "static"]:
         return "static"
+    if parts[-2:] == ["sumo", "map"]:
+        return "map"
     if len(parts) >= 3 and parts[-3] == "physics":
         return {"state": "physics", "ack": "ack", "alive": "alive"}.get(parts[-1], "unknown")
     if len(parts) >= 2 and parts[-2] == "ego":
@@ -240,17 +242,27 @@ class LiveRecorder:
         self._sub = self.session.declare_subscriber(self.keys.everything, self._cb)
         return self
 
-    def fetch_static(self, timeout_s: float = 5.0) -> bytes | None:
-        """One query for the static data; recorded when it arrives."""
+    def _query(self, key: str, kind: str, timeout_s: float) -> bytes | None:
+        """Ask ``key`` until answered (bounded); the answer is recorded on that key."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            for reply in self.session.get(self.keys.static, timeout=min(2.0, timeout_s)):
+            for reply in self.session.get(key, timeout=min(2.0, timeout_s)):
                 if reply.ok is not None:
                     data = reply.ok.payload.to_bytes()
-                    self._q.put((self.keys.static, data, time.time_ns(), "static"))
+                    self._q.put((key, data, time.time_ns(), kind))
                     return data
-            time.sleep(0.05)
+            time.sleep(0.2)
         return None
+
+    def fetch_static(self, timeout_s: float = 5.0, map_timeout_s: float = 60.0) -> bytes | None:
+        """One query for the static data; recorded when it arrives. The glTF map (built by the
+        SUMO side after start-up) is asked for in the background and recorded once, so a
+        replay can serve it too."""
+        data = self._query(self.keys.static, "static", timeout_s)
+        if data is not None and map_timeout_s > 0:
+            threading.Thread(target=self._query, args=(self.keys.sumo_map, "map", map_timeout_s),
+                             name="record-map", daemon=True).start()
+        return data
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Stop listening, then write what is queued (bounded wait)."""

@@ -6,7 +6,8 @@ daemons offered live:
 
 - every recorded step, physics state and ack on its own key (the recorded key), as the
   recorded msgpack bytes, paced by the recorded receive times divided by ``speed``;
-- the static data answered by a queryable on ``<root>/<run>/sumo/static``;
+- the static data answered by a queryable on ``<root>/<run>/sumo/static``, and the glTF
+  map on ``<root>/<run>/sumo/map`` when the recording holds it (SPEC 9);
 - liveliness tokens ``<root>/<run>/sumo/alive`` and ``.../physics/<inst>/alive`` for every
   physics instance in the recording (declared when it first appears).
 
@@ -23,6 +24,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import msgpack
 import zenoh
 
 from protocol.errors import ConfigError
@@ -40,16 +42,46 @@ class ReplayStats:
     steps: int = 0
     loops: int = 0
     static_queries: int = 0
+    map_queries: int = 0
     late_ms_max: float = 0.0  # [ms] worst lateness of a put against its schedule
     truncated: bool = False
 
 
-def _static_of(rec) -> tuple[str, bytes] | None:
-    """The first static-data message of a recording (read until it is found)."""
+#: [s of recording] how far past the static data to look for the recorded glTF map
+MAP_SEARCH_S = 120.0
+
+
+def _static_and_map(rec) -> tuple[tuple[str, bytes] | None, tuple[str, bytes] | None]:
+    """The first static-data and map messages of a recording.
+
+    The map is recorded after the static data (the SUMO side builds it after start-up), so
+    the search goes on for ``MAP_SEARCH_S`` of recording past the static data, not through
+    the whole file.
+    """
+    static = mapped = None
+    t_static = None
     for m in rec.messages:
-        if m.schema == "static" or kind_of_topic(m.topic) == "static":
-            return m.topic, m.data
-    return None
+        kind = m.schema if m.schema in ("static", "map") else kind_of_topic(m.topic)
+        if kind == "static" and static is None:
+            static, t_static = (m.topic, m.data), m.log_time_ns
+        elif kind == "map" and mapped is None:
+            mapped = (m.topic, m.data)
+        if static is not None and (mapped is not None or m.log_time_ns - t_static > MAP_SEARCH_S * 1e9):
+            break
+    return static, mapped
+
+
+def map_reply(recorded: bytes, parameters: str) -> bytes:
+    """The recorded map answer, without the GLB when the asker already holds that hash (SPEC 9)."""
+    pairs = (p.partition("=") for p in str(parameters or "").replace("&", ";").split(";"))
+    want = {k.strip(): v.strip() for k, _, v in pairs}.get("sha256", "")
+    if not want:
+        return recorded
+    d = msgpack.unpackb(recorded, raw=False)
+    if isinstance(d, dict) and d.get("sha256") == want:
+        d["glb"] = None
+        return msgpack.packb(d, use_bin_type=True)
+    return recorded
 
 
 class Replayer:
@@ -71,10 +103,18 @@ class Replayer:
         self._decl: list = []
         self._tokens: dict[str, object] = {}
         self._static: tuple[str, bytes] | None = None
+        self._map: tuple[str, bytes] | None = None
 
     def _on_query(self, query: zenoh.Query) -> None:
         self.stats.static_queries += 1
         query.reply(self._static[0], self._static[1])
+
+    def _on_map_query(self, query: zenoh.Query) -> None:
+        self.stats.map_queries += 1
+        try:
+            query.reply(self._map[0], map_reply(self._map[1], str(query.parameters)))
+        except Exception as e:  # a corrupt recorded map must not stop the replay
+            query.reply_err(f"recorded map unreadable: {e}".encode())
 
     def _token(self, key: str) -> None:
         if key not in self._tokens:
@@ -90,7 +130,9 @@ class Replayer:
 
     def setup(self) -> None:
         """Declare the static queryable and the SUMO side's token before the first put."""
-        self._static = _static_of(self.recording)
+        self._static, self._map = _static_and_map(self.recording)
+        if self._map is not None:
+            self._decl.append(self.session.declare_queryable(self._map[0], self._on_map_query))
         if self._static is None:
             log.warning("%s holds no static data: nothing answers %s queries", self.recording.path, "sumo/static")
         else:
