@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -39,11 +40,15 @@ def test_record_live_run_to_mcap(tmp_path):
     assert not res.truncated
     keys = Keys("sumoco", "rec")
     topics = {m.topic for m in res.messages}
-    assert {keys.step, keys.static, keys.physics_state, "/scene"} <= topics
+    assert {keys.step, keys.static, keys.sumo_map, keys.physics_state, "/scene"} <= topics
     kinds = {StepMessage: 0, StaticData: 0, PhysicsState: 0}
     for m in res.messages:
         if m.topic == "/scene":
             assert m.schema == "foxglove.SceneUpdate" and len(m.data) > 0
+            continue
+        if m.topic == keys.sumo_map:  # the SUMO side's glTF map answer (SPEC 9), recorded once
+            d = msgpack.unpackb(m.data)
+            assert m.schema == "map" and d["kind"] == "map" and len(d["glb"]) == d["size"] > 1000
             continue
         assert m.schema == kind_of_topic(m.topic)
         t = type(decode(m.data))
