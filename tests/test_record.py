@@ -60,3 +60,50 @@ def test_record_live_run_to_mcap(tmp_path):
     t = np.array([decode(m.data).time for m in res.messages if m.topic == keys.physics_state])
     assert np.all(np.diff(t) >= 0.1 - 1e-6), np.diff(t).min()
     assert len(t) >= 0.8 * (t[-1] - t[0]) * 10
+
+
+class _Sample:
+    def __init__(self, key: str, data: bytes) -> None:
+        self.key_expr, self._data = key, data
+        self.payload = self
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+class _SlowRecorder:
+    """Stands in for the MCAP writer: blocks until released, like a stalled disk."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.release = threading.Event()
+        self.written: list[str] = []
+        self.context = None
+
+    def write(self, topic, payload, stamp_ns=None, schema=None) -> None:
+        self.release.wait(10)
+        self.written.append(topic)
+
+    def flush(self) -> None:
+        pass
+
+
+def test_recorder_never_blocks_the_transport_and_counts_drops():
+    import time
+
+    from sumoco.app.record import LiveRecorder, RecordConfig
+
+    keys = Keys("sumoco", "unit")
+    slow = _SlowRecorder()
+    live = LiveRecorder(None, keys, slow, config=RecordConfig(queue=10, queue_mb=1.0, scene=False, physics_hz=0))
+    t0 = time.perf_counter()
+    for _ in range(200):  # the writer is stalled: the callback must still return at once
+        live._cb(_Sample(keys.step, b"x" * 1000))
+    assert time.perf_counter() - t0 < 0.5
+    assert live.received == 200 and 185 <= live.dropped <= 190  # 10 queued, 1 in the writer's hands
+    big = _Sample(keys.step, b"x" * 2_000_000)  # over the byte bound on its own
+    live._cb(big)
+    slow.release.set()
+    live.stop(10)
+    assert live.dropped >= 186 and live.written == len(slow.written) == live.received - live.dropped

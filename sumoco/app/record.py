@@ -69,11 +69,12 @@ class RecordConfig:
     scene: bool = True  # also write the Foxglove /scene channel (needs foxglove-sdk)
     scene_hz: float = 2.0  # [Hz] scene updates per key, by simulated time; 0 = every message
     queue: int = 4096  # [messages] bound of the transport -> writer queue (full: drop + count)
+    queue_mb: float = 256.0  # [MB] the same queue's bound in payload bytes (full: drop + count)
     scene_queue: int = 8  # [messages] bound of the scene worker's queue (full: drop oldest)
     flush_s: float = 2.0  # [s] wall clock between forced chunk ends: what a crash can lose at most
 
     def __post_init__(self) -> None:
-        for name in ("physics_hz", "scene_hz", "flush_s"):
+        for name in ("physics_hz", "scene_hz", "flush_s", "queue_mb"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"[record] {name} must be >= 0 (0 keeps every message), got {getattr(self, name)}")
         for name in ("queue", "scene_queue"):
@@ -174,9 +175,12 @@ class LiveRecorder:
             self._scene = scene_mod.ScenePublisher(recorder.context, min_period_s=period)
             self._scene_worker = scene_mod.LatestWorker(self._scene.feed, self.config.scene_queue, "record-scene")
         self._q: queue.Queue = queue.Queue(self.config.queue)
+        self._queued_bytes = 0
+        self._max_bytes = int(self.config.queue_mb * 1e6)
+        self._bytes_lock = threading.Lock()
         self._period = 1.0 / self.config.physics_hz if self.config.physics_hz > 0 else 0.0
         self._last_t: dict[str, float] = {}
-        self.received = self.dropped = self.thinned = self.written = 0
+        self.received = self.dropped = self.thinned = self.written = self.write_errors = 0
         self._writer = threading.Thread(target=self._write_loop, name="record-writer", daemon=True)
         self._writer.start()
 
@@ -192,10 +196,20 @@ class LiveRecorder:
         # Zenoh's thread: copy the bytes and hand them over, nothing else.
         self.received += 1
         item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        n = len(item[1])
+        with self._bytes_lock:
+            full = self._queued_bytes + n > self._max_bytes
+            if not full:
+                self._queued_bytes += n
         try:
+            if full:
+                raise queue.Full
             self._q.put_nowait(item)
         except queue.Full:
             self.dropped += 1
+            if not full:
+                with self._bytes_lock:
+                    self._queued_bytes -= n
         if self._on_message is not None:
             self._on_message(item[0], item[1])
 
@@ -227,6 +241,8 @@ class LiveRecorder:
                 if item is None:
                     return
                 topic, payload, stamp, schema = item if len(item) == 4 else (*item, None)
+                with self._bytes_lock:
+                    self._queued_bytes -= len(payload)
                 if not self._keep(topic, payload):
                     continue
                 self.rec.write(topic, payload, stamp, schema=schema)
@@ -234,6 +250,7 @@ class LiveRecorder:
                 if self._scene_worker is not None:
                     self._scene_worker.put(topic, payload, stamp)
             except Exception:  # a write problem is logged and counted; recording goes on
+                self.write_errors += 1
                 log.exception("recording %s failed", item[0] if item else "?")
             finally:
                 self._q.task_done()
@@ -249,6 +266,8 @@ class LiveRecorder:
             for reply in self.session.get(key, timeout=min(2.0, timeout_s)):
                 if reply.ok is not None:
                     data = reply.ok.payload.to_bytes()
+                    with self._bytes_lock:
+                        self._queued_bytes += len(data)
                     self._q.put((key, data, time.time_ns(), kind))
                     return data
             time.sleep(0.2)
@@ -280,6 +299,7 @@ class LiveRecorder:
 
     def stats(self) -> dict[str, int]:
         return {"received": self.received, "written": self.written, "dropped": self.dropped,
+                "write_errors": self.write_errors,
                 "thinned": self.thinned, "scene_errors": self.scene_errors, "scene_dropped": self.scene_dropped}
 
 
