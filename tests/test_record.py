@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -53,13 +54,15 @@ def test_record_live_run_to_mcap(tmp_path):
         assert m.schema == kind_of_topic(m.topic)
         t = type(decode(m.data))
         kinds[t] = kinds.get(t, 0) + 1
-    assert kinds[StepMessage] > 20 and kinds[PhysicsState] > 20 and kinds[StaticData] == 1
+    assert kinds[StepMessage] > 20 and kinds[PhysicsState] > 5 and kinds[StaticData] == 1
     steps = [decode(m.data).step for m in res.messages if m.topic == keys.step]
     assert steps == sorted(steps) and len(set(steps)) == len(steps)
     # Physics states are thinned to the default 10 Hz of simulated time (published at 50 Hz).
     t = np.array([decode(m.data).time for m in res.messages if m.topic == keys.physics_state])
     assert np.all(np.diff(t) >= 0.1 - 1e-6), np.diff(t).min()
-    assert len(t) >= 0.8 * (t[-1] - t[0]) * 10
+    stats = json.loads(r.stdout.strip().splitlines()[-1])
+    assert stats["dropped"] == 0 and stats["write_errors"] == 0 and stats["thinned"] > len(t)
+    assert stats["received"] == stats["written"] + stats["thinned"] - 2  # static and map came by query
 
 
 class _Sample:
