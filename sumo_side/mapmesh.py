@@ -572,3 +572,42 @@ def _parameter(parameters: str, name: str) -> str | None:
         if key.strip() == name:
             return value.strip()
     return None
+
+
+# ----------------------------------------------------------------------------- from static data
+
+
+def geometry_from_static(static) -> NetGeometry:
+    """A ``NetGeometry`` from the static-data message (SPEC 3.2), for a viewer whose SUMO
+    side serves no map: lanes, junctions and signal heads are there; lane-change
+    permissions are not (every separator is dashed) and sidewalks are not raised areas."""
+    from sumo_side.netfile import ALL_CLASSES, NetConnection
+
+    L = static.lanes
+    off = np.asarray(L.shape_offsets, np.int64)
+    xy = np.asarray(L.shape_xy, np.float64).reshape(-1, 2)
+    lanes = []
+    for i, lid in enumerate(L.ids):
+        shape = xy[off[i]:off[i + 1]]
+        if len(shape) < 2:
+            continue
+        internal = lid.startswith(":")
+        allow = frozenset(L.allow[i]) if L.allow[i] else ALL_CLASSES
+        index = int(lid.rsplit("_", 1)[1]) if lid.rsplit("_", 1)[-1].isdigit() else 0
+        lanes.append(NetLane(id=lid, edge=L.edge[i], index=index, function="internal" if internal else "normal",
+                             width=float(L.width[i]), shape=shape, allow=allow))
+    J = static.junctions
+    joff = np.asarray(J.shape_offsets, np.int64)
+    jxy = np.asarray(J.shape_xy, np.float64).reshape(-1, 2)
+    junctions = {jid: jxy[joff[k]:joff[k + 1]] for k, jid in enumerate(J.ids) if joff[k + 1] - joff[k] >= 3}
+    T = static.tls_links
+    conns = []
+    for r in range(len(T.tls)):
+        fl = int(T.from_lane[r])
+        if 0 <= fl < len(L.ids):
+            to = int(T.to_lane[r])
+            conns.append(NetConnection(L.ids[fl], L.ids[to] if 0 <= to < len(L.ids) else "", "",
+                                       static.tls_ids[int(T.tls[r])], int(T.link[r]), "o"))
+    return NetGeometry(path=Path(f"static:{static.run}"), net_offset=tuple(static.net_offset),
+                       projection=static.projection, bounds=tuple(static.bounds), lanes=lanes,
+                       junctions=junctions, connections=conns)

@@ -220,8 +220,11 @@ def browser():
     opts.binary_location = CHROMIUM
     for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
               "--disable-background-networking", "--disable-component-update", "--disable-sync",
-              "--disable-dev-shm-usage", f"--user-data-dir={profile}", "--window-size=1280,860"):
+              "--disable-dev-shm-usage", f"--user-data-dir={profile}", "--window-size=1280,860",
+              # WebGL for the 3D page without a GPU: SwiftShader through ANGLE (software).
+              "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"):
         opts.add_argument(a)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
     driver.set_page_load_timeout(15)
     driver.set_script_timeout(15)
@@ -251,7 +254,8 @@ class LiveRun:
         self.proc = subprocess.Popen([sys.executable, "-m", "sumoco.app.cli", "view", "--config", str(cfg)],
                                      cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
         self.base = f"http://127.0.0.1:{self.port}/"
-        self.url = f"{self.base}?token={TOKEN}"
+        self.url = f"{self.base}2d.html?token={TOKEN}"  # the 2D page (tests/test_viewer3d.py: the 3D one)
+        self.url3d = f"{self.base}?token={TOKEN}"
 
     def status(self) -> dict | None:
         try:

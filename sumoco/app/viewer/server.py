@@ -35,6 +35,7 @@ for tests and for checking a deployment with curl.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import hmac
 import ipaddress
 import json
@@ -65,6 +66,8 @@ _CONTENT_TYPES = {
     ".html": "text/html; charset=utf-8",
     ".js": "text/javascript; charset=utf-8",
     ".css": "text/css; charset=utf-8",
+    ".mjs": "text/javascript; charset=utf-8",
+    ".glb": "model/gltf-binary",
 }
 
 
@@ -110,6 +113,9 @@ class LatestStore:
         self.step: bytes | None = None
         self.physics: dict[str, tuple[bytes, float]] = {}  # instance -> (payload, rx monotonic)
         self.static: bytes | None = None
+        self.map_glb: bytes | None = None  # the network as glTF (SPEC 9), for the 3D page
+        self.map_sha256 = ""
+        self.map_source = ""  # "sumo": served by the SUMO side; "static": built here from static data
         self.sumo_alive: bool | None = None  # None: no liveliness information yet
         self.version = 0
         self.static_version = 0
@@ -154,6 +160,11 @@ class LatestStore:
             self.static_version += 1
             self.version += 1
         self._changed()
+
+    def put_map(self, glb: bytes, sha256: str, source: str) -> None:
+        """Set before the static data it belongs to, so the page's static message names it."""
+        with self._lock:
+            self.map_glb, self.map_sha256, self.map_source = glb, sha256, source
 
     def set_sumo_alive(self, alive: bool) -> None:
         with self._lock:
@@ -230,8 +241,8 @@ def pack_frame(seq: int, step: bytes | None, physics: dict[str, bytes],
                          use_bin_type=True)
 
 
-def pack_static(static: bytes) -> bytes:
-    return msgpack.packb({"type": "static", "static": static}, use_bin_type=True)
+def pack_static(static: bytes, map_sha256: str = "") -> bytes:
+    return msgpack.packb({"type": "static", "static": static, "map": map_sha256}, use_bin_type=True)
 
 
 # --------------------------------------------------------------------------- HTTP + WebSocket
@@ -252,8 +263,9 @@ class ViewerServer:
         self._wake: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._files = {
-            "/" + p.name: (p.read_bytes(), _CONTENT_TYPES.get(p.suffix, "application/octet-stream"))
-            for p in STATIC_DIR.iterdir() if p.is_file()
+            "/" + p.relative_to(STATIC_DIR).as_posix(): (p.read_bytes(),
+                                                         _CONTENT_TYPES.get(p.suffix, "application/octet-stream"))
+            for p in STATIC_DIR.rglob("*") if p.is_file()
         }
         self._files["/"] = self._files["/index.html"]
 
@@ -281,6 +293,9 @@ class ViewerServer:
             "physics_instances": sorted(self.store.physics),
             "sumo_alive": self.store.sumo_alive,
             "refused": dict(self.refused),
+            "map_sha256": self.store.map_sha256,
+            "map_source": self.store.map_source,
+            "map_bytes": len(self.store.map_glb or b""),
         }
 
     @property
@@ -324,6 +339,11 @@ class ViewerServer:
             return None  # go on with the WebSocket handshake
         if path == "/status":
             return _response(200, json.dumps(self.status()).encode(), "application/json")
+        if path == "/map.glb":
+            glb = self.store.map_glb
+            if glb is None:
+                return _response(404, b"no map yet: the SUMO side has sent no static data\n", "text/plain")
+            return _response(200, glb, "model/gltf-binary")
         if path == "/favicon.ico":
             return _response(204, b"", "text/plain")
         hit = self._files.get(path)
@@ -337,7 +357,7 @@ class ViewerServer:
         await ws.send(msgpack.packb({"type": "hello", "run": self.run_id, "root": self.root,
                                      "max_hz": self.cfg.max_hz}, use_bin_type=True))
         if self.store.static is not None:
-            box.put_static(pack_static(self.store.static))
+            box.put_static(pack_static(self.store.static, self.store.map_sha256))
         self.clients.add(box)
         self.clients_total += 1
         log.info("browser connected from %s (%d connected)", peer, len(self.clients))
@@ -388,7 +408,7 @@ class ViewerServer:
             last = time.monotonic()
             if self.store.static_version != static_version and self.store.static is not None:
                 static_version = self.store.static_version
-                msg = pack_static(self.store.static)
+                msg = pack_static(self.store.static, self.store.map_sha256)
                 for box in self.clients:
                     box.put_static(msg)
             version, step, physics, alive = self.store.snapshot()
@@ -527,6 +547,45 @@ class ZenohFeed:
             return data
         return None
 
+    def _query_map(self) -> tuple[bytes, str] | None:
+        """The SUMO side's GLB (SPEC 9), asking with the hash we hold so it is sent once."""
+        have = self.store.map_sha256
+        key = self.keys.sumo_map + (f"?sha256={have}" if have else "")
+        for reply in self.session.get(key, timeout=self.cfg.static_timeout_s):
+            if reply.ok is None:
+                continue
+            doc = msgpack.unpackb(reply.ok.payload.to_bytes())
+            if not isinstance(doc, dict) or doc.get("kind") != "map":
+                continue
+            if doc.get("glb") is None and doc.get("sha256") == have and self.store.map_glb is not None:
+                return self.store.map_glb, have
+            glb = doc.get("glb")
+            if isinstance(glb, bytes) and hashlib.sha256(glb).hexdigest() == doc.get("sha256"):
+                return glb, doc["sha256"]
+        return None
+
+    def _fetch_map(self, static: bytes) -> None:
+        """The map for this static data: from the SUMO side, else built here from the data."""
+        try:
+            got = self._query_map()
+        except Exception as e:  # zenoh raises on a closing session; a SUMO side without maps
+            log.debug("map query failed: %s", e)
+            got = None
+        if got is not None:
+            if got[1] != self.store.map_sha256:
+                log.info("map from the SUMO side: %d KiB", len(got[0]) // 1024)
+            self.store.put_map(got[0], got[1], "sumo")
+            return
+        try:
+            from sumo_side.mapmesh import build_map, geometry_from_static
+
+            mesh = build_map(geometry_from_static(decode_as(static, StaticData)))
+        except Exception as e:  # a page without a map still shows the agents
+            log.warning("could not build a map from the static data: %s", e)
+            return
+        log.info("map built from the static data: %d KiB (the SUMO side serves none)", len(mesh.glb) // 1024)
+        self.store.put_map(mesh.glb, mesh.sha256, "static")
+
     def _static_worker(self) -> None:
         while not self._stop.is_set():
             if not self._want_static.wait(timeout=1.0):
@@ -542,6 +601,8 @@ class ZenohFeed:
                     data = None
                 if data is not None:
                     fresh = data != self.store.static
+                    if fresh or self.store.map_glb is None:
+                        self._fetch_map(data)
                     self.store.put_static(data)
                     if fresh:
                         log.info("static data received (%d bytes, attempt %d)", len(data), attempt)
