@@ -115,6 +115,7 @@ def test_3d_page_shows_map_agents_and_signal_heads(browser, tmp_path):  # noqa: 
         canvas = browser.find_element("css selector", "#view3d canvas")
 
         def clicked():
+            browser.execute_script("window.sumoco3d.pause(true);")  # agents hold still under the pointer
             _next_render(browser, _stats(browser)["renders"])
             on = browser.execute_script("return window.sumoco3d.onScreen();")
             ok = [a for a in on if 380 < a["p"][0] < size[0] - 40 and 40 < a["p"][1] < size[1] - 40]
@@ -124,9 +125,17 @@ def test_3d_page_shows_map_agents_and_signal_heads(browser, tmp_path):  # noqa: 
             ActionChains(browser).move_to_element_with_offset(
                 canvas, int(p[0] - size[0] / 2), int(p[1] - size[1] / 2)).click().perform()
             time.sleep(0.2)
-            return _stats(browser)["follow"]
+            st = _stats(browser)
+            tries.append((p, st.get("clicks"), st.get("lastPick")))
+            browser.execute_script("window.sumoco3d.pause(false);")
+            return st["follow"]
 
-        followed = wait_for(clicked, 20.0, "a click on the car to start following an agent", 0.2)
+        tries: list = []
+        try:
+            followed = wait_for(clicked, 30.0, "a click on an agent to start following it", 0.2)
+        except AssertionError:
+            print("clicks:", tries)
+            raise
         assert followed, followed
         hud = browser.find_element("id", "hud").text
         assert "following" in hud and "agents" in hud and "real-time factor" in hud and "fps" in hud, hud

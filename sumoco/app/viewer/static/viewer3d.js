@@ -439,15 +439,19 @@ let lampCount = 0;
 
 // ------------------------------------------------------------------ picking + keys
 const ray = new THREE.Raycaster();
+function pickAt(clientX, clientY) {
+  const r = renderer.domElement.getBoundingClientRect();
+  camera.updateMatrixWorld();
+  ray.setFromCamera(new THREE.Vector2(((clientX - r.left) / r.width) * 2 - 1, -((clientY - r.top) / r.height) * 2 + 1), camera);
+  for (const b of bodies) { b.boundingSphere = null; b.boundingBox = null; } // instances moved since
+  return ray.intersectObjects(bodies, false)[0];
+}
 let downAt = null;
 renderer.domElement.addEventListener('pointerdown', (e) => { downAt = [e.clientX, e.clientY]; });
 renderer.domElement.addEventListener('pointerup', (e) => {
   stats.clicks = (stats.clicks || 0) + 1;
   if (!downAt || Math.hypot(e.clientX - downAt[0], e.clientY - downAt[1]) > 4) return; // a drag, not a click
-  const r = renderer.domElement.getBoundingClientRect();
-  ray.setFromCamera(new THREE.Vector2(((e.clientX - r.left) / r.width) * 2 - 1, -((e.clientY - r.top) / r.height) * 2 + 1), camera);
-  for (const b of bodies) { b.boundingSphere = null; b.boundingBox = null; } // instances moved since
-  const hit = ray.intersectObjects(bodies, false)[0];
+  const hit = pickAt(e.clientX, e.clientY);
   stats.lastPick = hit ? `${hit.object.name}#${hit.instanceId}` : `miss at ${e.clientX},${e.clientY}`;
   if (hit && hit.instanceId !== undefined) {
     follow = pickIds[hit.object.name][hit.instanceId] || null;
@@ -463,6 +467,7 @@ window.addEventListener('keydown', (e) => {
   if (e.key === 'f') { userMoved = false; fit(); }
   if (e.key === 'i') instanceIdx++;
   if (e.key === 'g') showGhosts = !showGhosts;
+  if (e.key === ' ') { paused = !paused; stats.paused = paused; }
 });
 window.addEventListener('resize', () => {
   renderer.setSize(host.clientWidth, host.clientHeight);
@@ -506,12 +511,13 @@ function updateHud(now) {
 
 // ------------------------------------------------------------------ main loop
 let lastNow = performance.now();
+let paused = false; // space: hold the picture (frames keep arriving; only the newest is kept)
 function frame(now) {
   const dt = Math.min((now - lastNow) / 1000, 0.2);
   lastNow = now;
   try {
-    if (pendingFrame) consumeFrame(now);
-    update(now, dt);
+    if (pendingFrame && !paused) consumeFrame(now);
+    update(now, paused ? 0 : dt);
     controls.update();
     const t0 = performance.now();
     renderer.render(scene, camera);
@@ -564,6 +570,8 @@ stats.onScreen = () => {
   }
   return out;
 };
+stats.pause = (on) => { paused = !!on; stats.paused = paused; };
+stats.pickAt = (x, y) => { const h = pickAt(x, y); return h ? `${h.object.name}#${h.instanceId}` : null; };
 stats.lookAtAgent = (id, dist) => {
   const i = step ? step.index.get(id) : undefined;
   if (i === undefined) return false;
