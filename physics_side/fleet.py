@@ -40,8 +40,26 @@ _TYPE_NAME = {
     AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian", AgentClass.OTHER: "other",
 }
 A_LAT_MAX = 7.5  # [m/s^2] lateral acceleration the steering limit allows (0.75 g, tyre mu = 1)
+GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from every other body
+JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
+SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
 PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
 PED_YAW_KD = 15.0  # [N*m*s/rad]
+
+
+def footprints_overlap(ax, ay, ah, al, aw, bx, by, bh, bl, bw, margin: float = 0.0) -> np.ndarray:
+    """Do rectangles a and b (centre x, y [m], heading [rad], length, width [m]) overlap,
+    each grown by ``margin`` [m]? Separating-axis test, vectorised (arrays broadcast)."""
+    ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)
+    dx, dy = np.asarray(bx) - ax, np.asarray(by) - ay
+    hal, haw = 0.5 * np.asarray(al) + margin, 0.5 * np.asarray(aw) + margin
+    hbl, hbw = 0.5 * np.asarray(bl) + margin, 0.5 * np.asarray(bw) + margin
+    apart = np.zeros(np.broadcast(dx, dy, ca, cb).shape, bool)
+    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):
+        ra = hal * np.abs(ca * ux + sa * uy) + haw * np.abs(-sa * ux + ca * uy)
+        rb = hbl * np.abs(cb * ux + sb * uy) + hbw * np.abs(-sb * ux + cb * uy)
+        apart |= np.abs(dx * ux + dy * uy) > ra + rb
+    return ~apart
 
 
 @dataclass(frozen=True)
@@ -102,6 +120,7 @@ class Fleet:
         self.counters: dict[str, int] = {
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
+            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0,
         }
         self._empty()
         self.sumo_step = -1
@@ -119,6 +138,10 @@ class Fleet:
         self.mode = np.zeros(n, np.uint8)
         self.kind = np.zeros(n, np.int8)
         self.ref: Reference | None = None
+        self.ghost = np.zeros(0, bool)
+        self.sumo_len = np.zeros(0)
+        self.sumo_wid = np.zeros(0)
+        self.jump_t = np.zeros(0)
         self.tau = 0.0
         self.state = C.ControlState.zeros(0)
         self.s_act = np.zeros(0)
@@ -286,6 +309,11 @@ class Fleet:
             log.info("step %d: placed %d diverged and %d flipped agents", msg.step, st.diverged, st.flipped)
         # along-path position of each bumper on the new path (guess for the projection)
         # (``obs`` predates the placements: placed agents sit exactly at s = 0)
+        self._update_ghosts(obs, held, is_new, prev, msg.time)
+        self.jump_t = np.where(prev >= 0, self.jump_t[np.maximum(prev, 0)] if len(self.jump_t) else -np.inf, -np.inf)
+        self.jump_t[jumped | ((flags & AgentFlag.JUMPED) != 0)] = msg.time
+        self.sumo_len = a.length[rows].astype(np.float64)
+        self.sumo_wid = a.width[rows].astype(np.float64)
         self.s_act = (np.where(place, held.s, ref.project_far(obs.fx, obs.fy, held.s + e_lon, tau=self.tau)[0]) if len(ids)
                       else e_lon.copy())
         n = len(ids)
@@ -301,6 +329,58 @@ class Fleet:
         if resync:
             self.counters["resyncs"] += 1
         return st
+
+    def _update_ghosts(self, obs, at, is_new: np.ndarray, prev: np.ndarray, t: float) -> None:
+        """Spawns into an occupied spot stay ghosts (no agent contact) until they are clear.
+
+        A new agent whose footprint at its placement overlaps a live body (or a new one
+        placed before it this step) becomes a ghost; a ghost whose physics footprint is
+        ``GHOST_CLEAR_M`` clear of every other body joins again. Pedestrian pairs are never
+        checked (their bodies do not touch each other)."""
+        n = self.n
+        old = self.ghost[np.maximum(prev, 0)] if len(self.ghost) else np.zeros(n, bool)
+        ghost = np.where(prev >= 0, old, False) & ~is_new
+        if n == 0:
+            self.ghost = ghost
+            return
+        t_ = self.world.tables
+        L, W, front = t_.length[self.slots], t_.width[self.slots], t_.front[self.slots]
+        yaw = np.where(is_new, at.tangent, obs.yaw)
+        cx = np.where(is_new, at.x - front * np.cos(at.tangent), obs.cx)
+        cy = np.where(is_new, at.y - front * np.sin(at.tangent), obs.cy)
+        ped = self.kind == M.KIND_PED
+        idx = np.arange(n)
+        for i in np.flatnonzero(is_new):
+            other = (idx != i) & (~is_new | (idx < i)) & ~ghost & ~(ped & ped[i])
+            if other.any() and footprints_overlap(cx[i], cy[i], yaw[i], L[i], W[i], cx[other], cy[other],
+                                                  yaw[other], L[other], W[other]).any():
+                ghost[i] = True
+        for i in np.flatnonzero(ghost & ~is_new):
+            other = (idx != i) & ~ghost & ~(ped & ped[i])
+            if not (other.any() and footprints_overlap(cx[i], cy[i], yaw[i], L[i], W[i], cx[other], cy[other],
+                                                       yaw[other], L[other], W[other], GHOST_CLEAR_M).any()):
+                ghost[i] = False
+        self.world.set_ghost(self.slots, ghost)  # every step: a recompile resets the bits
+        self.counters["ghost_spawns"] += int((ghost & is_new).sum())
+        self.ghost = ghost
+
+    def _split_collisions(self, began: np.ndarray) -> None:
+        """Count collisions that began: SUMO also had them (its footprints overlap there,
+        or the agent was teleported / jumped in the last ``JUMP_EXCUSE_S``) or physics only."""
+        ref = self.ref
+        t = ref.t_k
+        h = ref.held()
+        cx = h.x - 0.5 * self.sumo_len * np.cos(h.yaw)
+        cy = h.y - 0.5 * self.sumo_len * np.sin(h.yaw)
+        ped = self.kind == M.KIND_PED
+        idx = np.arange(self.n)
+        for i in np.flatnonzero(began):
+            other = (idx != i) & ~(ped & ped[i])
+            sumo = bool((t - self.jump_t[i]) <= JUMP_EXCUSE_S) or bool(
+                other.any() and footprints_overlap(cx[i], cy[i], h.yaw[i], self.sumo_len[i], self.sumo_wid[i],
+                                                   cx[other], cy[other], h.yaw[other], self.sumo_len[other],
+                                                   self.sumo_wid[other], SUMO_OVERLAP_M).any())
+            self.counters["collisions_sumo_reported" if sumo else "collisions_physics_only"] += 1
 
     def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True) -> None:
         """Place agents ``idx`` at reference point ``at`` (full-length arrays)."""
@@ -374,6 +454,7 @@ class Fleet:
             self.slots = w.slot_of(self.ids)
             self._params()
             self._cache = None
+            w.set_ghost(self.slots, self.ghost)
         # the previous tick's end state (or the one ``apply_step`` read) is this tick's start
         # state unless a placement happened in between (then the cache was dropped)
         if self._cache is not None:
@@ -456,7 +537,9 @@ class Fleet:
         self.aux = aux
         flip = math.radians(self.cfg.flip_deg)
         upright = (np.abs(obs2.roll) < flip) & (np.abs(obs2.pitch) < flip)
-        w.contacts(self.slots, upright)
+        _, began = w.contacts(self.slots, upright)
+        if began.any():
+            self._split_collisions(began)
         self._last_obs = obs2
         self._cache = (obs2, (s2, lat2, pp2))
 

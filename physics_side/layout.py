@@ -147,10 +147,17 @@ class SlotTables:
     """Flat index into the expanded tree_sleep_policy."""
     body: np.ndarray
     """Flat index of the root body's cfrc_ext force (first of 3)."""
+    geom: np.ndarray
+    """Flat index into the expanded geom_contype / geom_conaffinity of the body geom
+    (chassis, frame, pedestrian capsule: the one that touches other agents)."""
+    geom_model: np.ndarray
+    """Model index of that geom (its compiled contype / conaffinity)."""
     park_x: np.ndarray
     """Parking spot x [m] (pedestrian slide joints are relative to it)."""
     park_y: np.ndarray
     length: np.ndarray
+    """[m]."""
+    width: np.ndarray
     """[m]."""
     front: np.ndarray
     """Body origin -> front bumper [m]."""
@@ -191,6 +198,10 @@ class Layout:
     """Flat view of the expanded tree_sleep_policy."""
     cfrc_ext: np.ndarray
     """Bound cfrc_ext of every shard."""
+    contype: np.ndarray
+    """Flat view of the expanded geom_contype (per shard: ghosts switch their body geom off)."""
+    conaffinity: np.ndarray
+    """Flat view of the expanded geom_conaffinity."""
     tables: SlotTables
     base: np.ndarray
     """First slot number of each pool (by pool index)."""
@@ -225,6 +236,7 @@ def compile_layout(pools: list[Pool], timestep: float, shards: int, threads: int
         pools=list(pools), shards=shards, model=model, batch=batch, state=batch.state.reshape(-1),
         frictionloss=batch.expand("dof_frictionloss").reshape(-1),
         sleep_policy=batch.expand("tree_sleep_policy").reshape(-1), cfrc_ext=batch.bind("cfrc_ext"),
+        contype=batch.expand("geom_contype").reshape(-1), conaffinity=batch.expand("geom_conaffinity").reshape(-1),
         tables=tables, base=base, build_s=dt,
     )
 
@@ -272,6 +284,8 @@ def _build_tables(
             np.int64)
         last = slot_prefix(spec.name, C - 1)
         lb = m.body(last + "agent").id
+        g_first = m.geom(slot_prefix(spec.name, 0) + "chassis").id
+        ng_slot = (m.geom(last + "chassis").id - g_first) // (C - 1) if C > 1 else 0
         if (lb != b0 + (C - 1) * nb_slot or m.actuator(last + acts[0]).id != a0 + (C - 1) * nu_slot
                 or m.jnt_qposadr[m.body_jntadr[lb]] != q0 + (C - 1) * nq_slot):
             raise RuntimeError(f"pool {spec.name}: slots are not laid out with equal strides")
@@ -322,8 +336,9 @@ def _build_tables(
             qpos=qb, nq=whole(nq_slot), qvel=vb, nv=whole(nv_slot), ctrl=ub, nu=whole(nu_slot), qpos0=q, dof=d,
             steer_q=steer_q, steer_u=steer_u, drive_u=drive_u, aux_u=aux_u, spin_fl=spin_fl, spin_v=spin_v,
             brake_share=np.tile(np.asarray(share, np.float64), (n, 1)),
-            tree=s * m.ntree + (tree0 + i), body=(s * m.nbody + b) * 6 + 3, park_x=px, park_y=py,
-            length=full(spec.length), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
+            tree=s * m.ntree + (tree0 + i), body=(s * m.nbody + b) * 6 + 3,
+            geom=s * m.ngeom + g_first + i * ng_slot, geom_model=g_first + i * ng_slot, park_x=px, park_y=py,
+            length=full(spec.length), width=full(spec.width), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
             rear_axle=full(spec.rear_axle), track=full(spec.track), r_wheel=full(spec.wheel_radius),
             m_eff=full(spec.effective_mass), mass=full(spec.total_mass),
             max_steer=full(math.radians(spec.max_steer_deg)),

@@ -246,6 +246,7 @@ DEFAULT_SIZE: dict[AgentClass, tuple[float, float]] = {
 }
 
 SIZE_RATIO = 1.04  # a size is the nearest of a geometric grid: length and width within 2 % of SUMO's
+SIZE_TOLERANCE = 0.05  # an existing pool this close in length and width is used instead of a new one
 _SIZE_BASE = 5.0  # [m] a grid point (SUMO's default car length)
 
 
@@ -487,6 +488,6 @@ def with_awd(spec: AgentSpec, awd: bool) -> AgentSpec:
 
 __all__ = [
     "AgentSpec", "CLASS_FAMILY", "DEFAULT_SIZE", "FAMILIES", "KIND_BIKE", "KIND_CAR", "KIND_PED", "RestPose",
-    "SIZE_RATIO", "TYPE_NAMES", "VCLASS_FAMILY", "add_ground", "default_key", "default_spec", "family_for",
+    "SIZE_RATIO", "SIZE_TOLERANCE", "TYPE_NAMES", "VCLASS_FAMILY", "add_ground", "default_key", "default_spec", "family_for",
     "rest_pose", "set_world_options", "size_key", "spec_for_key", "spec_for_size", "template", "with_awd",
 ]

@@ -41,6 +41,7 @@ SLEEP_NEVER = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
 SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
 NEIGHBOUR_M = 40.0  # [m] a new agent joins the shard of a live agent this close
 MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
+NEW_POOL_SLOTS = 4  # [slots per shard] first capacity of a pool for a newly seen size
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
 
@@ -209,6 +210,8 @@ class PhysicsWorld:
         self._fl = layout.frictionloss
         self._policy = layout.sleep_policy
         self._cfrc = layout.cfrc_ext
+        self._contype = layout.contype
+        self._conaff = layout.conaffinity
         self._tables = layout.tables
         self._plans: dict[bytes, _SlotPlan] = {}
         G = layout.slots
@@ -258,12 +261,16 @@ class PhysicsWorld:
 
     def _grow(self, needs: dict[int, int]) -> None:
         """Grow pools (pool index -> extra slots per shard) with one recompile."""
-        for p, extra in needs.items():
+        # a pool's first slots (a size seen for the first time) start small: sizes are many,
+        # and every slot of every pool is rebuilt by the recompile
+        add = {p: max(extra, self.pool_chunk if self._pools[p].capacity else NEW_POOL_SLOTS)
+               for p, extra in needs.items()}
+        for p, extra in add.items():
             old = self._pools[p]
-            self._pools[p] = Pool(old.index, old.spec, old.capacity + max(extra, self.pool_chunk))
+            self._pools[p] = Pool(old.index, old.spec, old.capacity + extra)
         log.warning(
             "physics world: pools exhausted (%s), recompiling with more slots",
-            ", ".join(f"{self._pools[p].spec.name} +{max(e, self.pool_chunk)}" for p, e in needs.items()),
+            ", ".join(f"{self._pools[p].spec.name} +{e}" for p, e in add.items()),
         )
         self._compile()
         self.counters["pool_grows"] += 1
@@ -274,6 +281,12 @@ class PhysicsWorld:
         """Pool index for an agent of a model family (``models.FAMILIES``) and size [m]."""
         key = M.size_key(family, length, width)
         p = self._pool_key.get(key)
+        if p is None:  # a pool of the family within SIZE_TOLERANCE of this size does as well
+            for k, q in self._pool_key.items():
+                spec = self._pools[q].spec
+                if (k[0] == family and abs(spec.length / length - 1) <= M.SIZE_TOLERANCE
+                        and abs(spec.width / width - 1) <= M.SIZE_TOLERANCE):
+                    return q
         if p is None:
             p = self._add_pool(key, 0)
         return p
@@ -342,6 +355,7 @@ class PhysicsWorld:
             self.slot_agent[g] = None
             self._free[(int(t.pool[g]), int(t.shard[g]))].append(int(g))
         self.live[slots] = False
+        self.set_ghost(slots, False)
         self.in_contact[slots] = False
         self.last_touch[slots] = -np.inf
         self.counters["parked"] += len(slots)
@@ -524,8 +538,25 @@ class PhysicsWorld:
         self.mujoco_s += time.perf_counter() - t0
         self.time += self.substeps * self.timestep
 
-    def contacts(self, slots: np.ndarray, upright: np.ndarray) -> tuple[np.ndarray, int]:
-        """Agents of ``slots`` touching another agent now, and how many collisions began.
+    def set_ghost(self, slots: np.ndarray, ghost: bool | np.ndarray) -> None:
+        """Switch the body geom of ``slots`` off for other agents (``ghost``: it then touches
+        the ground only, like a wheel) or back to its model's collision bits. A spawn into an
+        occupied spot stays a ghost until it is clear, so bodies never stack."""
+        slots = np.asarray(slots, np.int64)
+        if len(slots) == 0:
+            return
+        t = self._tables
+        ghost = np.broadcast_to(np.asarray(ghost, bool), slots.shape)
+        g, gm = t.geom[slots], t.geom_model[slots]
+        m = self.model
+        # ground-only: contype 0, conaffinity 1 for bodies on the ground; pedestrians (no
+        # ground contact) switch off entirely
+        ped = t.kind[slots] == M.KIND_PED
+        self._contype[g] = np.where(ghost, 0, m.geom_contype[gm])
+        self._conaff[g] = np.where(ghost, np.where(ped, 0, 1), m.geom_conaffinity[gm])
+
+    def contacts(self, slots: np.ndarray, upright: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Agents of ``slots`` touching another agent now, and which of them began a collision.
 
         From cfrc_ext of each agent's root body (chassis, bicycle frame or pedestrian):
         wheels are separate bodies, so ground contact only shows when an agent is not
@@ -539,13 +570,12 @@ class PhysicsWorld:
         touching = (mag > CONTACT_N) & upright
         if not touching.any():  # the usual tick
             self.in_contact[slots] = False
-            return touching, 0
+            return touching, touching
         began_mask = touching & ((self.time - self.last_touch[slots]) > CONTACT_GAP_S)
         self.last_touch[slots[touching]] = self.time
-        began = int(began_mask.sum())
         self.in_contact[slots] = touching
-        self.counters["collisions"] += began
-        return touching, began
+        self.counters["collisions"] += int(began_mask.sum())
+        return touching, began_mask
 
     @property
     def tables(self) -> SlotTables:

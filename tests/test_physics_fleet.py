@@ -250,3 +250,57 @@ def test_continuous_lane_change_is_driven_within_bounds(v):
     assert f.counters["placements_jump"] + f.counters["placements_divergence"] == 0
     assert abs(snap.y[0] - 103.2) < 0.15 and abs(snap.roll[0]) < 3.0
     assert worst < (0.3 if v > 10 else 0.5), worst
+
+
+def _line_step(k: int, xs, speeds, ids=None, flags=None, step_s: float = 0.1):
+    """Cars heading east on y = 100 at bumper positions ``xs`` [m] with ``speeds`` [m/s]."""
+    n = len(xs)
+    m = circle_traffic(n, 0)
+    f32 = np.float32
+    xs = np.asarray(xs, np.float64)
+    pts = np.stack([np.c_[x + np.arange(0.0, 60.0, 2.0), np.full(30, 100.0)] for x in xs]).reshape(-1, 2)
+    a = replace(m.agents, ids=ids or [f"veh{i}" for i in range(n)], x=xs, y=np.full(n, 100.0),
+                angle=np.full(n, 90.0, f32), speed=np.asarray(speeds, f32), accel=np.zeros(n, f32),
+                la_x=(xs + 7.0).astype(f32), la_y=np.full(n, 100.0, f32),
+                flags=np.asarray(flags if flags is not None else [8 if k == 0 else 0] * n, np.uint8),
+                path_offsets=(np.arange(n + 1) * 30).astype(np.uint32), path_xy=pts.astype(f32))
+    return replace(m, step=k, time=k * step_s, step_length=step_s, agents=a)
+
+
+def test_two_vehicles_inserted_at_one_point_never_stack():
+    """SUMO inserts a second car where the first one is: it spawns as a ghost (no contact
+    with other agents), both stay on the ground, and it joins once the first one drove off."""
+    f = _fleet()
+    z_max, ghost_seen = 0.0, False
+    for k in range(60):
+        x0 = 100.0 + 8.0 * k * 0.1  # veh0 drives off at 8 m/s; veh1 waits at the insertion point
+        f.apply_step(_line_step(k, [x0, 100.0], [8.0, 0.0]))
+        ghost_seen |= bool(f.ghost[1])
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+            z_max = max(z_max, float(f.snapshot().z.max()))
+    rest = float(f.world.tables.rest_z[f.slots].max())
+    assert ghost_seen and f.counters["ghost_spawns"] == 1
+    assert not f.ghost.any()  # clear again: a normal body
+    assert z_max < rest + 0.05, (z_max, rest)  # nobody climbed on anybody
+    assert f.world.counters["collisions"] == 0
+    assert np.hypot(f.err_lon, f.err_lat).max() < 0.3
+
+
+def test_collisions_split_into_sumo_reported_and_physics_only():
+    """A rear-end collision that SUMO has too (its footprints overlap) vs one only physics
+    has (SUMO stops the follower 1 m short at a deceleration no car can brake)."""
+    f = _fleet()
+    for k in range(30):  # SUMO's own crash: veh1 runs into the standing veh0
+        x1 = min(80.0 + 6.0 * k * 0.1, 97.0)  # bumper ends 2 m inside veh0's 5 m body
+        f.apply_step(_line_step(k, [100.0, x1], [0.0, 6.0 if x1 < 97.0 else 0.0]))
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+    assert f.counters["collisions_sumo_reported"] >= 1 and f.counters["collisions_physics_only"] == 0
+    g = _fleet()
+    for k in range(40):  # physics only: SUMO stops veh1 1 m short of veh0 within 0.3 s from 15 m/s
+        x1 = 60.0 + 15.0 * k * 0.1 if k < 24 else 94.0
+        g.apply_step(_line_step(k, [100.0, min(x1, 94.0)], [0.0, 15.0 if k < 24 else 0.0]))
+        for _ in range(g.rates.ticks_per_step):
+            g.tick()
+    assert g.counters["collisions_physics_only"] >= 1 and g.counters["collisions_sumo_reported"] == 0

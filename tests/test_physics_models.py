@@ -148,7 +148,7 @@ def test_agents_in_contact_are_counted_once_per_contact():
         w.command_vehicles(s, np.zeros(2), np.zeros(2), brake, np.zeros(2))
         w.step()
         touching, b = w.contacts(s, upright)
-        began += b
+        began += int(b.sum())
         if touching.any():
             brake = np.array([3000.0, 3000.0])  # both brake after the crash
     # one crash (with bounces) counts once for each agent involved

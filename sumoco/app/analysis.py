@@ -279,7 +279,13 @@ def summarise(data: RunData, ref_id: str | None = None) -> dict:
         entry = {
             "error_m": {"overall": _stats(e.err[v]), "per_type": per_type},
             "collisions": int(ph.counters.get("collisions", 0)),
+            # a physics contact where SUMO had its own collision / teleport, or physics only
+            "collisions_sumo_reported": int(ph.counters.get("collisions_sumo_reported", 0)),
+            "collisions_physics_only": int(ph.counters.get("collisions_physics_only", 0)),
             "placements": int(ph.counters.get("placements", 0)),
+            "placements_by_cause": {c: int(ph.counters.get(f"placements_{c}", 0))
+                                    for c in ("spawn", "jump", "divergence", "flip")},
+            "ghost_spawns": int(ph.counters.get("ghost_spawns", 0)),
             "rejected": int(ph.counters.get("rejected", 0)),
             "agents_seen": _seen(ph.aid, ph.cls),
             "agents_by_mode": modes,
