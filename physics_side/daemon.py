@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import signal
 import threading
 import time
@@ -40,13 +41,15 @@ from physics_side.world import PhysicsWorld
 from protocol.codec import decode_as, encode
 from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys
-from protocol.messages import PhysicsState, StepAck, StepMessage
+from protocol.messages import PhysicsState, StaticData, StepAck, StepMessage
+from protocol.tables import StaticTracker
 from sumoco.common.config import RunConfig
 from sumoco.common.queues import DropOldest
 
 log = logging.getLogger("physics")
 
 REJECT_LOG_PERIOD_S = 2.0  # [s] at most one log line per period about rejected messages
+STATIC_QUERY_PERIOD_S = 1.0  # [s] at most one static-data query per period while a step's version is unknown
 IDLE_WAIT_S = 0.05  # [s] wait for messages when there is nothing to simulate
 REST_SPEED = 0.05  # [m/s] below this every stopping agent counts as at rest
 
@@ -67,6 +70,11 @@ class PhysicsDaemon:
         self.rates = fleet.rates
         # Bounded in messages and bytes (SPEC 5.1): full -> the oldest step is dropped, counted.
         self._steps: DropOldest[bytes] = DropOldest(self.cfg.step_queue, int(self.cfg.step_queue_mb * (1 << 20)))
+        # vType table between steps (protocol 1.2 sends it only when it changes); a static
+        # reply lands here from a Zenoh thread, newest only
+        self._tables = StaticTracker()
+        self._static_replies: collections.deque[bytes] = collections.deque(maxlen=1)
+        self._static_asked = -math.inf
         self._alive_events: collections.deque[bool] = collections.deque(maxlen=64)
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -135,12 +143,35 @@ class PhysicsDaemon:
             self._reject_log_t = now
             self._reject_since_log = 0
 
+    def _on_static_reply(self, reply) -> None:
+        if reply.ok is not None:
+            self._static_replies.append(reply.ok.payload.to_bytes())
+
+    def _resolve_vtypes(self, msg: StepMessage) -> StepMessage:
+        """Fill in the vType table; query the static data when this step's version is unknown."""
+        while self._static_replies:
+            try:
+                self._tables.on_static(decode_as(self._static_replies.popleft(), StaticData))
+            except ProtocolError as e:
+                self._reject(f"static data: {e}")
+        msg = self._tables.resolve(msg)
+        now = time.monotonic()
+        if self._tables.stale and now - self._static_asked >= STATIC_QUERY_PERIOD_S:
+            self._static_asked = now
+            log.info("step %d refers to static version %d: querying the static data", msg.step, msg.static_version)
+            try:
+                self.session.get(self.keys.static, self._on_static_reply, timeout=STATIC_QUERY_PERIOD_S)
+            except Exception as e:  # a closing session; the next stale step asks again
+                log.debug("static query failed: %s", e)
+        return msg
+
     def _decode(self, data: bytes) -> StepMessage | None:
         try:
             msg = decode_as(data, StepMessage)
         except ProtocolError as e:
             self._reject(str(e))
             return None
+        msg = self._resolve_vtypes(msg)
         rates = self._rate_cache.get(msg.step_length)
         if rates is None:
             try:

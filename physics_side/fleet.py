@@ -101,6 +101,7 @@ class StepStats:
     diverged: int = 0
     flipped: int = 0
     skipped: int = 0
+    retyped: int = 0
 
 
 class Fleet:
@@ -120,8 +121,9 @@ class Fleet:
         self.counters: dict[str, int] = {
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
-            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0,
+            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "retyped": 0,
         }
+        self.model_cls = np.zeros(0, np.int64)  # model class per agent of the newest step
         self._empty()
         self.sumo_step = -1
         self.step_length = rates.ticks_per_step * rates.control_dt  # [s] of the newest SUMO step
@@ -214,6 +216,15 @@ class Fleet:
         # previous sample of each agent (yaw rate, sideways jumps, controller state); a
         # resync or a clock that went back (a new SUMO run) has no usable previous sample
         prev = np.fromiter((self._index.get(aid, -1) for aid in ids), np.int64, len(ids))
+        # a vType change (vehicle.setType) that needs another model: leave and spawn anew
+        had = prev >= 0
+        if had.any() and len(self.model_cls) == len(self._index):
+            retyped = np.flatnonzero(had & (self.model_cls[np.maximum(prev, 0)] != model_cls))
+            if len(retyped):
+                w.park(w.slot_of([ids[i] for i in retyped]))
+                prev[retyped] = -1
+                st.retyped = len(retyped)
+                self.counters["retyped"] += len(retyped)
         gap_max = max(1.0, 2.5 * msg.step_length)  # [s] beyond this the previous sample is stale
         if resync or (old_ref is not None and not 0.0 < msg.time - old_ref.t_k < gap_max):
             old_ref = None
@@ -251,6 +262,7 @@ class Fleet:
             st.spawned = len(new)
         self.ids = ids
         self._index = {aid: i for i, aid in enumerate(ids)}
+        self.model_cls = model_cls
         self.slots = slots
         self.wire_cls = cls.astype(np.uint8)
         self.kind = w.tables.kind[slots].astype(np.int8)

@@ -24,6 +24,7 @@ class Bridge:
             sim.graph, cfg.lad_min_m, cfg.lad_max_m, cfg.k_lad_s, cfg.path_length_m
         )
         self._last_serial = -1
+        self._sent_version = -1  # static version whose vType table went out last
 
     def look_ahead(self, snap: Snapshot, with_paths: bool | None = None) -> LookAhead:
         # The snapshot's alignment is valid only against the snapshot planned before it.
@@ -68,6 +69,12 @@ class Bridge:
             path_offsets=look.path_offsets,
             path_xy=look.path_xy,
         )
+        # The vType table goes out in the first step and whenever it changed (SPEC.md 3.1).
+        sv = self.sim.static_version
+        vtypes = None
+        if sv != self._sent_version:
+            vtypes = list(vt.types)
+            self._sent_version = sv
         return StepMessage(
             run=self.run_id,
             step=int(step),
@@ -75,5 +82,6 @@ class Bridge:
             step_length=self.sim.step_length,
             agents=agents,
             tls=snap.tls,
-            vtypes=list(vt.types),
+            vtypes=vtypes,
+            static_version=sv,
         )

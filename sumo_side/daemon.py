@@ -46,6 +46,8 @@ from sumoco.common.config import CommonConfig, RunConfig, apply_cli, load_common
 
 log = logging.getLogger("sumo_side")
 
+STATIC_REENCODE_PERIOD_S = 1.0  # [s] at most one re-encoding of the static data per period
+
 
 #: An acknowledgement is ~40 bytes; bigger payloads on an ack key are refused unread [bytes].
 MAX_ACK_BYTES = 1024
@@ -108,6 +110,7 @@ class Counters:
     acks: int = 0
     lag_resets: int = 0  # realtime: SUMO fell behind the wall clock by more than max_lag_s
     max_agents: int = 0
+    static_versions: int = 0  # static data re-encoded for a new static version
     extra: dict = field(default_factory=dict)
 
 
@@ -140,7 +143,9 @@ class SumoDaemon:
             cfg.max_peer_keys, frozenset(k.physics_alive for k in waited))
         self._alive: set[str] = set()
         self._last_reject_log = -math.inf
-        self._static_bytes = encode(sim.static)
+        self._static_bytes = encode(sim.static_data())
+        self._static_version = sim.static_version
+        self._static_encoded_at = -math.inf
         self.map = MapService(getattr(sim, "net_file", None), run.id)
         self.last_message = None  # the newest StepMessage (tests, status)
 
@@ -153,6 +158,20 @@ class SumoDaemon:
     @property
     def stopping(self) -> bool:
         return self._stop.is_set()
+
+    def _refresh_static(self, version: int) -> None:
+        """Serve the static data of a new static version (re-encoded at most once per
+        STATIC_REENCODE_PERIOD_S; a querier that gets an older version asks again)."""
+        now = time.monotonic()
+        if version == self._static_version or now - self._static_encoded_at < STATIC_REENCODE_PERIOD_S:
+            return
+        data = encode(self.sim.static_data())
+        self._static_bytes = data  # one reference swap: the queryable thread reads either
+        self._static_version = version
+        self._static_encoded_at = now
+        self.counters.static_versions += 1
+        log.info("static version %d: %d vehicle types, %d tls links", version,
+                 len(self.sim.static.vtypes), len(self.sim.static.tls_links.tls))
 
     # ------------------------------------------------------------------ Zenoh callbacks
     # These run on Zenoh's threads: no SUMO calls, no shared mutable state but the queue.
@@ -345,6 +364,7 @@ class SumoDaemon:
             snap = sim.read()
             ego_flags = self.ego.after_step(snap.ids, snap.x, snap.y, snap.arrived)
             msg = self.bridge.build(k, snap, ego_flags)
+            self._refresh_static(msg.static_version)
             publisher.put(encode(msg))
             t_d = perf()
             self.last_message = msg
@@ -429,6 +449,12 @@ class SumoDaemon:
             "ego_drift_max_m": round(self.ego.drift_max_m, 4),
             "ego_drift_mean_m": round(self.ego.drift_mean_m, 4),
             "lane_walks": self.bridge.planner.resolved,
+            "static_version": self.sim.static_version,
+            "static_versions": c.static_versions,
+            "vtypes_live": self.sim.vtypes.live,
+            "vtypes_dropped": self.sim.vtypes.dropped,
+            "vtypes_overflow": self.sim.vtypes.overflow,
+            "tls_program_switches": self.sim.tls.switches,
         }
 
     def _log_summary(self) -> None:

@@ -15,7 +15,7 @@ import operator
 import os
 import sys
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +30,8 @@ from protocol.messages import (
     VType,
 )
 from sumo_side.config import SumoConfig
-from sumo_side.lanes import LaneGraph, build_static
+from sumo_side.lanes import LaneGraph, build_static, tls_link_table
+from sumo_side.tables import TlsTable, VTypeTable
 from sumo_side.lookahead import MODE_LANES, MODE_NONE, MODE_STRAIGHT
 
 log = logging.getLogger(__name__)
@@ -42,65 +43,24 @@ V_POS, V_ANGLE, V_SPEED = _C.VAR_POSITION, _C.VAR_ANGLE, _C.VAR_SPEED
 V_SIGNALS, V_LANE, V_LANEPOS, V_TYPE = _C.VAR_SIGNALS, _C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_TYPE
 V_VEHICLE = _C.VAR_VEHICLE
 TL_STATE, TL_PHASE, TL_NEXT = _C.TL_RED_YELLOW_GREEN_STATE, _C.TL_CURRENT_PHASE, _C.TL_NEXT_SWITCH
+TL_PROGRAM = _C.TL_CURRENT_PROGRAM
 
 # Each subscribed variable costs ~0.5 us per vehicle per step in getAllSubscriptionResults
-# (measured: 2,500 vehicles, 9 variables 6.4 ms, 7 variables 5.0 ms). So the vehicle type
-# is read once at departure, the route (index) only when a vehicle changes lanes and the
-# acceleration is derived from consecutive speeds.
-VEHICLE_VARS = (V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANE, V_LANEPOS)
+# (measured: 2,500 vehicles, 9 variables 6.4 ms, 7 variables 5.0 ms). So the route (index)
+# is read only when a vehicle changes lanes and the acceleration is derived from
+# consecutive speeds. The type id is subscribed: nothing else tells of a vehicle.setType.
+VEHICLE_VARS = (V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANE, V_LANEPOS, V_TYPE)
 PERSON_VARS = (V_POS, V_ANGLE, V_SPEED, V_LANE, V_LANEPOS, V_TYPE, V_VEHICLE)
 _VEHICLE_NUM = operator.itemgetter(V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS)
 _POS = operator.itemgetter(V_POS)
 _LANE = operator.itemgetter(V_LANE)
+_TYPE = operator.itemgetter(V_TYPE)
 _chain = itertools.chain.from_iterable
 _PERSON_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_LANEPOS, V_LANE, V_TYPE, V_VEHICLE)
-TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT)
+TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT, TL_PROGRAM)
 #: [m] beyond speed x step length, a position change this large is a jump (flag JUMPED);
 #: larger than one lane width so that SUMO's instant lane changes stay ordinary motion.
 JUMP_MARGIN_M = 5.0
-
-
-class VTypeTable:
-    """vType id -> stable index, with vClass, agent class, length and width per index."""
-
-    def __init__(self, api) -> None:
-        self._api = api
-        self.index: dict[str, int] = {}
-        self.types: list[VType] = []
-        self._cls: list[int] = []
-        self._len: list[float] = []
-        self._wid: list[float] = []
-        self.cls = np.zeros(0, np.uint8)
-        self.length = np.zeros(0, np.float32)
-        self.width = np.zeros(0, np.float32)
-
-    def add(self, type_id: str) -> int:
-        i = self.index.get(type_id)
-        if i is not None:
-            return i
-        vt = self._api.vehicletype
-        vclass = vt.getVehicleClass(type_id)
-        self.index[type_id] = i = len(self.types)
-        self.types.append(VType(type_id, vclass))
-        self._cls.append(int(VCLASS_TO_AGENT_CLASS.get(vclass, AgentClass.OTHER)))
-        self._len.append(vt.getLength(type_id))
-        self._wid.append(vt.getWidth(type_id))
-        self.cls = np.asarray(self._cls, np.uint8)
-        self.length = np.asarray(self._len, np.float32)
-        self.width = np.asarray(self._wid, np.float32)
-        if len(self.types) > 65_535:
-            raise ConfigError("more than 65,535 vehicle types: the wire format indexes them with u16")
-        return i
-
-    def indices(self, type_ids: list[str]) -> np.ndarray:
-        get = self.index.get
-        try:
-            return np.fromiter(map(self.index.__getitem__, type_ids), np.int64, len(type_ids))
-        except KeyError:
-            for t in type_ids:
-                if get(t) is None:
-                    self.add(t)
-            return np.fromiter(map(self.index.__getitem__, type_ids), np.int64, len(type_ids))
 
 
 @dataclass
@@ -216,15 +176,14 @@ class SumoSim:
         self.graph: LaneGraph | None = None
         self.static: StaticData | None = None
         self.vtypes: VTypeTable | None = None
+        self.tls: TlsTable | None = None
         self.tls_ids: list[str] = []
         self.begin_time = 0.0
         self.end_time = -1.0
         self.counters = {"departed": 0, "arrived": 0, "teleports": 0, "persons_departed": 0}
-        self._type_of: dict[str, int] = {}  # vehicle id -> vtype index, set at departure
         self._lane_index: dict[str, int] = {}  # lane id -> lane index, '' -> -1
         self._prev_ids: list[str] = []
         self._prev_speed = np.zeros(0)
-        self._prev_vtype = np.zeros(0, np.int64)
         self._prev_time = -1.0
         self._prev_xy = np.zeros((0, 2))
         self._serial = 0
@@ -275,6 +234,8 @@ class SumoSim:
         self.tls_ids = list(api.trafficlight.getIDList()) if self.cfg.traffic_lights else []
         for t in self.tls_ids:
             api.trafficlight.subscribe(t, TLS_VARS)
+        graph = self.graph
+        self.tls = TlsTable(api, self.tls_ids, lambda ids: tls_link_table(api, graph, ids))
         # Agents already present (e.g. a loaded state) are subscribed now, the rest on departure.
         for v in api.vehicle.getIDList():
             self._subscribe_vehicle(v)
@@ -291,11 +252,30 @@ class SumoSim:
             api, self.graph, self.run_id, self.step_length, net_file,
             list(self.vtypes.types), self.vtypes.length.copy(), self.vtypes.width.copy(), self.tls_ids,
         )
+        self._static_version = -1
+        self.static_data()
         log.info(
             "SUMO scenario %s: %d lanes, %d junctions, %d traffic lights, %d vehicle types",
             self.sumocfg.name, self.graph.n, len(self.static.junctions.ids), len(self.tls_ids),
             len(self.vtypes.types),
         )
+
+    @property
+    def static_version(self) -> int:
+        """Version of the vType table and the tls links (SPEC.md 3.2); both only grow."""
+        return self.vtypes.version + self.tls.version
+
+    def static_data(self) -> StaticData:
+        """The static data of the current static version (rebuilt only after a change)."""
+        v = self.static_version
+        if v != self._static_version:
+            vt, k = self.vtypes, len(self.vtypes.types)
+            self.static = replace(
+                self.static, vtypes=list(vt.types), vtype_length=vt.length[:k].copy(),
+                vtype_width=vt.width[:k].copy(), tls_links=self.tls.links, version=v,
+            )
+            self._static_version = v
+        return self.static
 
     def _net_file(self) -> Path | None:
         try:
@@ -335,18 +315,6 @@ class SumoSim:
 
     def _subscribe_vehicle(self, vid: str) -> None:
         self.api.vehicle.subscribe(vid, VEHICLE_VARS)
-        self._type_of[vid] = self.vtypes.add(self.api.vehicle.getTypeID(vid))
-
-    def _vehicle_types(self, vids: list[str]) -> np.ndarray:
-        try:
-            if len(vids) == 1:
-                return np.array([self._type_of[vids[0]]], np.int64)
-            return np.array(operator.itemgetter(*vids)(self._type_of), np.int64)
-        except KeyError:  # subscribed by someone else (e.g. a TraCI client): look it up once
-            for v in vids:
-                if v not in self._type_of:
-                    self._type_of[v] = self.vtypes.add(self.api.vehicle.getTypeID(v))
-            return self._vehicle_types(vids)
 
     def step(self) -> None:
         """SUMO's own step (timed separately as sumo_ms by the callers)."""
@@ -365,8 +333,6 @@ class SumoSim:
             for p in p_departed:
                 api.person.subscribe(p, PERSON_VARS)
         arrived = list(sim.getArrivedIDList())
-        for v in arrived:
-            self._type_of.pop(v, None)
         tele = set(sim.getStartingTeleportIDList()) | set(sim.getEndingTeleportIDList())
         n_tele_start = sim.getStartingTeleportNumber()
         self.counters["departed"] += len(departed)
@@ -386,11 +352,16 @@ class SumoSim:
             vxy = np.fromiter(_chain(map(_POS, vals)), np.float64, 2 * nv).reshape(nv, 2)
             vangle, vspeed, vsig, vlpos = num[:, 0], num[:, 1], num[:, 2].astype(np.int64), num[:, 3]
             vlane = _lookup(self._lane_index, tuple(map(_LANE, vals)))
+            try:  # every step, so that a vehicle.setType shows in the step it happens
+                vtype = self.vtypes.indices(map(_TYPE, vals))
+            except KeyError:  # subscribed by someone else without the type
+                get_type = api.vehicle.getTypeID
+                vtype = self.vtypes.indices([r.get(V_TYPE) or get_type(v) for v, r in vres.items()])
             del vals
         else:
             vxy = np.zeros((0, 2))
             vangle = vspeed = vlpos = _empty_f()
-            vsig = vlane = np.zeros(0, np.int64)
+            vsig = vlane = vtype = np.zeros(0, np.int64)
         del vres
 
         pres = api.person.getAllSubscriptionResults() if self.cfg.persons else {}
@@ -424,13 +395,8 @@ class SumoSim:
         accel = np.zeros(n)
         if known.any():
             accel[known] = (speed_all[known] - self._prev_speed[prev_index[known]]) / dt
-        # Vehicle types: carried over from the previous step, looked up only for new ones.
-        jv = prev_index[:nv]
-        vtype = np.where(jv >= 0, self._prev_vtype[np.maximum(jv, 0)] if len(self._prev_vtype) else -1, -1)
-        fresh = np.flatnonzero(vtype < 0)
-        if len(fresh):
-            vtype[fresh] = self._vehicle_types([vids[i] for i in fresh.tolist()])
         vtype_all = np.concatenate([vtype, ptype])
+        self.vtypes.collect(vtype_all)  # bounded table: drops types nobody uses any more
         xy = np.concatenate([vxy, pxy])
         # A position change no motion explains (a person starting to wait at a stop far
         # from where it walked, a stage change, moveToXY) is a jump: physics must place,
@@ -442,7 +408,6 @@ class SumoSim:
             reach = np.maximum(speed_all[known], self._prev_speed[pk]) * dt + JUMP_MARGIN_M
             jumped_pos[known] = moved > reach
         self._prev_ids, self._prev_speed, self._prev_time = ids, speed_all, now
-        self._prev_vtype = vtype_all
         self._prev_xy = xy
         self._serial += 1
 
@@ -499,11 +464,15 @@ class SumoSim:
         res = self.api.trafficlight.getAllSubscriptionResults()
         now = float(self.api.simulation.getTime())
         rows = [res[t] for t in self.tls_ids]
+        programs = [r[TL_PROGRAM] for r in rows]
+        if self.tls.update(programs):
+            log.info("traffic-light links changed with a program switch (static version %d)", self.static_version)
         return TrafficLights(
             ids=list(self.tls_ids),
             state=[r[TL_STATE] for r in rows],
             phase=np.fromiter((r[TL_PHASE] for r in rows), np.int32, len(rows)),
             next_switch=np.fromiter((r[TL_NEXT] - now for r in rows), np.float32, len(rows)),
+            program=programs,
         )
 
     def route_of(self, vehicle_id: str) -> tuple[tuple[str, ...], int]:

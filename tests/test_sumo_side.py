@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from protocol.tables import StaticTracker
 from protocol.codec import decode, encode
 from protocol.messages import AgentClass, AgentFlag, StaticData, StepMessage
 from sumo_side.bridge import Bridge
@@ -74,11 +75,13 @@ def record(tmp_path_factory):
     }
     mism = rec["mismatch"]
     prev_ids: set[str] = set()
+    tracker = StaticTracker()  # the vType table travels only when it changes
     try:
         for k in range(STEPS):
             sim.step()
             snap = sim.read()
-            msg = bridge.build(k, snap)
+            msg = tracker.resolve(bridge.build(k, snap))
+            assert msg.vtypes is not None, k
             again = decode(encode(msg))
             assert isinstance(again, StepMessage) and again.agents.ids == msg.agents.ids
             a = msg.agents
