@@ -123,7 +123,7 @@ class Fleet:
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
             "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "retyped": 0,
         }
-        self.model_cls = np.zeros(0, np.int64)  # model class per agent of the newest step
+        self.wire_vtype = np.zeros(0, np.uint16)  # vType index per agent of the newest step
         self._empty()
         self.sumo_step = -1
         self.step_length = rates.ticks_per_step * rates.control_dt  # [s] of the newest SUMO step
@@ -216,10 +216,13 @@ class Fleet:
         # previous sample of each agent (yaw rate, sideways jumps, controller state); a
         # resync or a clock that went back (a new SUMO run) has no usable previous sample
         prev = np.fromiter((self._index.get(aid, -1) for aid in ids), np.int64, len(ids))
-        # a vType change (vehicle.setType) that needs another model: leave and spawn anew
+        # a vType change (vehicle.setType, a size of its own): leave and spawn anew in the
+        # model and pool of the new type (indexes of unchanged types never change)
         had = prev >= 0
-        if had.any() and len(self.model_cls) == len(self._index):
-            retyped = np.flatnonzero(had & (self.model_cls[np.maximum(prev, 0)] != model_cls))
+        vtype = a.vtype[rows]
+        if had.any() and len(self.wire_vtype) == len(self._index) == len(self.wire_cls):
+            p0 = np.maximum(prev, 0)
+            retyped = np.flatnonzero(had & ((self.wire_vtype[p0] != vtype) | (self.wire_cls[p0] != cls)))
             if len(retyped):
                 w.park(w.slot_of([ids[i] for i in retyped]))
                 prev[retyped] = -1
@@ -262,7 +265,7 @@ class Fleet:
             st.spawned = len(new)
         self.ids = ids
         self._index = {aid: i for i, aid in enumerate(ids)}
-        self.model_cls = model_cls
+        self.wire_vtype = vtype.astype(np.uint16)
         self.slots = slots
         self.wire_cls = cls.astype(np.uint8)
         self.kind = w.tables.kind[slots].astype(np.int8)

@@ -101,6 +101,9 @@ class Client:
         self.physics: dict[str, dict] = {}
         self.physics_count = 0
         self.rejected = 0
+        self.vtypes: list | None = None  # SPEC 3.1: the table travels only when it changes
+        self.static_version = -1  # "sv" of the static data we hold
+        self.step_version = -1  # "sv" of the newest step
 
     def fetch_static(self, timeout_s: float = 10.0) -> dict | None:
         deadline = time.monotonic() + timeout_s
@@ -120,6 +123,15 @@ class Client:
         with self.lock:
             self.steps.append(doc["step"])
             self.last_step = doc
+            self.step_version = doc.get("sv", 0)
+            if "vtypes" in doc:
+                self.vtypes = doc["vtypes"]
+                self.static_version = max(self.static_version, self.step_version)
+
+    def static_stale(self) -> bool:
+        """SPEC 3.2: a step refers to static tables we do not hold: query them again."""
+        with self.lock:
+            return self.step_version >= 0 and self.step_version != self.static_version
 
     def _on_physics(self, sample) -> None:
         try:
@@ -175,7 +187,12 @@ def main(argv: list[str] | None = None) -> int:
 
     c = Client(args.connect, args.root, args.run)
     static = c.fetch_static()
+    if static:
+        c.static_version = static.get("sv", 0)
+        c.vtypes = [list(p) for p in zip(static["vtypes"]["id"], static["vtypes"]["vclass"])]
     c.follow()
+    requeried = 0
+    last_query = 0.0
     report = {"static": None, "ego": None}
     if static:
         report["static"] = {"lanes": static["lanes"]["n"], "junctions": static["junctions"]["n"],
@@ -193,6 +210,14 @@ def main(argv: list[str] | None = None) -> int:
     published = 0
     while time.monotonic() - t0 < args.duration:
         el = time.monotonic() - t0
+        if c.static_stale() and el - last_query >= 1.0:  # at most once a second
+            last_query = el
+            fresh = c.fetch_static(timeout_s=2.0)
+            if fresh:
+                requeried += 1
+                with c.lock:
+                    c.static_version = fresh.get("sv", 0)
+                    c.vtypes = [list(p) for p in zip(fresh["vtypes"]["id"], fresh["vtypes"]["vclass"])]
         if shape is not None and not (args.ego_pause and args.ego_pause[0] <= el < args.ego_pause[1]):
             stop = args.ego_stop_at is not None and s >= args.ego_stop_at
             v = 0.0 if stop else args.ego_speed
@@ -214,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
             "physics_states_received": c.physics_count,
             "ego_in_physics": any(args.ego_id in d["agents"]["id"] for d in c.physics.values()) if args.ego_id else False,
             "rejected": c.rejected,
+            "static_version": c.static_version,
+            "static_requeried": requeried,
             "ego_poses_published": published,
         })
     c.session.close()
