@@ -136,8 +136,9 @@ print(json.dumps({"decoded": decoded,
     exe = env_dir / "bin" / "sumoco"
     v = subprocess.run([str(exe), "--version"], capture_output=True, text=True, timeout=60)
     assert v.returncode == 0 and "protocol" in v.stdout
-    for cmd, extra in (("sumo", "sumo"), ("physics", "physics")):
-        r = subprocess.run([str(exe), cmd], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    for cmd, extra in (("sumo", "sumo"), ("physics", "physics"), ("record --out r.mcap", "foxglove"),
+                       ("foxglove", "foxglove")):
+        r = subprocess.run([str(exe), *cmd.split()], capture_output=True, text=True, timeout=60, cwd=tmp_path)
         assert r.returncode == 2, (cmd, r.returncode, r.stderr)
         assert f"pip install 'sumoco[{extra}]'" in r.stderr, r.stderr
     _bare_replay_reaches_a_subscriber(exe, tmp_path)

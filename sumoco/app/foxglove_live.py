@@ -15,6 +15,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import foxglove  # the `foxglove` extra: without it the CLI names the extra to install
 import zenoh
 
 from protocol.keys import Keys
@@ -89,8 +90,6 @@ def cli_main(args) -> int:
     """``sumoco foxglove``: serve the live scene until Ctrl-C (or --duration seconds)."""
     import json
     import signal
-
-    import foxglove
 
     from sumoco.common.config import CommonConfig, apply_cli, load_common
     from sumoco.common.transport import open_session

@@ -181,6 +181,7 @@ class LiveRecorder:
         self._period = 1.0 / self.config.physics_hz if self.config.physics_hz > 0 else 0.0
         self._last_t: dict[str, float] = {}
         self.received = self.dropped = self.thinned = self.written = self.write_errors = 0
+        self._stopped = threading.Event()
         self._writer = threading.Thread(target=self._write_loop, name="record-writer", daemon=True)
         self._writer.start()
 
@@ -262,15 +263,19 @@ class LiveRecorder:
     def _query(self, key: str, kind: str, timeout_s: float) -> bytes | None:
         """Ask ``key`` until answered (bounded); the answer is recorded on that key."""
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            for reply in self.session.get(key, timeout=min(2.0, timeout_s)):
+        while time.monotonic() < deadline and not self._stopped.is_set():
+            try:
+                replies = list(self.session.get(key, timeout=min(2.0, timeout_s)))
+            except zenoh.ZError:  # the session closed under a background query
+                return None
+            for reply in replies:
                 if reply.ok is not None:
                     data = reply.ok.payload.to_bytes()
                     with self._bytes_lock:
                         self._queued_bytes += len(data)
                     self._q.put((key, data, time.time_ns(), kind))
                     return data
-            time.sleep(0.2)
+            self._stopped.wait(0.2)
         return None
 
     def fetch_static(self, timeout_s: float = 5.0, map_timeout_s: float = 60.0) -> bytes | None:
@@ -285,6 +290,7 @@ class LiveRecorder:
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Stop listening, then write what is queued (bounded wait)."""
+        self._stopped.set()
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None
@@ -309,7 +315,13 @@ def record_cli(args) -> int:
     import signal
 
     from sumoco.common.config import CommonConfig, apply_cli, load_common, replace, section
+    from sumoco.common.errors import MissingExtraError
     from sumoco.common.transport import open_session
+
+    try:
+        import foxglove  # noqa: F401  (the MCAP writer and the scene)
+    except ModuleNotFoundError as e:
+        raise MissingExtraError("record", "foxglove", "foxglove") from e
 
     cfg = RecordConfig()
     if args.config:

@@ -208,14 +208,19 @@ def gateway_latency(agents: int, messages: int = 200, rate_hz: float = 20.0) -> 
 
 def run_record_bench(quick: bool = False) -> list[dict]:
     rows = []
-    secs = 5.0 if quick else 20.0
+    secs = 5.0 if quick else 15.0
+    variants = {"defaults": RecordConfig(), "no_scene": RecordConfig(scene=False),
+                "everything": RecordConfig(physics_hz=0.0, scene_hz=0.0)}
+    plan = [(377, "defaults")] if quick else [(377, "defaults"), (377, "no_scene"), (377, "everything"),
+                                               (2500, "defaults"), (2500, "no_scene")]
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
-        for n in ((377,) if quick else (377, 2500)):
-            rows.append(record_size(n, secs, t / f"rec_{n}.mcap"))
-            if n == 377:
-                rows.append(replay_fidelity(t / f"rec_{n}.mcap"))
-            os.remove(t / f"rec_{n}.mcap")
+        for n, name in plan:
+            path = t / f"rec_{n}_{name}.mcap"
+            rows.append({**record_size(n, secs, path, variants[name]), "variant": name})
+            if n == 377 and name == "defaults":
+                rows.append(replay_fidelity(path))
+            os.remove(path)
         rows += report_rss(377, (10.0, 40.0) if quick else (30.0, 240.0), t)
     return rows
 
