@@ -49,6 +49,7 @@ class PhysicsConfig:
         default_factory=lambda: {"passenger": 64, "taxi": 4, "bus": 4, "bicycle": 8, "pedestrian": 16}
     )  # [slots per shard] pre-allocated parked slots per type (its default size bucket)
     pool_chunk: int = 32  # [slots] a pool that runs out grows by at least this many per shard
+    expect: dict[str, int] = field(default_factory=dict)  # [agents] at once per type, e.g. {passenger = 3000}: pools sized up front
     step_queue: int = 64  # [messages] bounded FIFO of received SUMO steps
     step_queue_mb: float = 64.0  # [MiB] byte bound of that FIFO (full: the oldest step is dropped)
     log_every_s: float = 1.0  # [s] status line period (wall clock)
@@ -77,6 +78,11 @@ class PhysicsConfig:
                 raise ConfigError(f"physics.initial_slots.{k}: unknown agent type")
             if v < 0:
                 raise ConfigError(f"physics.initial_slots.{k}: expected >= 0, got {v}")
+        for k, v in self.expect.items():
+            if k not in TYPES[:-1]:
+                raise ConfigError(f"physics.expect.{k}: unknown agent type (expected one of {', '.join(TYPES[:-1])})")
+            if v < 0:
+                raise ConfigError(f"physics.expect.{k}: expected >= 0, got {v}")
         if self.shards < 1 or self.threads < 0:
             raise ConfigError("physics: shards must be >= 1 and threads >= 0")
         if self.pool_chunk < 1 or self.step_queue < 1:
@@ -262,3 +268,21 @@ __all__ = [
     "ControlConfig", "DefaultControl", "PaperControl", "PhysicsConfig", "PhysicsSettings",
     "MAX_STEP_S", "MIN_STEP_S", "PRESETS", "Rates", "TYPES", "check_rates", "load_physics_config", "ticks_to",
 ]
+
+
+def parse_expect(text: str) -> dict[str, int]:
+    """``--expect``: ``N`` (passenger cars) or ``type=N,type=N`` -> agents per type."""
+    out: dict[str, int] = {}
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        name, _, num = part.rpartition("=")
+        name = name.strip() or "passenger"
+        if name not in TYPES[:-1]:
+            raise ConfigError(f"--expect: unknown agent type {name!r} (expected one of {', '.join(TYPES[:-1])})")
+        try:
+            n = int(num)
+        except ValueError:
+            raise ConfigError(f"--expect: expected a whole number of agents for {name}, got {num!r}") from None
+        if n < 0:
+            raise ConfigError(f"--expect: expected >= 0 agents for {name}, got {n}")
+        out[name] = n
+    return out

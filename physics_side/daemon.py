@@ -34,7 +34,7 @@ from dataclasses import replace
 import numpy as np
 import zenoh
 
-from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config, ticks_to
+from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config, parse_expect, ticks_to
 from physics_side.fleet import Fleet
 from physics_side.models import TYPE_NAMES
 from physics_side.world import PhysicsWorld
@@ -370,15 +370,17 @@ class _Status:
         self.mujoco_s = 0.0
 
 
-def build_fleet(settings: PhysicsSettings) -> Fleet:
-    """World (pre-allocated pools) + fleet for a config."""
+def build_fleet(settings: PhysicsSettings, realtime: bool = False) -> Fleet:
+    """World (pools sized up front) + fleet for a config. ``realtime``: switch to a model
+    grown in the background as soon as it is ready (lockstep: when a pool runs out)."""
     cfg = settings.physics
     rates = check_rates(cfg.sumo_step_s, cfg.control_hz, cfg.timestep_s)
     initial = {TYPE_NAMES[k]: v for k, v in cfg.initial_slots.items()}
+    expect = {TYPE_NAMES[k]: v for k, v in cfg.expect.items()}
     awd = frozenset(TYPE_NAMES[k] for k in cfg.all_wheel_drive)
     world = PhysicsWorld(
         cfg.timestep_s, rates.substeps, shards=cfg.shards, threads=cfg.threads, initial=initial,
-        pool_chunk=cfg.pool_chunk, awd=awd,
+        pool_chunk=cfg.pool_chunk, awd=awd, expect=expect, adopt_early=realtime,
     )
     return Fleet(world, settings, rates)
 
@@ -400,9 +402,11 @@ def cli_main(args) -> int:
         phys = replace(phys, preset=args.preset, presets={})
     if getattr(args, "instance", None):
         phys = replace(phys, instance=args.instance)
+    if getattr(args, "expect", None):
+        phys = replace(phys, expect=parse_expect(args.expect))
     settings = replace(settings, physics=phys)
     keys = Keys(common.zenoh.root, common.run.id, phys.instance)
-    fleet = build_fleet(settings)
+    fleet = build_fleet(settings, realtime=common.run.timing == "realtime")
     with open_session(common.zenoh, role="physics") as session:
         daemon = PhysicsDaemon(session, keys, fleet, settings, common.run).start()
         old = {}
@@ -417,6 +421,7 @@ def cli_main(args) -> int:
             return daemon.run()
         finally:
             daemon.close()
+            fleet.world.close()
             for sig, h in old.items():
                 signal.signal(sig, h)
 

@@ -28,10 +28,20 @@ from physics_side import models as M
 log = logging.getLogger(__name__)
 
 # Parking lot where unused slots sleep. Far from any SUMO network (whose coordinates are
-# >= 0 after netconvert's offset) and in a grid so parked agents never touch.
+# >= 0 after netconvert's offset): each pool parks on its own line along +x, slots
+# PARK_SPACING apart, so parked agents never touch.
 PARK_ORIGIN = (-50_000.0, -50_000.0)
 PARK_SPACING = 25.0  # [m] > the longest bucket (18 m bus)
-PARK_ROW = 200  # slots per parking row
+# Compiling is superlinear in the trees of one model (MuJoCo's compile-time constants,
+# e.g. each body's inverse weight, cost O(nbody * nv)): 256 car slots compile in ~0.2 s
+# of CPU, 1,024 in ~3 s, 4,096 not in a minute. Worlds beyond this many slots per
+# simulation use more simulations of the same model instead (one compile).
+SLOTS_PER_SIM = 256
+# Arena per simulation: measured ~100 B * slots^2 with every slot awake on the ground
+# (26 MB at 512 slots); twice that plus a floor. MuJoCo's default heuristic reserved
+# 1.8 GB for 512 slots.
+ARENA_FLOOR = 16 << 20  # [bytes]
+ARENA_PER_SLOT2 = 200  # [bytes / slot^2]
 
 # Joint and actuator names of each kind of model, in the order the tables use them.
 _STEER_JOINTS = {M.KIND_CAR: ("steer_fl", "steer_fr"), M.KIND_BIKE: ("steer_f", "steer_f"), M.KIND_PED: ()}
@@ -63,22 +73,50 @@ class Pool:
 
 def park_position(pool_index: int, slot: int | np.ndarray) -> tuple:
     """Parking spot [m] of slot ``slot`` of pool ``pool_index`` (stable when pools grow)."""
-    row = pool_index * 1000 + np.asarray(slot) // PARK_ROW
-    x = PARK_ORIGIN[0] + (np.asarray(slot) % PARK_ROW) * PARK_SPACING
-    y = PARK_ORIGIN[1] + row * PARK_SPACING
+    x = PARK_ORIGIN[0] + np.asarray(slot, np.float64) * PARK_SPACING
+    y = np.full_like(x, PARK_ORIGIN[1] - pool_index * PARK_SPACING)
     if np.ndim(x) == 0:
         return float(x), float(y)
-    return x.astype(np.float64), y.astype(np.float64)
+    return x, y
 
 
-def slot_prefix(pool_name: str, i: int) -> str:
-    return f"{pool_name}#{i}/"
+def slot_prefix(pool_name: str, capacity: int, i: int) -> str:
+    """Name prefix of slot ``i`` of a pool of ``capacity`` slots (see ``build_world_spec``)."""
+    start = 0
+    for k in range(capacity.bit_length() - 1, -1, -1):
+        if capacity >> k & 1:
+            if i < start + (1 << k):
+                path = format(i - start, f"0{k}b") if k else ""
+                return f"{pool_name}#{k}/" + path.replace("0", "a").replace("1", "b")
+            start += 1 << k
+    raise IndexError(f"slot {i} of a pool of {capacity}")
+
+
+def _blocks(template: mujoco.MjSpec, capacity: int) -> list[mujoco.MjSpec]:
+    """Specs of 1, 2, 4, ... slots up to ``capacity``, each two copies of the previous one.
+
+    One attach per doubling copies the block once, so ``n`` slots cost O(n) (an attach
+    per slot into the growing world is O(world) each: a 1,024-slot pool took ~16 s).
+    """
+    blocks = [template]
+    while 1 << len(blocks) <= capacity:
+        prev = blocks[-1]
+        half = 1 << (len(blocks) - 1)
+        s = mujoco.MjSpec()
+        s.compiler.degree = False
+        s.copy_during_attach = True
+        s.attach(prev, frame=s.worldbody.add_frame(pos=[0.0, 0.0, 0.0]), prefix="a")
+        s.attach(prev, frame=s.worldbody.add_frame(pos=[half * PARK_SPACING, 0.0, 0.0]), prefix="b")
+        blocks.append(s)
+    return blocks
 
 
 def build_world_spec(pools: list[Pool], timestep: float) -> mujoco.MjSpec:
     """The world spec: ground plus ``capacity`` parked, initially sleeping copies per pool.
 
-    Slot ``i`` of pool ``p`` is the subtree with prefix ``f"{p.spec.name}#{i}/"``.
+    A pool of ``capacity`` slots is the blocks of its binary digits (2^k slots each, from
+    ``_blocks``) side by side; slot ``i`` is the subtree named
+    ``slot_prefix(name, capacity, i) + "agent"``, its slots in order of ``i``.
     """
     s = mujoco.MjSpec()
     s.copy_during_attach = True
@@ -88,15 +126,24 @@ def build_world_spec(pools: list[Pool], timestep: float) -> mujoco.MjSpec:
         if p.capacity == 0:
             continue
         t = M.template(p.spec)
-        root = t.body("agent")
         # Parked slots start asleep: no cost until spawned (the world wakes them by
         # switching their tree's sleep policy to "never").
-        root.sleep = mujoco.mjtSleepPolicy.mjSLEEP_INIT
-        for i in range(p.capacity):
-            x, y = park_position(p.index, i)
-            f = s.worldbody.add_frame(pos=[x, y, 0.0])
-            f.attach_body(root, slot_prefix(p.spec.name, i))
+        t.body("agent").sleep = mujoco.mjtSleepPolicy.mjSLEEP_INIT
+        blocks = _blocks(t, p.capacity)
+        x0, y0 = park_position(p.index, 0)
+        start = 0
+        for k in range(p.capacity.bit_length() - 1, -1, -1):
+            if p.capacity >> k & 1:
+                f = s.worldbody.add_frame(pos=[x0 + start * PARK_SPACING, y0, 0.0])
+                s.attach(blocks[k], frame=f, prefix=f"{p.spec.name}#{k}/")
+                start += 1 << k
+    s.memory = arena_bytes(sum(p.capacity for p in pools))
     return s
+
+
+def arena_bytes(slots: int) -> int:
+    """Arena size [bytes] of one simulation of ``slots`` slots (see ``ARENA_PER_SLOT2``)."""
+    return ARENA_FLOOR + ARENA_PER_SLOT2 * slots * slots
 
 
 @dataclass
@@ -265,26 +312,27 @@ def _build_tables(
         spec = pool.spec
         rest = M.rest_pose(spec, timestep)
         acts = _ACTUATORS[spec.kind]
-        b0 = m.body(slot_prefix(spec.name, 0) + "agent").id
+        pre0 = slot_prefix(spec.name, C, 0)
+        b0 = m.body(pre0 + "agent").id
         tree0 = int(m.body_treeid[b0])
         j0 = int(m.body_jntadr[b0])
         q0, d0 = int(m.jnt_qposadr[j0]), int(m.jnt_dofadr[j0])
-        a0 = m.actuator(slot_prefix(spec.name, 0) + acts[0]).id
+        a0 = m.actuator(pre0 + acts[0]).id
         tree_joints = np.flatnonzero(m.body_treeid[m.jnt_bodyid] == tree0)
         nq_slot = int(_JOINT_NQ[m.jnt_type[tree_joints]].sum())
         nv_slot = int(m.tree_dofnum[tree0])
         nb_slot = int(m.tree_bodynum[tree0])
         nu_slot = len(acts)
-        rel_act = {n: m.actuator(slot_prefix(spec.name, 0) + n).id - a0 for n in acts}
+        rel_act = {n: m.actuator(pre0 + n).id - a0 for n in acts}
         rel_sq = np.array(
-            [m.jnt_qposadr[m.joint(slot_prefix(spec.name, 0) + j).id] - q0 for j in _STEER_JOINTS[spec.kind]],
+            [m.jnt_qposadr[m.joint(pre0 + j).id] - q0 for j in _STEER_JOINTS[spec.kind]],
             np.int64)
         rel_sd = np.array(
-            [m.jnt_dofadr[m.joint(slot_prefix(spec.name, 0) + j).id] - d0 for j in _SPIN_JOINTS[spec.kind]],
+            [m.jnt_dofadr[m.joint(pre0 + j).id] - d0 for j in _SPIN_JOINTS[spec.kind]],
             np.int64)
-        last = slot_prefix(spec.name, C - 1)
+        last = slot_prefix(spec.name, C, C - 1)
         lb = m.body(last + "agent").id
-        g_first = m.geom(slot_prefix(spec.name, 0) + "chassis").id
+        g_first = m.geom(pre0 + "chassis").id
         ng_slot = (m.geom(last + "chassis").id - g_first) // (C - 1) if C > 1 else 0
         if (lb != b0 + (C - 1) * nb_slot or m.actuator(last + acts[0]).id != a0 + (C - 1) * nu_slot
                 or m.jnt_qposadr[m.body_jntadr[lb]] != q0 + (C - 1) * nq_slot):
@@ -375,6 +423,6 @@ def carry_over(old: Layout, new: Layout, slots: np.ndarray) -> np.ndarray:
 
 
 __all__ = [
-    "Layout", "PARK_ORIGIN", "PARK_ROW", "PARK_SPACING", "Pool", "SlotTables", "build_world_spec",
-    "carry_over", "compile_layout", "park_position", "slot_prefix",
+    "Layout", "PARK_ORIGIN", "PARK_SPACING", "Pool", "SlotTables", "build_world_spec",
+    "SLOTS_PER_SIM", "arena_bytes", "carry_over", "compile_layout", "park_position", "slot_prefix",
 ]

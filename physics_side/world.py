@@ -20,7 +20,9 @@ over its share, else to the least-loaded shard.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import logging
+import math
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -30,7 +32,7 @@ import numpy as np
 
 from physics_side import models as M
 from physics_side.control import ackermann, steady_state_delta
-from physics_side.layout import Layout, Pool, SlotTables, carry_over, compile_layout
+from physics_side.layout import SLOTS_PER_SIM, Layout, Pool, SlotTables, carry_over, compile_layout
 from physics_side.reference import concat_ranges
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
@@ -44,6 +46,24 @@ MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
 NEW_POOL_SLOTS = 4  # [slots per shard] first capacity of a pool for a newly seen size
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
+HEADROOM = 1.25  # expected agents -> slots (sized up front)
+
+
+@dataclass(frozen=True)
+class _Growth:
+    """A bigger model being compiled on the worker thread."""
+
+    future: concurrent.futures.Future
+    capacity: dict[int, int]
+    """Slots per simulation of each pool in it."""
+    sims: int
+
+    def covers(self, needs: dict[int, int], pools: list[Pool], sims: int) -> bool:
+        """Whether it adds ``needs`` (pool -> slots per simulation of ``sims``) to ``pools``."""
+        return all(
+            p in self.capacity and self.capacity[p] * self.sims - pools[p].capacity * sims >= e * sims
+            for p, e in needs.items()
+        )
 
 
 @dataclass(frozen=True)
@@ -152,29 +172,47 @@ class PhysicsWorld:
     def __init__(
         self, timestep: float = 0.005, substeps: int = 4, shards: int = 1, threads: int = 0,
         initial: dict[AgentClass, int] | None = None, pool_chunk: int = 32,
-        awd: frozenset[AgentClass] = frozenset(),
+        awd: frozenset[AgentClass] = frozenset(), expect: dict[AgentClass, int] | None = None,
+        adopt_early: bool = False,
     ):
+        """``initial``: slots per simulation per class (its default size bucket); ``expect``:
+        agents per class expected at once over the whole world (sized up front with
+        ``HEADROOM``). ``shards`` simulations at least, more when the slots would exceed
+        ``layout.SLOTS_PER_SIM`` per simulation. ``adopt_early``: switch to a model grown in
+        the background as soon as it is ready (realtime); else only when a pool runs out,
+        so that a lockstep run does not depend on compile times."""
         self.timestep = float(timestep)
         self.substeps = int(substeps)
-        self.shards = int(shards)
-        self.threads = int(threads) or self.shards
+        self.threads = int(threads) or int(shards)
         self.pool_chunk = int(pool_chunk)
         self.awd = frozenset(awd)
+        self.adopt_early = bool(adopt_early)
         self._pools: list[Pool] = []
         self._pool_key: dict[tuple[str, int, int], int] = {}
-        initial = initial or {}
-        for cls, n in initial.items():
-            if n > 0:
-                self._add_pool(M.default_key(AgentClass(cls)), n)
+        initial = {AgentClass(c): int(n) for c, n in (initial or {}).items()}
+        expect = {AgentClass(c): int(n) for c, n in (expect or {}).items()}
+        demand = {  # pools numbered in the order the config lists the types
+            c: max(initial.get(c, 0) * int(shards), math.ceil(expect.get(c, 0) * HEADROOM))
+            for c in [*initial, *(c for c in expect if c not in initial)]
+        }
+        self.shards = max(int(shards), math.ceil(sum(demand.values()) / SLOTS_PER_SIM))
+        for cls in demand:
+            if demand[cls] > 0:
+                self._add_pool(M.default_key(cls), max(initial.get(cls, 0), math.ceil(demand[cls] / self.shards)))
         self.generation = 0
         self.agent_slot: dict[str, int] = {}
         self.slot_agent: list[str | None] = []
-        self.counters = {"placements": 0, "spawned": 0, "parked": 0, "collisions": 0, "pool_grows": 0}
+        self.counters = {
+            "placements": 0, "spawned": 0, "parked": 0, "collisions": 0, "pool_grows": 0, "growth_waits": 0,
+        }
         self.mujoco_s = 0.0  # [s] wall time spent in MuJoCo steps (cumulative)
-        self.build_s = 0.0  # [s] wall time spent compiling (cumulative)
+        self.build_s = 0.0  # [s] wall time spent compiling on the stepping thread (cumulative)
+        self.wait_s = 0.0  # [s] wall time spent waiting for a background growth (cumulative)
         self.time = 0.0  # [s] simulated time
         self.live = np.zeros(0, bool)
-        self._compile()
+        self._growth: _Growth | None = None
+        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
+        self._install(compile_layout(self._pools, self.timestep, self.shards, self.threads))
 
     # ------------------------------------------------------------------ pools / compile
 
@@ -198,12 +236,13 @@ class PhysicsWorld:
         """Total slots over all pools and shards."""
         return self.shards * sum(p.capacity for p in self._pools)
 
-    def _compile(self) -> None:
-        """Compile the current pools; live agents of the previous layout keep their exact
+    def _install(self, layout: Layout) -> None:
+        """Switch to a compiled layout; live agents of the previous one keep their exact
         qpos/qvel/ctrl/brakes (slot numbers change: ``generation`` increments)."""
         old = getattr(self, "_layout", None)
-        layout = compile_layout(self._pools, self.timestep, self.shards, self.threads)
         self._layout = layout
+        self._pools = list(layout.pools)
+        self.shards = layout.shards
         self.model = layout.model
         self._batch = layout.batch
         self._state = layout.state
@@ -234,7 +273,6 @@ class PhysicsWorld:
         if old is not None:
             self._restore(old, old_live, old_agents)
         self.generation += 1
-        self.build_s += layout.build_s
 
     def _restore(self, old: Layout, live: np.ndarray, agents: list) -> None:
         """Copy live agents from the previous layout (same pool/shard/index) into this one."""
@@ -249,6 +287,8 @@ class PhysicsWorld:
             self._state[dst] = old.state[src]
         ok = ot.spin_fl[olds] >= 0
         self._fl[new.spin_fl[news][ok]] = old.frictionloss[ot.spin_fl[olds][ok]]
+        self._contype[new.geom[news]] = old.contype[ot.geom[olds]]  # ghosts stay ghosts
+        self._conaff[new.geom[news]] = old.conaffinity[ot.geom[olds]]
         self._policy[new.tree[news]] = SLEEP_NEVER
         self.live[news] = True
         for g_old, g_new in zip(olds, news):
@@ -259,21 +299,103 @@ class PhysicsWorld:
         for k in {(int(new.pool[g]), int(new.shard[g])) for g in news}:
             self._free[k] = [g for g in self._free[k] if g not in taken]
 
+    def _grown_pools(self, extra: dict[int, int]) -> tuple[list[Pool], int]:
+        """Pools and simulation count with ``extra`` more slots per simulation for some pools:
+        more slots per simulation up to ``SLOTS_PER_SIM``, more simulations beyond."""
+        pools = [Pool(p.index, p.spec, p.capacity + extra.get(p.index, 0)) for p in self._pools]
+        per_sim = sum(p.capacity for p in pools)
+        sims = self.shards
+        if per_sim > SLOTS_PER_SIM:
+            total = {p.index: p.capacity * self.shards for p in pools}
+            sims = max(self.shards, math.ceil(sum(total.values()) / SLOTS_PER_SIM))
+            old = {p.index: p.capacity for p in self._pools}
+            pools = [Pool(p.index, p.spec, max(old[p.index], math.ceil(total[p.index] / sims))) for p in pools]
+        return pools, sims
+
     def _grow(self, needs: dict[int, int]) -> None:
-        """Grow pools (pool index -> extra slots per shard) with one recompile."""
+        """Grow pools (pool index -> extra slots per simulation) now, with one recompile:
+        a pool the background growth does not cover (e.g. a size seen for the first time)."""
         # a pool's first slots (a size seen for the first time) start small: sizes are many,
         # and every slot of every pool is rebuilt by the recompile
-        add = {p: max(extra, self.pool_chunk if self._pools[p].capacity else NEW_POOL_SLOTS)
-               for p, extra in needs.items()}
-        for p, extra in add.items():
-            old = self._pools[p]
-            self._pools[p] = Pool(old.index, old.spec, old.capacity + extra)
+        extra = {p: max(e, self.pool_chunk if self._pools[p].capacity else NEW_POOL_SLOTS) for p, e in needs.items()}
         log.warning(
             "physics world: pools exhausted (%s), recompiling with more slots",
-            ", ".join(f"{self._pools[p].spec.name} +{e}" for p, e in add.items()),
+            ", ".join(f"{self._pools[p].spec.name} +{e}" for p, e in extra.items()),
         )
-        self._compile()
+        pools, sims = self._grown_pools(extra)
+        t0 = time.perf_counter()
+        layout = compile_layout(pools, self.timestep, sims, self.threads)
+        self.build_s += time.perf_counter() - t0
+        self._install(layout)
         self.counters["pool_grows"] += 1
+
+    def _grow_in_background(self, extra: dict[int, int]) -> None:
+        """Compile a bigger model on a worker thread (MuJoCo's compile releases the GIL);
+        ``_adopt`` switches to it later."""
+        if self._growth is not None:
+            return
+        pools, sims = self._grown_pools(extra)
+        if self._executor is None:
+            self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="physics-growth")
+        log.info(
+            "physics world: pools running low (%s), compiling %d slots in the background",
+            ", ".join(f"{self._pools[p].spec.name} +{e}" for p, e in extra.items()), sims * sum(p.capacity for p in pools),
+        )
+        fut = self._executor.submit(compile_layout, pools, self.timestep, sims, self.threads)
+        self._growth = _Growth(fut, {p.index: p.capacity for p in pools}, sims)
+
+    def _adopt(self, wait: bool) -> bool:
+        """Switch to the background-grown model if it is ready (or ``wait`` for it)."""
+        g = self._growth
+        if g is None or (not wait and not g.future.done()):
+            return False
+        if not g.future.done():
+            t0 = time.perf_counter()
+            concurrent.futures.wait([g.future])
+            self.wait_s += time.perf_counter() - t0
+            self.counters["growth_waits"] += 1
+        self._growth = None
+        layout = g.future.result()
+        if len(layout.pools) < len(self._pools) or any(
+            p.capacity > q.capacity for p, q in zip(self._pools, layout.pools)
+        ):
+            return False  # pools were added meanwhile: that growth is stale
+        self._install(layout)
+        self.counters["pool_grows"] += 1
+        return True
+
+    def _low_water(self) -> None:
+        """Start a background growth for pools whose free slots fall below a quarter of
+        their capacity (at least ``pool_chunk``)."""
+        if self._growth is not None:
+            return
+        extra = {}
+        for p in self._pools:
+            if p.capacity == 0:
+                continue
+            free = sum(len(self._free.get((p.index, s), ())) for s in range(self.shards))
+            if free < max(self.pool_chunk, p.capacity * self.shards // 4):
+                extra[p.index] = max(self.pool_chunk, p.capacity // 2)
+        if extra:
+            self._grow_in_background(extra)
+
+    @property
+    def growing(self) -> bool:
+        """A bigger model is being compiled, or waits to be switched in."""
+        return self._growth is not None
+
+    @property
+    def growth_ready(self) -> bool:
+        """The bigger model is compiled (switched in when a pool runs out, or at once with
+        ``adopt_early``)."""
+        return self._growth is not None and self._growth.future.done()
+
+    def close(self) -> None:
+        """Stop a background growth (its result is dropped)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+        self._growth = None
 
     # ------------------------------------------------------------------ agent set
 
@@ -297,13 +419,12 @@ class PhysicsWorld:
         The slot is woken but not placed: call ``place`` next.
         """
         pools = np.asarray(pools, np.int64)
-        # how many per pool, and do the pools have room in some shard?
-        needs: dict[int, int] = {}
-        for p in np.unique(pools):
-            want = int((pools == p).sum())
-            have = sum(len(self._free.get((int(p), s), [])) for s in range(self.shards))
-            if self._pools[int(p)].capacity == 0 or have < want:
-                needs[int(p)] = -(-(want - have) // self.shards) + 1
+        if self.adopt_early:
+            self._adopt(wait=False)
+        needs = self._needs(pools)
+        if needs and self._growth is not None and self._growth.covers(needs, self._pools, self.shards):
+            self._adopt(wait=True)
+            needs = self._needs(pools)
         if needs:
             self._grow(needs)
         t = self._tables
@@ -332,7 +453,18 @@ class PhysicsWorld:
             self.agent_slot[aid] = g
         self._policy[t.tree[out]] = SLEEP_NEVER
         self.counters["spawned"] += len(ids)
+        self._low_water()
         return out
+
+    def _needs(self, pools: np.ndarray) -> dict[int, int]:
+        """Extra slots per simulation each pool needs for ``pools`` (one entry per new agent)."""
+        needs: dict[int, int] = {}
+        for p in np.unique(pools):
+            want = int((pools == p).sum())
+            have = sum(len(self._free.get((int(p), s), [])) for s in range(self.shards))
+            if self._pools[int(p)].capacity == 0 or have < want:
+                needs[int(p)] = -(-(want - have) // self.shards) + 1
+        return needs
 
     def park(self, slots: np.ndarray) -> None:
         """Send slots back to the parking lot (zero velocity, brakes on) and let them sleep."""

@@ -1,0 +1,96 @@
+"""Pools that scale: linear build, up-front sizing, growth prepared in the background (real MuJoCo)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from physics_side import layout as L
+from physics_side import models as M
+from physics_side.config import parse_expect
+from physics_side.world import PhysicsWorld
+from protocol.errors import ConfigError
+from protocol.messages import AgentClass
+from tests.harness import wait_until
+
+CAR = M.default_spec(AgentClass.PASSENGER)
+PED = M.default_spec(AgentClass.PEDESTRIAN)
+
+
+def _car_pool(w: PhysicsWorld) -> int:
+    return w.pool_for(M.CLASS_FAMILY[AgentClass.PASSENGER], *M.DEFAULT_SIZE[AgentClass.PASSENGER])
+
+
+def _cpu_build(slots: int) -> tuple[float, PhysicsWorld]:
+    t0 = time.process_time()
+    w = PhysicsWorld(0.005, 4, shards=1, threads=1, initial={}, expect={AgentClass.PASSENGER: slots})
+    return time.process_time() - t0, w
+
+
+def test_slot_names_and_strides_follow_the_binary_blocks():
+    spec = L.build_world_spec([L.Pool(0, CAR, 5), L.Pool(1, PED, 3)], 0.005)
+    m = spec.compile()
+    # slot i of a pool is at its parking spot, in order of i
+    for i in range(5):
+        b = m.body(L.slot_prefix(CAR.name, 5, i) + "agent")
+        assert b.id == 1 + 5 * i  # world, then 5 bodies per car slot
+        x, y = L.park_position(0, i)
+        assert m.body_pos[b.id][0] == pytest.approx(x) and m.body_pos[b.id][1] == pytest.approx(y)
+    assert m.nu == 5 * 3 + 3 * 3
+    assert m.narena == L.arena_bytes(8)
+    with pytest.raises(IndexError):
+        L.slot_prefix(CAR.name, 5, 5)
+
+
+def test_pool_build_grows_linearly_in_slots_and_memory_is_sized():
+    small, w_small = _cpu_build(320)
+    big, w_big = _cpu_build(1280)
+    assert w_big.capacity >= 1600 and w_small.capacity >= 400
+    # one attach per slot was quadratic (x16 for x4 slots); one model per SLOTS_PER_SIM is linear
+    assert big < 4.0 * small + 0.5, (small, big)
+    assert w_big.shards >= 1600 / L.SLOTS_PER_SIM
+    assert w_big.model.narena <= L.arena_bytes(L.SLOTS_PER_SIM)
+
+
+def test_expected_agents_fit_without_a_recompile():
+    w = PhysicsWorld(0.005, 4, shards=2, initial={}, expect={AgentClass.PASSENGER: 600, AgentClass.PEDESTRIAN: 40})
+    p = _car_pool(w)
+    n = 600
+    x = np.arange(n) * 30.0
+    slots = w.allocate([f"v{i}" for i in range(n)], np.full(n, p), x, np.zeros(n))
+    assert len(set(slots.tolist())) == n
+    assert w.counters["pool_grows"] == 0 and w.counters["growth_waits"] == 0
+    w.close()
+
+
+def test_growth_is_compiled_in_the_background_and_keeps_live_agents():
+    w = PhysicsWorld(0.005, 4, shards=1, initial={AgentClass.PASSENGER: 40}, pool_chunk=8)
+    p = _car_pool(w)
+    n = 34  # beyond the low-water mark (free < 10): a bigger model starts compiling
+    ids = [f"v{i}" for i in range(n)]
+    s = w.allocate(ids, np.full(n, p), np.arange(n) * 30.0, np.zeros(n))
+    w.place(s, np.arange(n) * 30.0, np.zeros(n), np.zeros(n), np.full(n, 5.0))
+    assert w.growing
+    gen = w.generation
+    wait_until(lambda: w.growth_ready, timeout_s=60.0, what="background compile")
+    for _ in range(5):  # the world keeps stepping meanwhile
+        w.step()
+    before = w.observe(w.slot_of(ids))
+    more = [f"w{i}" for i in range(10)]  # only 6 free: the grown model is switched in
+    s2 = w.allocate(more, np.full(10, p), np.arange(10) * 30.0, np.full(10, 50.0))
+    assert w.generation == gen + 1 and w.counters["pool_grows"] == 1 and w.counters["growth_waits"] == 0
+    after = w.observe(w.slot_of(ids))
+    assert np.array_equal(before.fx, after.fx) and np.array_equal(before.speed, after.speed)
+    assert len(set(s2.tolist()) | set(w.slot_of(ids).tolist())) == n + 10
+    w.close()
+
+
+def test_parse_expect():
+    assert parse_expect("3000") == {"passenger": 3000}
+    assert parse_expect("passenger=100, bus=4") == {"passenger": 100, "bus": 4}
+    with pytest.raises(ConfigError, match="unknown agent type 'tram'"):
+        parse_expect("tram=3")
+    with pytest.raises(ConfigError, match="whole number"):
+        parse_expect("bus=many")
