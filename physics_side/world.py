@@ -365,8 +365,8 @@ class PhysicsWorld:
         return True
 
     def _low_water(self) -> None:
-        """Start a background growth for pools whose free slots fall below a quarter of
-        their capacity (at least ``pool_chunk``)."""
+        """Start a background growth for pools with less than a quarter of their slots free
+        (each grows by half its size, at least ``pool_chunk`` per simulation)."""
         if self._growth is not None:
             return
         extra = {}
@@ -374,7 +374,7 @@ class PhysicsWorld:
             if p.capacity == 0:
                 continue
             free = sum(len(self._free.get((p.index, s), ())) for s in range(self.shards))
-            if free < max(self.pool_chunk, p.capacity * self.shards // 4):
+            if 4 * free < p.capacity * self.shards:
                 extra[p.index] = max(self.pool_chunk, p.capacity // 2)
         if extra:
             self._grow_in_background(extra)

@@ -68,7 +68,7 @@ def test_expected_agents_fit_without_a_recompile():
 def test_growth_is_compiled_in_the_background_and_keeps_live_agents():
     w = PhysicsWorld(0.005, 4, shards=1, initial={AgentClass.PASSENGER: 40}, pool_chunk=8)
     p = _car_pool(w)
-    n = 34  # beyond the low-water mark (free < 10): a bigger model starts compiling
+    n = 34  # fewer than a quarter free (6 of 40): a bigger model starts compiling
     ids = [f"v{i}" for i in range(n)]
     s = w.allocate(ids, np.full(n, p), np.arange(n) * 30.0, np.zeros(n))
     w.place(s, np.arange(n) * 30.0, np.zeros(n), np.zeros(n), np.full(n, 5.0))
