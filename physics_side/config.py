@@ -113,7 +113,10 @@ class PaperControl:
     lad_max: float = 10.0  # [m] maximum look-ahead distance
     k_lad: float = 1.0  # [s] LAD = v_ref * k_lad between the limits (must be >= 1)
     k_steer: float = 0.05  # [1/deg] P_steer = delta_ref[deg] * k_steer, clipped to +-1 (of max steer)
-    lookahead: Literal["message", "path"] = "message"  # la_x/la_y as sent, or recomputed on path_xy
+    lookahead: Literal["message", "path"] = "path"  # recomputed on path_xy with these LADs, or la_x/la_y as sent
+    # The seed's code divides TraCI's speed [m/s] by 3.6 before the LAD rule, so at city speeds
+    # LAD = LAD_min: that is what the paper's Figs. 8-9 show (1.0 = the formula as printed).
+    lad_speed_divisor: float = 3.6  # [1]
     # u_in is a pedal command in [-1, 1]: + = fraction of the model's max drive torque,
     # - = fraction of its max brake torque (the paper's Unity car took a normalised input).
     ped_omega: float = 3.0  # [rad/s] pedestrian position-loop natural frequency
@@ -122,6 +125,8 @@ class PaperControl:
     def validate(self) -> None:
         if self.lad_min <= 0 or self.lad_max < self.lad_min:
             raise ConfigError("control.paper: need 0 < lad_min <= lad_max")
+        if self.lad_speed_divisor <= 0:
+            raise ConfigError(f"control.paper.lad_speed_divisor: expected > 0, got {self.lad_speed_divisor}")
         if self.k_lad < 1.0:
             raise ConfigError(f"control.paper.k_lad: the paper requires >= 1, got {self.k_lad}")
 

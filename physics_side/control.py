@@ -266,7 +266,7 @@ def control_paper(
     if cfg.lookahead == "message":
         tx, ty = ref.la_x, ref.la_y
     else:
-        la = ref.point_at(lad(held.speed, cfg.lad_min, cfg.lad_max, cfg.k_lad))
+        la = ref.point_at(lad(held.speed / cfg.lad_speed_divisor, cfg.lad_min, cfg.lad_max, cfg.k_lad))
         tx, ty = la.x, la.y
     # base of the pursuit: the rear axle of the actual vehicle
     c, s = np.cos(obs.yaw), np.sin(obs.yaw)

@@ -104,14 +104,16 @@ def test_nothing_flips_or_explodes_on_the_paper_route(cls):
 
 def test_paper_lookahead_from_the_path_equals_the_sent_point():
     """lookahead = "path" recomputes the SUMO side's look-ahead point on path_xy with the
-    physics config's LAD: same point as sent when both sides use the paper's LAD."""
+    physics config's LAD: same point as sent when both sides use the paper's printed LAD
+    (speed in m/s, lad_speed_divisor = 1)."""
     from dataclasses import replace
 
     from physics_side.config import PhysicsSettings
 
     s = PhysicsSettings()
-    s = replace(s, control=replace(s.control, paper=replace(s.control.paper, lookahead="path")))
-    a = track_reference("paper", AgentClass.PASSENGER, TURN)
+    msg = replace(s, control=replace(s.control, paper=replace(s.control.paper, lookahead="message")))
+    s = replace(s, control=replace(s.control, paper=replace(s.control.paper, lookahead="path", lad_speed_divisor=1.0)))
+    a = track_reference("paper", AgentClass.PASSENGER, TURN, settings=msg)
     b = track_reference("paper", AgentClass.PASSENGER, TURN, settings=s)
     assert np.abs(a["err"] - b["err"]).max() < 0.05
     for key in ("t", "x", "y", "ref_x", "ref_y", "err", "err_lon", "err_lat", "dist", "speed", "v_ref",
@@ -128,3 +130,21 @@ def test_trajectory_from_10hz_samples():
     traj = Trajectory.from_samples(t, ref["x"], ref["y"], ref["speed"])
     r = track_reference("default", AgentClass.PASSENGER, traj)
     assert r["err"].max() < 0.35 and r["placements"][0] == 1
+
+
+def test_report_lad_min_sweep_shows_the_papers_trend():
+    """The report's Fig. 9 replays a recorded 10 Hz reference car under the paper preset for
+    LAD_min 5..8 m: the sweep really varies LAD_min (the seed's speed / 3.6 makes LAD =
+    LAD_min at city speeds) and a larger LAD_min cuts the right turn more (paper Fig. 9)."""
+    from sumoco.app.figures import lad_min_sweep
+
+    route = turn90(radius=10.0, v=8.0)  # 8 m/s: with the printed formula LAD = v for every LAD_min <= 8
+    t = np.arange(0.0, route.duration, 0.1)
+    ref = route.at(t)
+    turning = np.abs(ref["curvature"]) > 1e-3
+    track = {"t": t, "x": ref["x"], "y": ref["y"], "speed": ref["speed"], "internal": turning}
+    rows = lad_min_sweep(track)
+    cut = [r["turn_lat_max_m"] for r in rows]
+    assert [r["lad_min_m"] for r in rows] == [5.0, 6.0, 7.0, 8.0]
+    assert cut[0] < cut[1] < cut[2] < cut[3], cut
+    assert cut[3] - cut[0] > 0.5, cut
