@@ -272,6 +272,18 @@ def test_sumo_side_serves_the_map_once_per_hash(tmp_path):
             again = ask(f"sha256={doc['sha256']}")
             assert again["glb"] is None and again["sha256"] == doc["sha256"]
             assert ask("sha256=0000")["glb"] == want.glb
+            # The viewer's feed takes the SUMO side's map (not one rebuilt from static data).
+            from sumoco.app.viewer.server import LatestStore, ViewerConfig, ZenohFeed
+
+            store = LatestStore()
+            feed = ZenohFeed(s, Keys("sumoco", "maptest"), store, ViewerConfig()).start()
+            try:
+                wait_until(lambda: store.static is not None and store.map_glb is not None, 20.0,
+                           "the viewer feed's static data and map", procs=[sumo])
+                assert store.map_source == "sumo" and store.map_sha256 == want.sha256
+                assert store.map_glb == want.glb
+            finally:
+                feed.stop()
         assert sumo.poll() is None, sumo.tail()
     finally:
         assert sumo.terminate() == 0, sumo.tail()
