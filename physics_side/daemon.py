@@ -90,6 +90,7 @@ class PhysicsDaemon:
         self.time = 0.0  # [s] physics time aligned with SUMO time
         self._declared: list = []
         self._finished = False
+        self._begin: float | None = None  # [s] SUMO time before the first step applied
 
     # ------------------------------------------------------------------ zenoh plumbing
 
@@ -221,6 +222,9 @@ class PhysicsDaemon:
         except (ValueError, IndexError, KeyError) as e:
             self._reject(f"step {msg.step}: {type(e).__name__}: {e}")
             return False
+        if resync or self._begin is None:
+            # Durations count from the scenario's begin (SUMO time before the first step).
+            self._begin = msg.time - msg.step_length
         self._resync = False
         self._last_step = msg.step
         if restart:
@@ -266,9 +270,11 @@ class PhysicsDaemon:
         snap_speed = self.fleet.world.observe(self.fleet.slots).speed
         return bool(np.all(np.abs(snap_speed) < REST_SPEED))
 
-    def _duration_done(self) -> bool:
+    def _duration_done(self, sumo_time: float | None = None) -> bool:
+        """The run's duration has passed since the begin time (at ``sumo_time``, default now)."""
         d = self.run_cfg.duration_s
-        return bool(d) and self.time >= d - 1e-9
+        t = self.time if sumo_time is None else sumo_time
+        return bool(d) and self._begin is not None and t - self._begin >= d - 1e-6
 
     # ------------------------------------------------------------------ loops
 
@@ -297,8 +303,11 @@ class PhysicsDaemon:
                 for _ in range(ticks_to(self.time, msg.time + msg.step_length, self.fleet.dt)):
                     self._tick()
                 self._ack(msg.step)
-                if self._duration_done():
-                    log.info("duration %.1f s reached", self.run_cfg.duration_s)
+                # The SUMO side ends on the same step: it marks it final, and it applies the
+                # same duration rule to the same SUMO time.
+                if msg.final or self._duration_done(msg.time):
+                    log.info("last step %d at t=%.1f s (%s)", msg.step, msg.time,
+                             "marked final" if msg.final else f"duration {self.run_cfg.duration_s:g} s")
                     break
             else:
                 newest = None
@@ -308,6 +317,9 @@ class PhysicsDaemon:
                         newest = m
                 if newest is not None and self._apply(newest):
                     self._ack(newest.step)
+                    if newest.final:
+                        log.info("last step %d at t=%.1f s (marked final)", newest.step, newest.time)
+                        break
                 if self.fleet.ref is None and not self.fleet.n:
                     self._wake.wait(IDLE_WAIT_S)
                     self._wake.clear()

@@ -230,6 +230,8 @@ def encode(msg: Message) -> bytes:
         }
         if msg.vtypes is not None:
             d["vtypes"] = [[v.id, v.vclass] for v in msg.vtypes]
+        if msg.final:  # optional (older readers ignore it); absent means false
+            d["final"] = True
     elif isinstance(msg, EgoPose):
         d = _head("ego") | {
             "id": msg.id, "x": float(msg.x), "y": float(msg.y), "angle": float(msg.angle),
@@ -552,6 +554,9 @@ def _decode_step(d: dict, r: _Reader) -> StepMessage:
         next_switch=np.asarray(nxt, np.float32) if k else np.zeros(0, np.float32),
         program=r.strs(t, "program", "tls.", k) if "program" in t else None,
     )
+    final = d.get("final", False)
+    if not isinstance(final, bool):
+        raise ProtocolError(f"expected true or false, got {type(final).__name__}", "final")
     return StepMessage(
         run=r.str(d, "run", ""),
         step=_int(d, "step", "", 0),
@@ -561,6 +566,7 @@ def _decode_step(d: dict, r: _Reader) -> StepMessage:
         tls=tls,
         vtypes=vtypes,
         static_version=_int(d, "sv", "", 0) if "sv" in d else 0,
+        final=final,
     )
 
 

@@ -184,6 +184,9 @@ class StepMessage:
     static_version: int = 0
     """Version of the static tables (vtypes, tls links) this step refers to; it changes
     whenever one of them changes (since 1.2; 0 from 1.1 senders)."""
+    final: bool = False
+    """The run's last step: the SUMO side publishes nothing after it (lockstep peers
+    acknowledge it and leave)."""
 
 
 @dataclass(frozen=True)

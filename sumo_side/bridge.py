@@ -31,7 +31,7 @@ class Bridge:
         prev = snap.prev_index if snap.serial == self._last_serial + 1 else None
         self._last_serial = snap.serial
         seq = self.planner.update_sequences(
-            snap.ids, snap.lane, snap.mode == MODE_LANES, self.sim.route_of, prev
+            snap.ids, snap.lane, snap.mode == MODE_LANES, self.sim.route_of, prev, snap.route_changed
         )
         return self.planner.compute(
             seq, snap.lane, snap.lane_pos, snap.x, snap.y, snap.angle, snap.speed, snap.mode,
@@ -44,8 +44,10 @@ class Bridge:
         snap: Snapshot,
         extra_flags: np.ndarray | None = None,
         with_paths: bool | None = None,
+        final: bool = False,
     ) -> StepMessage:
-        """The step message of ``snap`` (``extra_flags`` OR-ed in, e.g. the ego flags)."""
+        """The step message of ``snap`` (``extra_flags`` OR-ed in, e.g. the ego flags);
+        ``final`` marks the run's last step."""
         look = self.look_ahead(snap, with_paths)
         vt = self.sim.vtypes
         f32 = np.float32
@@ -84,4 +86,5 @@ class Bridge:
             tls=snap.tls,
             vtypes=vtypes,
             static_version=sv,
+            final=final,
         )

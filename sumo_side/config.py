@@ -17,7 +17,8 @@ from sumoco.common.config import load_toml, section
 @dataclass(frozen=True)
 class SumoConfig:
     sumocfg: Path | None = None  # SUMO scenario (.sumocfg), relative to the TOML file
-    step_length_s: float = 0.1  # [s] SUMO step length (passed as --step-length)
+    step_length_s: float = 0.0  # [s] 0: the scenario's own step length; > 0 replaces it (logged)
+    begin_s: float | None = None  # [s] start SUMO at this time instead of the scenario's begin
     gui: bool = False  # sumo-gui through TraCI instead of embedded libsumo (needs a display)
     extra_args: tuple[str, ...] = ()  # further SUMO command-line options, verbatim
     lanechange_duration_s: float = 3.0  # [s] continuous lane changes when the scenario sets neither lanechange.duration nor lateral-resolution (0 = SUMO's one-step hop)
@@ -47,8 +48,12 @@ class SumoConfig:
     status_period_s: float = 1.0  # [s] wall time between INFO status lines
 
     def validate(self) -> None:
-        if not 0.001 <= self.step_length_s <= 10.0:
-            raise ConfigError(f"sumo.step_length_s: expected 0.001..10 s, got {self.step_length_s}")
+        if self.step_length_s != 0 and not 0.001 <= self.step_length_s <= 10.0:
+            raise ConfigError(
+                f"sumo.step_length_s: expected 0 (the scenario's own) or 0.001..10 s, got {self.step_length_s}"
+            )
+        if self.begin_s is not None and self.begin_s < 0:
+            raise ConfigError(f"sumo.begin_s: expected >= 0 s, got {self.begin_s}")
         if not 0.0 <= self.lanechange_duration_s <= 30.0:
             raise ConfigError(f"sumo.lanechange_duration_s: expected 0..30 s, got {self.lanechange_duration_s}")
         if self.lad_min_m <= 0 or self.lad_max_m < self.lad_min_m:

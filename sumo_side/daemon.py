@@ -148,6 +148,7 @@ class SumoDaemon:
         self._static_encoded_at = -math.inf
         self.map = MapService(getattr(sim, "net_file", None), run.id)
         self.last_message = None  # the newest StepMessage (tests, status)
+        self.end_reason = ""  # why the run ended ('' while running or when it failed)
 
     # ------------------------------------------------------------------ control
 
@@ -328,8 +329,9 @@ class SumoDaemon:
         try:
             if lockstep:
                 self._wait_for_peers(publisher, ego_sub)
-            with HotLoopGC() as hot_gc:
-                self._loop(publisher, ego_sub, lockstep, hot_gc)
+            if not self._stop.is_set():
+                with HotLoopGC() as hot_gc:
+                    self._loop(publisher, ego_sub, lockstep, hot_gc)
         finally:
             for what, obj in (("ego subscriber", ego_sub), ("ack subscriber", ack_sub),
                               ("liveliness subscriber", alive_sub),
@@ -354,7 +356,7 @@ class SumoDaemon:
         anchor = clock()
         period = _Period(clock())
         k = 0
-        while not self._stop.is_set():
+        while True:  # ends after publishing a final step (also on a stop request)
             t_a = perf()
             self._drain_ego(ego_sub)
             self.ego.apply()
@@ -363,7 +365,11 @@ class SumoDaemon:
             t_c = perf()
             snap = sim.read()
             ego_flags = self.ego.after_step(snap.ids, snap.x, snap.y, snap.arrived)
-            msg = self.bridge.build(k, snap, ego_flags)
+            # The last step is marked on the wire, so every peer ends on the same step.
+            why = "" if self.ego.active_ids() else sim.finished(run.duration_s)
+            if not why and self._stop.is_set():
+                why = "stop requested"
+            msg = self.bridge.build(k, snap, ego_flags, final=bool(why))
             self._refresh_static(msg.static_version)
             publisher.put(encode(msg))
             t_d = perf()
@@ -375,9 +381,11 @@ class SumoDaemon:
             period.sumo_s += t_c - t_b
             period.bridge_s += (t_b - t_a) + (t_d - t_c)
 
-            done = sim.finished(run.duration_s) and not self.ego.active_ids()
-            if done:
-                log.info("simulation finished at t=%.1f s after %d steps", snap.time, c.steps)
+            if why:
+                self.end_reason = why
+                log.info("run ends at t=%.1f s after %d steps: %s", snap.time, c.steps, why)
+                if lockstep:
+                    self._wait_for_final_acks(k)
                 break
             t_w = perf()
             if lockstep:
@@ -397,6 +405,25 @@ class SumoDaemon:
                 hot_gc.tick()
                 self._log_status(period, snap.n, hot_gc.collect_ms)
                 period = _Period(clock())
+
+    def _wait_for_final_acks(self, step: int) -> None:
+        """Lockstep, last step: wait (bounded) until every instance acknowledged it or left."""
+        timeout = self.run_cfg.lockstep_timeout_s
+        t_end = self.clock() + timeout
+        while True:
+            self._drain_acks(timeout=0.02)
+            try:
+                self._update_alive()
+            except PeerLost:  # leaving after the last step is what peers are asked to do
+                pass
+            missing = [i for i in self.cfg.lockstep_instances
+                       if self._acked.get(i, -1) < step and i in self._alive]
+            if not missing:
+                return
+            if self.clock() >= t_end:
+                log.warning("lockstep: no acknowledgement of the last step %d from %s within %g s",
+                            step, ", ".join(missing), timeout)
+                return
 
     def _wait_for_acks(self, step: int, ego_sub) -> None:
         timeout = self.run_cfg.lockstep_timeout_s
@@ -478,6 +505,9 @@ def load_configs(args) -> tuple[CommonConfig, SumoConfig]:
         scfg = replace(scfg, gui=True)
     if getattr(args, "wait_for", None):
         scfg = replace(scfg, lockstep_instances=tuple(args.wait_for))
+    if getattr(args, "begin", None) is not None:
+        scfg = replace(scfg, begin_s=float(args.begin))
+        scfg.validate()
     if scfg.sumocfg is None:
         where = f"{args.config}: " if getattr(args, "config", None) else ""
         raise ConfigError(f"{where}no SUMO scenario: set [sumo] sumocfg or pass --sumocfg PATH")
@@ -490,7 +520,9 @@ def cli_main(args) -> int:
 
     common, scfg = load_configs(args)
     keys = Keys(common.zenoh.root, common.run.id)
-    sim = SumoSim(scfg, seed=common.run.seed, run_id=common.run.id)
+    out = getattr(args, "output_dir", None)
+    sim = SumoSim(scfg, seed=common.run.seed, run_id=common.run.id,
+                  output_dir=Path(out).expanduser() if out else None)
     sim.start()  # a broken scenario fails here (ConfigError -> exit 2) before Zenoh opens
     session = None
     daemon = None

@@ -346,14 +346,16 @@ class PathPlanner:
         use_lanes: np.ndarray,
         get_route: Callable[[str], tuple[Sequence[str], int]],
         prev_index: np.ndarray | None = None,
+        rerouted: np.ndarray | None = None,
     ) -> np.ndarray:
         """Lane-sequence id per agent (-1 for agents not following lanes).
 
-        Only agents that are new or changed lanes since the previous call are walked
-        again; ``get_route(id) -> (route edges, route index)`` is called for those only.
-        (A vehicle's route index only changes when it enters a new edge, i.e. a new lane.)
-        ``prev_index`` (row of each agent in the previous call's ``ids``, -1 new) saves
-        the alignment when the caller already has it.
+        Only agents that are new, changed lanes or were ``rerouted`` (bool per agent) since
+        the previous call are walked again; ``get_route(id) -> (route edges, route index)``
+        is called for those only. (A vehicle's route index only changes when it enters a
+        new edge, i.e. a new lane; its route only on a reroute.) ``prev_index`` (row of
+        each agent in the previous call's ``ids``, -1 new) saves the alignment when the
+        caller already has it.
         """
         n = len(ids)
         lane = np.asarray(lane, np.int64)
@@ -371,6 +373,8 @@ class PathPlanner:
         if len(self._prev_ids):
             jj = np.where(known, j, 0)
             same = known & (self._prev_lane[jj] == lane)
+            if rerouted is not None:
+                same &= ~np.asarray(rerouted, bool)
             seq[same] = self._prev_seq[jj[same]]
         else:
             same = np.zeros(n, bool)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.errors import ConfigError
+from protocol.errors import ConfigError, SumocoError
 from protocol.messages import (
     VCLASS_TO_AGENT_CLASS,
     AgentClass,
@@ -42,25 +42,34 @@ import libsumo as _C  # noqa: E402  (constants only; the API module may be traci
 V_POS, V_ANGLE, V_SPEED = _C.VAR_POSITION, _C.VAR_ANGLE, _C.VAR_SPEED
 V_SIGNALS, V_LANE, V_LANEPOS, V_TYPE = _C.VAR_SIGNALS, _C.VAR_LANE_ID, _C.VAR_LANEPOSITION, _C.VAR_TYPE
 V_VEHICLE = _C.VAR_VEHICLE
+V_ROUTE = _C.VAR_ROUTE_ID
 TL_STATE, TL_PHASE, TL_NEXT = _C.TL_RED_YELLOW_GREEN_STATE, _C.TL_CURRENT_PHASE, _C.TL_NEXT_SWITCH
 TL_PROGRAM = _C.TL_CURRENT_PROGRAM
 
 # Each subscribed variable costs ~0.5 us per vehicle per step in getAllSubscriptionResults
-# (measured: 2,500 vehicles, 9 variables 6.4 ms, 7 variables 5.0 ms). So the route (index)
-# is read only when a vehicle changes lanes and the acceleration is derived from
-# consecutive speeds. The type id is subscribed: nothing else tells of a vehicle.setType.
-VEHICLE_VARS = (V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANE, V_LANEPOS, V_TYPE)
+# (measured: 2,500 vehicles, 9 variables 6.4 ms, 7 variables 5.0 ms). So the acceleration
+# is derived from consecutive speeds. The type id is subscribed: nothing else tells of a
+# vehicle.setType. The route id is the one route variable subscribed: every reroute
+# (changeTarget, a rerouting device, a rerouter) gives the vehicle a new one
+# ("!<veh>!var#<n>"), so it detects route changes; the edges and the route index are read
+# only for vehicles whose lane or route changed (the index moves only with a new lane).
+VEHICLE_VARS = (V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANE, V_LANEPOS, V_TYPE, V_ROUTE)
 PERSON_VARS = (V_POS, V_ANGLE, V_SPEED, V_LANE, V_LANEPOS, V_TYPE, V_VEHICLE)
 _VEHICLE_NUM = operator.itemgetter(V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS)
 _POS = operator.itemgetter(V_POS)
 _LANE = operator.itemgetter(V_LANE)
 _TYPE = operator.itemgetter(V_TYPE)
+_ROUTE = operator.itemgetter(V_ROUTE)
 _chain = itertools.chain.from_iterable
 _PERSON_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_LANEPOS, V_LANE, V_TYPE, V_VEHICLE)
 TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT, TL_PROGRAM)
 #: [m] beyond speed x step length, a position change this large is a jump (flag JUMPED);
 #: larger than one lane width so that SUMO's instant lane changes stay ordinary motion.
 JUMP_MARGIN_M = 5.0
+
+
+class SumoFailed(SumocoError):
+    """libsumo / TraCI reported an error during the run (the message is SUMO's)."""
 
 
 @dataclass
@@ -91,6 +100,8 @@ class Snapshot:
     """Row of each agent in the previous snapshot (-1: new), for per-agent state."""
     serial: int = 0
     """Snapshot counter of this SumoSim (consecutive snapshots differ by one)."""
+    route_changed: np.ndarray | None = None
+    """True for vehicles whose route changed in this step (rerouted), bool per agent."""
 
     @property
     def n(self) -> int:
@@ -148,6 +159,49 @@ def lane_change_args(sumocfg: Path, extra_args: tuple[str, ...], duration_s: flo
     return ["--lanechange.duration", f"{duration_s:g}"]
 
 
+@dataclass(frozen=True)
+class ScenarioOptions:
+    """What a .sumocfg says about time and randomness (SUMO's defaults where it is silent)."""
+
+    step_length_s: float = 1.0
+    """SUMO's step length [s] (SUMO's default 1 s)."""
+    seed: int | None = None
+    """The scenario's random seed (None: SUMO's default)."""
+    begin_s: float = 0.0
+    """Begin time [s]."""
+    end_s: float | None = None
+    """End time [s] (None: until no traffic is left)."""
+
+
+def _sumo_time(text: str | None) -> float | None:
+    """A SUMO time value: seconds, or [[D:]H:]M:S."""
+    if text is None:
+        return None
+    try:
+        if ":" in text:
+            secs = 0.0
+            for part in text.split(":"):
+                secs = secs * 60 + float(part)
+            return secs if text.count(":") < 3 else None
+        return float(text)
+    except ValueError:
+        return None
+
+
+def scenario_options(path: Path) -> ScenarioOptions:
+    """Step length, seed, begin and end as written in a .sumocfg (checked by ``check_sumocfg``)."""
+    root = ET.parse(path).getroot()
+    found = {el.tag: el.get("value") for el in root.iter() if el.get("value") is not None}
+    seed = found.get("seed")
+    end = _sumo_time(found.get("end"))
+    return ScenarioOptions(
+        step_length_s=_sumo_time(found.get("step-length")) or 1.0,
+        seed=int(seed) if seed is not None and seed.strip().lstrip("-").isdigit() else None,
+        begin_s=_sumo_time(found.get("begin")) or 0.0,
+        end_s=end if end is not None and end >= 0 else None,
+    )
+
+
 def sumo_binary(gui: bool) -> str:
     try:
         from sumo_side.scenarios import find_sumo_binary
@@ -162,7 +216,16 @@ def sumo_binary(gui: bool) -> str:
 class SumoSim:
     """One running SUMO: libsumo embedded, or sumo-gui over TraCI (``cfg.gui``)."""
 
-    def __init__(self, cfg: SumoConfig, sumocfg: Path | None = None, seed: int = 42, run_id: str = "default") -> None:
+    def __init__(
+        self,
+        cfg: SumoConfig,
+        sumocfg: Path | None = None,
+        seed: int | None = None,
+        run_id: str = "default",
+        output_dir: Path | None = None,
+    ) -> None:
+        """``seed`` None keeps the scenario's own; ``output_dir`` receives SUMO's own outputs
+        (tripinfos, detectors, its log) instead of the scenario's folder."""
         self.cfg = cfg
         path = sumocfg if sumocfg is not None else cfg.sumocfg
         if path is None:
@@ -170,8 +233,11 @@ class SumoSim:
                 "no SUMO scenario: set [sumo] sumocfg in the config file or pass --sumocfg PATH"
             )
         self.sumocfg = Path(path)
-        self.seed = int(seed)
+        self.seed = None if seed is None else int(seed)
         self.run_id = run_id
+        self.output_dir = None if output_dir is None else Path(output_dir)
+        self.options = ScenarioOptions()
+        self._dt = float(cfg.step_length_s) or 1.0
         self.api = None
         self.graph: LaneGraph | None = None
         self.static: StaticData | None = None
@@ -186,6 +252,7 @@ class SumoSim:
         self._prev_speed = np.zeros(0)
         self._prev_time = -1.0
         self._prev_xy = np.zeros((0, 2))
+        self._prev_route = np.zeros(0, object)  # route id per vehicle row of the previous snapshot
         self._serial = 0
 
     # ------------------------------------------------------------------ life cycle
@@ -194,14 +261,24 @@ class SumoSim:
         cfg = self.cfg
         path = check_sumocfg(self.sumocfg)
         self.sumocfg = path
-        args = [
-            sumo_binary(cfg.gui), "-c", str(path),
-            "--step-length", repr(float(cfg.step_length_s)),
-            "--seed", str(self.seed),
-            "--no-step-log", "true",
-            *cfg.extra_args,
-            *lane_change_args(path, cfg.extra_args, cfg.lanechange_duration_s),
-        ]
+        self.options = scenario_options(path)
+        args = [sumo_binary(cfg.gui), "-c", str(path), "--no-step-log", "true"]
+        # The scenario is the truth; the run replaces its step length, seed or begin only
+        # when it says so, and the log names both values.
+        if cfg.step_length_s > 0:
+            args += ["--step-length", repr(float(cfg.step_length_s))]
+        if self.seed is not None:
+            args += ["--seed", str(self.seed)]
+        if cfg.begin_s is not None:
+            args += ["--begin", repr(float(cfg.begin_s))]
+        if self.output_dir is not None:
+            # SUMO resolves output names against the config's folder and puts the prefix in
+            # front of them, so a relative prefix moves every output (also detector files of
+            # additional files and the scenario's <log>) into the run's folder.
+            self.output_dir.mkdir(parents=True, exist_ok=True)
+            args += ["--output-prefix", os.path.relpath(self.output_dir.resolve(), path.parent) + os.sep]
+        args += list(cfg.extra_args)
+        args += lane_change_args(path, cfg.extra_args, cfg.lanechange_duration_s)
         if cfg.gui:
             if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
                 raise ConfigError("--gui needs a display: DISPLAY is not set (run without --gui for embedded libsumo)")
@@ -217,6 +294,8 @@ class SumoSim:
             raise ConfigError(f"{path}: SUMO could not load the scenario ({_exc_text(e)}); "
                               "SUMO's own messages are above") from None
         self.api = api
+        self._dt = float(api.simulation.getDeltaT())
+        self._log_choices()
         try:
             self._after_start()
         except Exception:
@@ -277,6 +356,20 @@ class SumoSim:
             self._static_version = v
         return self.static
 
+    def _log_choices(self) -> None:
+        o, cfg = self.options, self.cfg
+        if cfg.step_length_s > 0:
+            log.info("step length %g s: [sumo] step_length_s replaces the scenario's %g s", self._dt, o.step_length_s)
+        else:
+            log.info("step length %g s (the scenario's)", self._dt)
+        if self.seed is not None:
+            log.info("seed %d: the run's seed replaces the scenario's %s", self.seed,
+                     "SUMO default" if o.seed is None else o.seed)
+        else:
+            log.info("seed %s (the scenario's)", "SUMO default" if o.seed is None else o.seed)
+        if cfg.begin_s is not None:
+            log.info("begin %g s: [sumo] begin_s / --begin replaces the scenario's %g s", cfg.begin_s, o.begin_s)
+
     def _net_file(self) -> Path | None:
         try:
             value = self.api.simulation.getOption("net-file")
@@ -297,19 +390,23 @@ class SumoSim:
 
     @property
     def step_length(self) -> float:
-        return float(self.cfg.step_length_s)
+        """SUMO's step length [s] (``simulation.getDeltaT()`` once started)."""
+        return self._dt
 
     def time(self) -> float:
         return float(self.api.simulation.getTime())
 
-    def finished(self, duration_s: float) -> bool:
-        """Nothing left to simulate: duration reached, SUMO's end time, or no more traffic."""
+    def finished(self, duration_s: float) -> str:
+        """Why nothing is left to simulate ('' while there is): the run's duration (counted
+        from the begin time), SUMO's end time, or no more traffic, whichever comes first."""
         t = self.time()
-        if duration_s > 0:
-            return t >= self.begin_time + duration_s - 1e-9
-        if self.end_time > 0 and t >= self.end_time - 1e-9:
-            return True
-        return self.api.simulation.getMinExpectedNumber() <= 0
+        if duration_s > 0 and t >= self.begin_time + duration_s - 1e-9:
+            return f"duration {duration_s:g} s reached"
+        if self.end_time >= 0 and t >= self.end_time - 1e-9:
+            return f"the scenario's end time {self.end_time:g} s reached"
+        if self.api.simulation.getMinExpectedNumber() <= 0:
+            return "no traffic left in the scenario"
+        return ""
 
     # ------------------------------------------------------------------ per step
 
@@ -318,10 +415,29 @@ class SumoSim:
 
     def step(self) -> None:
         """SUMO's own step (timed separately as sumo_ms by the callers)."""
-        self.api.simulationStep()
+        try:
+            self.api.simulationStep()
+        except self.errors as e:
+            raise SumoFailed(f"SUMO failed in the step after t={self._prev_time:g} s: {_exc_text(e)}") from None
+
+    @property
+    def errors(self) -> tuple[type[BaseException], ...]:
+        """Exception types by which libsumo / TraCI report a failed call."""
+        if self.cfg.gui:
+            import traci
+
+            return (traci.TraCIException, traci.FatalTraCIError)
+        return (_C.TraCIException,)
 
     def read(self) -> Snapshot:
         """Subscribe the agents that departed in the last step and read every agent."""
+        try:
+            return self._read()
+        except self.errors as e:
+            raise SumoFailed(f"SUMO failed while reading the step after t={self._prev_time:g} s: "
+                             f"{_exc_text(e)}") from None
+
+    def _read(self) -> Snapshot:
         api = self.api
         sim = api.simulation
         departed = sim.getDepartedIDList()
@@ -357,11 +473,13 @@ class SumoSim:
             except KeyError:  # subscribed by someone else without the type
                 get_type = api.vehicle.getTypeID
                 vtype = self.vtypes.indices([r.get(V_TYPE) or get_type(v) for v, r in vres.items()])
+            vroute = list(map(_ROUTE, vals))
             del vals
         else:
             vxy = np.zeros((0, 2))
             vangle = vspeed = vlpos = _empty_f()
             vsig = vlane = vtype = np.zeros(0, np.int64)
+            vroute = []
         del vres
 
         pres = api.person.getAllSubscriptionResults() if self.cfg.persons else {}
@@ -407,6 +525,15 @@ class SumoSim:
             moved = np.hypot(*(xy[known] - self._prev_xy[pk]).T)
             reach = np.maximum(speed_all[known], self._prev_speed[pk]) * dt + JUMP_MARGIN_M
             jumped_pos[known] = moved > reach
+        # A new route id is a reroute (object-array compare: one C loop, no Python per agent).
+        jv = prev_index[:nv]
+        route_arr = np.array(vroute, dtype=object)
+        route_changed = np.zeros(n, bool)
+        prev_route = self._prev_route
+        if nv and len(prev_route):
+            had = (jv >= 0) & (jv < len(prev_route))
+            route_changed[:nv] = had & (route_arr != prev_route[np.where(had, jv, 0)])
+        self._prev_route = route_arr
         self._prev_ids, self._prev_speed, self._prev_time = ids, speed_all, now
         self._prev_xy = xy
         self._serial += 1
@@ -445,6 +572,7 @@ class SumoSim:
             teleports=n_tele_start,
             prev_index=prev_index,
             serial=self._serial,
+            route_changed=route_changed,
         )
 
     def _align(self, ids: list[str]) -> np.ndarray:

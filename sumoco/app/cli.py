@@ -43,6 +43,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--verbose", action="store_true", help="debug logging")
 
 
+def _add_scenario(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--begin", type=float, help="start SUMO at this time [s] instead of the scenario's begin; "
+                                               "--duration counts from it")
+    p.add_argument("--seed", type=int, help="SUMO random seed (default: the scenario's own)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="sumoco", description="SUMO <-> MuJoCo co-simulation over Zenoh")
     ap.add_argument("--version", action="version",
@@ -52,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sumo", help="run the SUMO side daemon")
     _add_common(p)
     p.add_argument("--sumocfg", help="run this .sumocfg instead of the config's scenario")
+    _add_scenario(p)
+    p.add_argument("--output-dir", help="folder for SUMO's own outputs and log (default: where the scenario "
+                                        "puts them, usually its folder)")
     p.add_argument("--gui", action="store_true", help="use sumo-gui through TraCI (needs a display)")
     p.add_argument("--wait-for", action="append", default=None, metavar="INSTANCE",
                    help="lockstep: physics instance whose acks to wait for (repeatable; "
@@ -67,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="both daemons on loopback, bounded run, report")
     _add_common(p)
     p.add_argument("--sumocfg", help="bring your own SUMO scenario")
-    p.add_argument("--out", default="runs/demo", help="output folder")
+    _add_scenario(p)
+    p.add_argument("--out", help="output folder (default: runs/demo, or runs/<scenario name> with --sumocfg)")
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")

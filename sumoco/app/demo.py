@@ -9,6 +9,7 @@ them all cleanly (also on Ctrl-C) and writes ``summary.json``, the figures and
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -21,14 +22,16 @@ from pathlib import Path
 
 import zenoh
 
+from protocol.errors import ConfigError, SumocoError
 from protocol.keys import Keys
+from sumoco.common.errors import ExitCode
 from sumoco.common.config import CommonConfig, ZenohConfig, apply_cli, load_common, replace, section
 from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig
 from sumoco.common.transport import free_tcp_port, open_session
 
 log = logging.getLogger(__name__)
 
-REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 @dataclass(frozen=True)
@@ -78,7 +81,7 @@ class Processes:
         return p
 
     def stop(self, names: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int | None]:
-        names = names or list(self.procs)
+        names = list(self.procs) if names is None else names
         for n in names:
             p = self.procs[n]
             if p.poll() is None:
@@ -95,6 +98,17 @@ class Processes:
                 codes[n] = p.wait(5)
         return codes
 
+    def wait(self, names: list[str], timeout_s: float) -> dict[str, int]:
+        """Exit codes of the processes that end by themselves within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        codes = {}
+        for n in names:
+            try:
+                codes[n] = self.procs[n].wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not leave after the last step within %.0f s", n, timeout_s)
+        return codes
+
     def close(self) -> None:
         self.stop(timeout_s=5.0)
         for f in self._files:
@@ -105,23 +119,72 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "sumoco.app.cli", *args]
 
 
+class DaemonFailed(SumocoError):
+    """A daemon of the demo crashed or failed; ``exit_code`` is the demo's."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+def _last_error_line(log_file: Path, name: str) -> str:
+    """The daemon's own one-line error (``sumoco <cmd>: ...``) from its log, if it wrote one."""
+    try:
+        lines = log_file.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    for line in reversed(lines[-200:]):
+        if line.startswith("sumoco "):
+            return line.split(": ", 1)[-1].strip()
+    return ""
+
+
+def _exit_text(code: int) -> str:
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def daemon_failure(name: str, code: int, log_dir: Path) -> DaemonFailed:
+    """One line naming the daemon, its signal or code and its own message; the demo's exit
+    code: 2 for a crash (signal) or a broken configuration/scenario, 1 for a failed run."""
+    log_file = log_dir / f"{name}.log"
+    own = _last_error_line(log_file, name)
+    text = f"{name} {_exit_text(code)}" + (f": {own}" if own else "") + f" (log: {log_file})"
+    return DaemonFailed(text, ExitCode.FAILURE if code == ExitCode.FAILURE else ExitCode.USAGE)
+
+
 def _wait_for(cond, timeout_s: float, what: str, procs: Processes) -> None:
     deadline = time.monotonic() + timeout_s
     while not cond():
         for name, p in procs.procs.items():
             if p.poll() is not None:
-                raise RuntimeError(f"{name} exited with code {p.returncode} while waiting for {what}; "
-                                   f"see {procs.log_dir / (name + '.log')}")
+                raise daemon_failure(name, p.returncode, procs.log_dir)
         if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+            raise DaemonFailed(f"timed out after {timeout_s:.0f} s waiting for {what} "
+                               f"(logs in {procs.log_dir})", ExitCode.FAILURE)
         time.sleep(0.05)
 
 
+def default_out(sumocfg: str | Path | None) -> Path:
+    """``runs/demo`` for the bundled scenario, ``runs/<folder>/<name>`` for a .sumocfg."""
+    if not sumocfg:
+        return Path("runs") / "demo"
+    p = Path(sumocfg).expanduser().resolve()
+    return Path("runs") / p.parent.name / p.stem
+
+
 def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfig,
-             sumocfg: str | None = None, quiet: bool = False, record: RecordConfig | None = None) -> dict:
-    """Run the whole demo; returns the summary dict.
+             sumocfg: str | None = None, quiet: bool = False, begin: float | None = None,
+             record: RecordConfig | None = None) -> dict:
+    """Run the whole demo; returns the summary dict (also written to ``out/summary.json``).
 
     ``record`` defaults to every physics state (the report's figures follow the 50 Hz ticks).
+    A daemon that crashes or fails raises ``DaemonFailed`` after the report of what was
+    recorded is written.
     """
     from sumoco.app.report import write_report
 
@@ -137,6 +200,9 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
     zcfg = replace(common.zenoh, mode="peer", listen=(hub,), connect=())
     t_start = time.monotonic()
     interrupted = False
+    ended_by = ""
+    failure: DaemonFailed | None = None
+    codes: dict[str, int | None] = {}
 
     def _on_sigint(signum, frame):
         raise KeyboardInterrupt
@@ -152,26 +218,35 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
                                                else alive.discard(str(s.key_expr))),
                 history=True)
             common_args = ["--config", str(config_path), "--run", common.run.id,
-                           "--timing", common.run.timing]
-            if common.run.duration_s:
-                common_args += ["--duration", str(common.run.duration_s)]
+                           "--timing", common.run.timing, "--duration", repr(float(common.run.duration_s))]
             if quiet:
                 common_args.append("--quiet")
-            sumo_args = ["sumo", *common_args, "--listen", sumo_ep, "--connect", hub]
+            sumo_args = ["sumo", *common_args, "--listen", sumo_ep, "--connect", hub,
+                         "--output-dir", str(out / "sumo")]
             for p in demo.presets:
                 sumo_args += ["--wait-for", p]
             if sumocfg:
                 sumo_args += ["--sumocfg", str(sumocfg)]
+            if begin is not None:
+                sumo_args += ["--begin", repr(float(begin))]
+            if common.run.seed is not None:
+                sumo_args += ["--seed", str(common.run.seed)]
             procs.start("sumo", _cli(*sumo_args))
             for p in demo.presets:
                 procs.start(f"physics-{p}", _cli(
                     "physics", *common_args, "--instance", p, "--preset", p,
                     "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub))
-            _wait_for(lambda: keys.sumo_alive in alive, demo.startup_timeout_s, "the SUMO side", procs)
-            if live.fetch_static(timeout_s=10.0) is None:
-                log.warning("no static data from the SUMO side")
-            want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
-            _wait_for(lambda: want <= alive, demo.startup_timeout_s, "the physics processes", procs)
+            try:
+                _wait_for(lambda: keys.sumo_alive in alive, demo.startup_timeout_s, "the SUMO side", procs)
+                if live.fetch_static(timeout_s=10.0) is None:
+                    log.warning("no static data from the SUMO side")
+                want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
+                _wait_for(lambda: want <= alive, demo.startup_timeout_s, "the physics processes", procs)
+            except DaemonFailed as e:
+                if procs.procs["sumo"].poll() == ExitCode.USAGE:
+                    # SUMO could not load the scenario: a configuration problem, not a run.
+                    raise ConfigError(_last_error_line(procs.log_dir / "sumo.log", "sumo") or str(e)) from None
+                raise
             log.info("all daemons up after %.1f s; running (wall limit %.0f s)",
                      time.monotonic() - t_start, demo.wall_limit_s)
             t_run = time.monotonic()
@@ -180,35 +255,55 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
                 now = time.monotonic()
                 for name, p in procs.procs.items():
                     if name != "sumo" and p.poll() not in (None, 0):
-                        raise RuntimeError(f"{name} exited with code {p.returncode}; see {procs.log_dir / (name + '.log')}")
+                        failure = daemon_failure(name, p.returncode, procs.log_dir)
+                if failure is not None:
+                    break
                 if now - t_run > demo.wall_limit_s:
                     log.info("wall-clock limit reached; stopping")
+                    ended_by = "wall-clock limit"
                     break
                 if now >= next_progress:
                     _print_progress(progress, now - t_run)
                     next_progress = now + demo.progress_period_s
                 time.sleep(0.05)
-            sumo_code = procs.stop(["sumo"], demo.stop_timeout_s)["sumo"]
-            # Let the physics side finish the last step's ticks before stopping it.
-            time.sleep(0.3)
-            codes = procs.stop(timeout_s=demo.stop_timeout_s)
-            codes["sumo"] = sumo_code
+            # SUMO ends on its own (or on SIGTERM) with a step marked final; the physics
+            # processes acknowledge it and leave by themselves.
+            codes["sumo"] = procs.stop(["sumo"], demo.stop_timeout_s)["sumo"]
+            others = [n for n in procs.procs if n != "sumo"]
+            if codes["sumo"] == 0:
+                codes.update(procs.wait(others, demo.stop_timeout_s))
+            codes.update(procs.stop([n for n in others if n not in codes], demo.stop_timeout_s))
+            if failure is None:
+                for name, code in codes.items():
+                    if code not in (0, None):
+                        failure = daemon_failure(name, code, procs.log_dir)
+                        break
             tok_sub.undeclare()
             live.stop()
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted: stopping the daemons")
-        codes = {}
     finally:
         signal.signal(signal.SIGTERM, old)
         procs.close()
         recorder.close()
-    bad = {n: c for n, c in codes.items() if c not in (0, None, -signal.SIGTERM)}
-    if bad:
-        log.warning("daemon exit codes: %s (logs in %s)", bad, procs.log_dir)
-    summary = write_report(rec_path, out, lad_sweep=demo.lad_sweep)
-    summary["exit_codes"] = codes
+    try:
+        summary = write_report(rec_path, out, lad_sweep=demo.lad_sweep)
+    except Exception as e:  # nothing usable recorded: the failure below is the news
+        if failure is None:
+            raise
+        log.warning("no report: %s", e)
+        summary = {}
+    summary["daemons"] = {
+        "exit_codes": codes,
+        "completed": bool(codes) and not interrupted and failure is None and not ended_by
+        and all(c == 0 for c in codes.values()),
+        "ended_by": "interrupted" if interrupted else ended_by or (str(failure) if failure else "the run's end"),
+    }
     summary["interrupted"] = interrupted
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    if failure is not None:
+        raise failure
     return summary
 
 
@@ -229,6 +324,8 @@ def _print_progress(progress: _Progress, elapsed: float) -> None:
 
 
 def cli_main(args) -> int:
+    from sumo_side.simulation import check_sumocfg
+
     config = Path(args.config) if args.config else REPO_CONFIGS / "demo.toml"
     common, data, base = load_common(config)
     common = apply_cli(common, args)
@@ -236,9 +333,19 @@ def cli_main(args) -> int:
     if getattr(args, "wall", None):
         demo = replace(demo, wall_limit_s=float(args.wall))
     record = section(data, "record", RecordConfig, base, str(config)) if "record" in data else None
-    out = Path(args.out)
-    summary = run_demo(config, out, common, demo, sumocfg=getattr(args, "sumocfg", None),
-                       quiet=bool(args.quiet), record=record)
+    sumocfg = getattr(args, "sumocfg", None)
+    if sumocfg:
+        sumocfg = str(check_sumocfg(Path(sumocfg)))  # a missing or broken file: exit 2 before any daemon
+    begin = getattr(args, "begin", None)
+    if begin is not None and begin < 0:
+        raise ConfigError(f"--begin: expected >= 0 s, got {begin}")
+    out = Path(args.out) if getattr(args, "out", None) else default_out(sumocfg)
+    try:
+        summary = run_demo(config, out, common, demo, sumocfg=sumocfg, quiet=bool(args.quiet), begin=begin,
+                           record=record)
+    except DaemonFailed as e:
+        print(f"sumoco demo: {e}", file=sys.stderr)
+        return int(e.exit_code)
     print(f"report: {out / 'report.md'}", file=sys.stderr)
     for inst, p in summary["presets"].items():
         e = p["error_m"]["overall"]

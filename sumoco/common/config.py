@@ -35,7 +35,7 @@ class RunConfig:
     id: str = "default"  # run id, part of every key expression
     timing: Literal["realtime", "lockstep"] = "realtime"
     duration_s: float = 0.0  # [s] simulated time to run; 0 = until SUMO has no more traffic
-    seed: int = 42  # SUMO --seed and every other random source
+    seed: int | None = None  # SUMO --seed (replaces the scenario's own, logged); none: the scenario's
     lockstep_timeout_s: float = 10.0  # [s] a silent peer in lockstep is an error after this
 
 
@@ -218,6 +218,8 @@ def apply_cli(common: CommonConfig, args: Any) -> CommonConfig:
         run = replace(run, timing=args.timing)
     if getattr(args, "duration", None) is not None:
         run = replace(run, duration_s=float(args.duration))
+    if getattr(args, "seed", None) is not None:
+        run = replace(run, seed=int(args.seed))
     if getattr(args, "listen", None):
         zen = replace(zen, listen=tuple(args.listen))
     if getattr(args, "connect", None):
