@@ -50,6 +50,7 @@ class Daemon:
 
     def __init__(self, name: str, args: list[str], log_dir: Path) -> None:
         self.name = name
+        self.killed = False
         self.log = log_dir / f"{name}.log"
         log_dir.mkdir(parents=True, exist_ok=True)
         self._f = self.log.open("wb")
@@ -84,6 +85,8 @@ class Daemon:
         return self.proc.returncode
 
     def kill(self) -> None:
+        """SIGKILL on purpose (``killed`` tells teardown checks to expect -9)."""
+        self.killed = True
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(5)

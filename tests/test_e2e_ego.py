@@ -90,5 +90,5 @@ preset = "default"
         if client is not None and client.poll() is None:
             client.kill()
         probe.close()
-        sumo.terminate(5)
-        phys.terminate(5)
+        codes = {"sumo": sumo.terminate(5), "physics": phys.terminate(5)}
+    assert codes == {"sumo": 0, "physics": 0}

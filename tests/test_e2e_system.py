@@ -68,17 +68,19 @@ class System:
         self.daemons.append(d)
         return d
 
-    def close(self):
-        for d in self.daemons:
-            d.terminate(5)
+    def close(self) -> dict[str, int]:
+        """Stop everything; exit codes of the daemons not killed on purpose."""
+        codes = {d.name: d.terminate(5) for d in self.daemons}
         self.probe.close()
+        return {n: c for n, c in codes.items() if not next(d for d in self.daemons if d.name == n).killed}
 
 
 @pytest.fixture
 def system(tmp_path):
     s = System(tmp_path)
     yield s
-    s.close()
+    codes = s.close()
+    assert codes and all(c == 0 for c in codes.values()), codes
 
 
 def _steps_by_index(probe):
@@ -120,7 +122,8 @@ def test_traffic_lights_pass_through_unchanged(tmp_path):
         wait_until(lambda: len(p.steps) > 450, 90, "450 steps", procs=[system.sumo, system.physics])
         steps = _steps_by_index(p)
     finally:
-        system.close()
+        codes = system.close()
+    assert codes == {"sumo": 0, "physics": 0}
     libsumo.start(["sumo", "-c", str(PAPER_CFG), "--step-length", "0.1", "--seed", "42",
                    "--no-step-log", "true"])
     try:
