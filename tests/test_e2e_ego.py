@@ -29,6 +29,9 @@ id = "egorun"
 sumocfg = "{make_testnet(tmp_path / 'net')}"
 ego_hold_s = 0.3
 ego_timeout_s = 2.0
+# SUMO's one-step lane change: with continuous ones (3 s) v0 was seen passing through the
+# standing ego (gap -6.2 m) -- an open question for the lane-change work, not this test's
+lanechange_duration_s = 0.0
 [physics]
 preset = "default"
 """)
