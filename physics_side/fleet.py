@@ -240,7 +240,7 @@ class Fleet:
             yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
         ref = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
         side_rate = np.zeros(len(ids))
-        if old_ref is not None and len(ids):
+        if old_ref is not None and bool((prev >= 0).any()):  # (the previous step may have had no agents)
             had = prev >= 0
             p0 = np.maximum(prev, 0)
             gap = msg.time - old_ref.t_k
