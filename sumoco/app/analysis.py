@@ -232,8 +232,9 @@ def tracking_errors(ref: RefTable, ph: PhysTable) -> Errors:
 def _stats(e: np.ndarray) -> dict:
     e = e[np.isfinite(e)]
     if not len(e):
-        return {"mean": None, "p95": None, "max": None, "samples": 0}
-    return {"mean": round(float(e.mean()), 4), "p95": round(float(np.percentile(e, 95)), 4),
+        return {"mean": None, "p50": None, "p95": None, "max": None, "samples": 0}
+    p50, p95 = np.percentile(e, (50, 95))
+    return {"mean": round(float(e.mean()), 4), "p50": round(float(p50), 4), "p95": round(float(p95), 4),
             "max": round(float(e.max()), 4), "samples": int(len(e))}
 
 

@@ -1,4 +1,4 @@
-"""``sumoco bench {sumo,physics,e2e,codec,fidelity} --json``: benchmark rows as JSON on stdout.
+"""``sumoco bench {sumo,physics,e2e,codec,fidelity,scenarios,...} --json``: benchmark rows as JSON on stdout.
 
 Benchmarks measure speed; tests check correctness. Each area owns its benchmark
 function (``sumo_side.bench``, ``physics_side.bench``, ``sumoco.app.e2e_bench``); this module
@@ -72,6 +72,11 @@ def cli_main(args) -> int:
         from sumoco.app.record_bench import run_gateway_bench
 
         rows = run_gateway_bench(quick=quick)
+    elif args.what == "scenarios":
+        from sumoco.app.scenario_bench import run_scenario_bench
+
+        rows = run_scenario_bench(getattr(args, "pack", None), getattr(args, "duration", None) or 60.0,
+                                  quick=quick, out_root=getattr(args, "out", None))
     elif args.what == "e2e":
         from sumoco.app.e2e_bench import run_e2e_bench
 

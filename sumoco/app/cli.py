@@ -81,11 +81,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
-    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway"])
+    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway",
+                                    "scenarios"])
+    p.add_argument("--pack", help="scenarios: folder of the scenario pack (default ../shared/scenarios "
+                                  "beside the repository)")
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
     p.add_argument("--config", help="soak: run config (default configs/soak.toml)")
     p.add_argument("--minutes", type=float, default=60.0, help="soak: wall-clock minutes to run")
-    p.add_argument("--out", help="soak: output folder (default runs/soak)")
+    p.add_argument("--out", help="soak: output folder (default runs/soak); scenarios: folder for the runs "
+                                 "(default a temporary one)")
+    p.add_argument("--duration", type=float, help="scenarios: simulated seconds per scenario (default 60)")
     p.add_argument("--sample-s", dest="sample_s", type=float, help="soak: seconds between rows (default 60)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
     p.add_argument("--quiet", action="store_true")
