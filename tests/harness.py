@@ -26,6 +26,16 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_CFG = ROOT / "configs" / "scenarios" / "paper" / "paper.sumocfg"
 
 
+def scenario_pack() -> Path | None:
+    """The scenario pack: ``shared/scenarios`` beside the repository (or beside a parent:
+    worktrees), None when absent."""
+    for base in (ROOT.parent, *ROOT.parent.parents):
+        pack = base / "shared" / "scenarios"
+        if (pack / "MANIFEST.md").is_file():
+            return pack
+    return None
+
+
 def endpoint(port: int | None = None) -> str:
     return f"tcp/127.0.0.1:{port or free_tcp_port()}"
 

@@ -16,16 +16,16 @@ from pathlib import Path
 
 import pytest
 
-from tests.harness import ROOT
+from tests.harness import ROOT, scenario_pack
 
 pytestmark = pytest.mark.integration
 
-PACK = ROOT.parent / "shared" / "scenarios"
+PACK = scenario_pack()
 
-if not (PACK / "MANIFEST.md").is_file():
+if PACK is None:
     if os.environ.get("CI"):
-        raise RuntimeError(f"scenario pack missing: {PACK} (CI must have ../shared/scenarios)")
-    pytest.skip(f"scenario pack not found at {PACK} (expected ../shared/scenarios beside the repository)",
+        raise RuntimeError("scenario pack missing: CI must have shared/scenarios beside the clone")
+    pytest.skip(f"scenario pack not found (expected shared/scenarios beside {ROOT} or a parent)",
                 allow_module_level=True)
 
 #: (case, .sumocfg in the pack, --begin or None, simulated seconds, step length the scenario sets [s])

@@ -41,7 +41,12 @@ wall_limit_s = {wall}
 
 
 def default_pack() -> Path:
-    return Path(__file__).resolve().parents[2].parent / "shared" / "scenarios"
+    """``shared/scenarios`` beside the repository (or beside a parent folder)."""
+    root = Path(__file__).resolve().parents[2]
+    for base in (root.parent, *root.parent.parents):
+        if (base / "shared" / "scenarios" / "MANIFEST.md").is_file():
+            return base / "shared" / "scenarios"
+    return root.parent / "shared" / "scenarios"
 
 
 def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float | None) -> dict:
