@@ -49,6 +49,8 @@ class PhysicsConfig:
         default_factory=lambda: {"passenger": 64, "taxi": 4, "bus": 4, "bicycle": 8, "pedestrian": 16}
     )  # [slots per shard] pre-allocated parked slots per type (its default size bucket)
     pool_chunk: int = 32  # [slots] a pool that runs out grows by at least this many per shard
+    lod_radius_m: float = 0.0  # [m] level of detail: full physics within this of every ego, kinematic beyond (0 = off)
+    lod_regions: tuple[tuple[float, ...], ...] = ()  # [[x, y, r], ...] [m] regions that always run full physics
     expect: dict[str, int] = field(default_factory=dict)  # [agents] at once per type, e.g. {passenger = 3000}: pools sized up front
     step_queue: int = 64  # [messages] bounded FIFO of received SUMO steps
     step_queue_mb: float = 64.0  # [MiB] byte bound of that FIFO (full: the oldest step is dropped)
@@ -78,6 +80,11 @@ class PhysicsConfig:
                 raise ConfigError(f"physics.initial_slots.{k}: unknown agent type")
             if v < 0:
                 raise ConfigError(f"physics.initial_slots.{k}: expected >= 0, got {v}")
+        if self.lod_radius_m < 0:
+            raise ConfigError(f"physics.lod_radius_m: expected >= 0, got {self.lod_radius_m}")
+        for i, r in enumerate(self.lod_regions):
+            if len(r) != 3 or r[2] <= 0:
+                raise ConfigError(f"physics.lod_regions[{i}]: expected [x, y, radius] with radius > 0 [m], got {list(r)}")
         for k, v in self.expect.items():
             if k not in TYPES[:-1]:
                 raise ConfigError(f"physics.expect.{k}: unknown agent type (expected one of {', '.join(TYPES[:-1])})")
