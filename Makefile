@@ -8,7 +8,10 @@ STAMP := $(VENV)/.installed
 # package-lock.json; npm ci reinstalls them when the lock file changes.
 NODE_STAMP := node_modules/.installed
 
-.PHONY: demo test bench install lint clean
+.PHONY: demo test bench fuzz install lint clean
+
+# Coverage-guided fuzzing of the wire decoder (tests/fuzz_protocol.py); `make test` runs 12 s of it.
+FUZZ_SECONDS ?= 600
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +40,9 @@ test: $(STAMP) $(NODE_STAMP)
 bench: $(STAMP)
 	$(BIN)/sumoco bench sumo --json
 	$(BIN)/sumoco bench physics --json
+
+fuzz: $(STAMP)
+	$(BIN)/python tests/fuzz_protocol.py --seconds $(FUZZ_SECONDS) --corpus build/fuzz-corpus
 
 clean:
 	rm -rf $(VENV) runs build *.egg-info node_modules

@@ -68,6 +68,7 @@ class PhysicsDaemon:
         self.run_cfg = run
         self.lockstep = run.timing == "lockstep"
         self.rates = fleet.rates
+        self._limits = run.decode_limits
         # Bounded in messages and bytes (SPEC 5.1): full -> the oldest step is dropped, counted.
         self._steps: DropOldest[bytes] = DropOldest(self.cfg.step_queue, int(self.cfg.step_queue_mb * (1 << 20)))
         # vType table between steps (protocol 1.2 sends it only when it changes); a static
@@ -152,7 +153,7 @@ class PhysicsDaemon:
         """Fill in the vType table; query the static data when this step's version is unknown."""
         while self._static_replies:
             try:
-                self._tables.on_static(decode_as(self._static_replies.popleft(), StaticData))
+                self._tables.on_static(decode_as(self._static_replies.popleft(), StaticData, self._limits))
             except ProtocolError as e:
                 self._reject(f"static data: {e}")
         msg = self._tables.resolve(msg)
@@ -168,7 +169,7 @@ class PhysicsDaemon:
 
     def _decode(self, data: bytes) -> StepMessage | None:
         try:
-            msg = decode_as(data, StepMessage)
+            msg = decode_as(data, StepMessage, self._limits)
         except ProtocolError as e:
             self._reject(str(e))
             return None

@@ -545,8 +545,8 @@ def _decode_step(d: dict, r: _Reader) -> StepMessage:
     nxt = _list(t, "next", "tls.", k)
     if not all(isinstance(p, int) and not isinstance(p, bool) and 0 <= p < 2**31 for p in phase):
         raise ProtocolError("expected integers 0..2^31-1", "tls.phase")
-    if not all(isinstance(s, (int, float)) and not isinstance(s, bool) and math.isfinite(s) for s in nxt):
-        raise ProtocolError("expected finite numbers", "tls.next")
+    if not all(isinstance(s, (int, float)) and not isinstance(s, bool) and -1e9 <= s <= 1e9 for s in nxt):
+        raise ProtocolError("expected finite numbers in -1e9..1e9 (float32 after decoding)", "tls.next")
     tls = TrafficLights(
         ids=ids,
         state=r.strs(t, "state", "tls.", k),

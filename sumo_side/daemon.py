@@ -143,6 +143,7 @@ class SumoDaemon:
             cfg.max_peer_keys, frozenset(k.physics_alive for k in waited))
         self._alive: set[str] = set()
         self._last_reject_log = -math.inf
+        self._limits = run.decode_limits  # acks and ego poses are small: any bound holds them
         self._static_bytes = encode(sim.static_data())
         self._static_version = sim.static_version
         self._static_encoded_at = -math.inf
@@ -226,7 +227,7 @@ class SumoDaemon:
                 return
             key = str(sample.key_expr)
             try:
-                msg = decode(sample.payload.to_bytes())
+                msg = decode(sample.payload.to_bytes(), self._limits)
             except ProtocolError as e:
                 self._reject(f"message on {key}", e)
                 continue
@@ -250,7 +251,7 @@ class SumoDaemon:
         """Take acks from the queue (blocking up to ``timeout`` for the first one)."""
         for key, payload in self._acks.drain(timeout).items():
             try:
-                msg = decode(payload)
+                msg = decode(payload, self._limits)
                 if not isinstance(msg, StepAck):
                     raise ProtocolError(f"expected an ack, got {type(msg).__name__}", "kind")
                 if msg.run != self.run_cfg.id:

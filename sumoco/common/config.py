@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
+from protocol.codec import DecodeLimits
 from protocol.errors import ConfigError
 
 T = TypeVar("T")
@@ -37,6 +38,16 @@ class RunConfig:
     duration_s: float = 0.0  # [s] simulated time to run; 0 = until SUMO has no more traffic
     seed: int | None = None  # SUMO --seed (replaces the scenario's own, logged); none: the scenario's
     lockstep_timeout_s: float = 10.0  # [s] a silent peer in lockstep is an error after this
+    max_agents: int = 200_000  # [agents] largest agent table a daemon decodes; bounds every decode (SPEC 5)
+
+    def validate(self) -> None:
+        if not 1 <= self.max_agents <= 200_000:
+            raise ConfigError(f"run.max_agents: expected 1..200000, got {self.max_agents}")
+
+    @property
+    def decode_limits(self) -> DecodeLimits:
+        """msgpack length limits of every decode, from ``max_agents``."""
+        return DecodeLimits.for_agents(self.max_agents)
 
 
 @dataclass(frozen=True)
