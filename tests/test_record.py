@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import msgpack
 import numpy as np
 import pytest
 
-from protocol.codec import decode
+from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepMessage
 from sumoco.app.record import kind_of_topic, read_recording
@@ -110,3 +111,62 @@ def test_recorder_never_blocks_the_transport_and_counts_drops():
     slow.release.set()
     live.stop(10)
     assert live.dropped >= 186 and live.written == len(slow.written) == live.received - live.dropped
+
+
+def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
+    """SPEC 3.2: when a step's `sv` moves on, the recorder asks again; replay serves each version."""
+    import dataclasses
+
+    from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
+    from sumoco.testing.synthetic import FakeRun
+    from tests.harness import wait_until
+
+    fake = FakeRun(grid=1, n=8, run="sv")
+    keys = Keys("sumoco", "sv")
+    served = [encode(fake.static())]
+    path = tmp_path / "sv.mcap"
+    rec = McapRecorder(path)
+    with open_session(ZenohConfig(listen=(endpoint(),))) as s:
+        s.declare_queryable(keys.static, lambda q: q.reply(keys.static, served[0]))
+        live = LiveRecorder(s, keys, rec, config=RecordConfig(scene=False)).start()
+        assert live.fetch_static(5.0, map_timeout_s=0) is not None
+        pub = s.declare_publisher(keys.step)
+        for k in range(20):
+            if k == 10:
+                served[0] = encode(dataclasses.replace(fake.static(), version=1))
+            pub.put(encode(dataclasses.replace(fake.step(k), static_version=int(k >= 10))))
+            time.sleep(0.02)
+        wait_until(lambda: live.static_versions == 1, 5.0, "the second static version recorded")
+        live.stop()
+    rec.close()
+    order = [(m.topic, decode(m.data)) for m in read_recording(path).messages]
+    statics = [(i, msg.version) for i, (t, msg) in enumerate(order) if t == keys.static]
+    assert [v for _, v in statics] == [0, 1]
+    first_v1_step = next(i for i, (t, msg) in enumerate(order) if t == keys.step and msg.static_version == 1)
+    assert statics[1][0] > first_v1_step
+    # Replay: while steps of version 1 are replayed, the queryable answers version 1.
+    import threading
+
+    from sumoco.app.replay import Replayer
+
+    ep = endpoint()
+    with open_session(ZenohConfig(listen=(ep,))) as a, open_session(ZenohConfig(listen=(endpoint(),),
+                                                                                  connect=(ep,))) as b:
+        seen: list[tuple[int, int]] = []
+
+        def on_step(smp) -> None:
+            m = decode(smp.payload.to_bytes())
+            if m.step == 17:  # well after the version change: ask as a client would
+                got = [decode(r.ok.payload.to_bytes()).version for r in b.get(keys.static, timeout=2.0)
+                       if r.ok is not None]
+                seen.append((m.static_version, got[0] if got else -1))
+
+        b.declare_subscriber(keys.step, on_step)
+        rep = Replayer(a, path, speed=2.0, wait_subscriber_s=5.0)
+        th = threading.Thread(target=rep.run)
+        th.start()
+        th.join(20)
+        rep.close()
+    assert seen == [(1, 1)]

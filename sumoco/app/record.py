@@ -142,12 +142,12 @@ class McapRecorder:
             self._w.close()
 
 
-def _sim_time(payload: bytes) -> float | None:
-    """Simulated time ``t`` [s] of a msgpack message, without building the agent arrays."""
+def _peek(payload: bytes, key: str) -> float | None:
+    """One top-level number of a msgpack message (``t``, ``sv``), without building the agent arrays."""
     try:
         d = msgpack.unpackb(payload, raw=False)
-        t = d.get("t") if isinstance(d, dict) else None
-        return float(t) if isinstance(t, (int, float)) else None
+        v = d.get(key) if isinstance(d, dict) else None
+        return v if isinstance(v, (int, float)) and not isinstance(v, bool) else None
     except Exception:  # undecodable: recorded as it came, the reader reports it
         return None
 
@@ -182,6 +182,9 @@ class LiveRecorder:
         self._last_t: dict[str, float] = {}
         self.received = self.dropped = self.thinned = self.written = self.write_errors = 0
         self._stopped = threading.Event()
+        self._static_sv: int | None = None
+        self._refetching = threading.Event()
+        self.static_versions = 0
         self._writer = threading.Thread(target=self._write_loop, name="record-writer", daemon=True)
         self._writer.start()
 
@@ -217,7 +220,7 @@ class LiveRecorder:
     def _keep(self, topic: str, payload: bytes) -> bool:
         if not self._period or not topic.endswith("/state"):
             return True
-        t = _sim_time(payload)
+        t = _peek(payload, "t")
         if t is None:
             return True
         last = self._last_t.get(topic)
@@ -248,6 +251,7 @@ class LiveRecorder:
                     continue
                 self.rec.write(topic, payload, stamp, schema=schema)
                 self.written += 1
+                self._track_static_version(topic, payload)
                 if self._scene_worker is not None:
                     self._scene_worker.put(topic, payload, stamp)
             except Exception:  # a write problem is logged and counted; recording goes on
@@ -255,6 +259,39 @@ class LiveRecorder:
                 log.exception("recording %s failed", item[0] if item else "?")
             finally:
                 self._q.task_done()
+
+    def _track_static_version(self, topic: str, payload: bytes) -> None:
+        """Record every static-data version the steps refer to (SPEC 3.2: tables change in a run)."""
+        if topic == self.keys.static:
+            self._static_sv = int(_peek(payload, "sv") or 0)
+        elif topic == self.keys.step and self._static_sv is not None and not self._refetching.is_set():
+            sv = int(_peek(payload, "sv") or 0)
+            if sv != self._static_sv:
+                self._refetching.set()
+                threading.Thread(target=self._refetch_static, args=(sv,), name="record-static",
+                                 daemon=True).start()
+
+    def _refetch_static(self, sv: int, timeout_s: float = 5.0) -> None:
+        # The SUMO side re-encodes the static data at most once a second: ask until it has caught up.
+        try:
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline and not self._stopped.is_set():
+                try:
+                    replies = [r.ok.payload.to_bytes() for r in self.session.get(self.keys.static, timeout=2.0)
+                               if r.ok is not None]
+                except zenoh.ZError:
+                    return
+                for data in replies:
+                    if int(_peek(data, "sv") or 0) >= sv:
+                        with self._bytes_lock:
+                            self._queued_bytes += len(data)
+                        self._q.put((self.keys.static, data, time.time_ns(), "static"))
+                        self.static_versions += 1
+                        return
+                self._stopped.wait(0.3)
+            log.warning("static data version %d not served within %.0f s", sv, timeout_s)
+        finally:
+            self._refetching.clear()
 
     def start(self) -> "LiveRecorder":
         self._sub = self.session.declare_subscriber(self.keys.everything, self._cb)
@@ -305,7 +342,7 @@ class LiveRecorder:
 
     def stats(self) -> dict[str, int]:
         return {"received": self.received, "written": self.written, "dropped": self.dropped,
-                "write_errors": self.write_errors,
+                "write_errors": self.write_errors, "static_versions": self.static_versions,
                 "thinned": self.thinned, "scene_errors": self.scene_errors, "scene_dropped": self.scene_dropped}
 
 

@@ -6,7 +6,8 @@ daemons offered live:
 
 - every recorded step, physics state and ack on its own key (the recorded key), as the
   recorded msgpack bytes, paced by the recorded receive times divided by ``speed``;
-- the static data answered by a queryable on ``<root>/<run>/sumo/static``, and the glTF
+- the static data answered by a queryable on ``<root>/<run>/sumo/static`` (each recorded
+  version from the point it was recorded on, SPEC 3.2), and the glTF
   map on ``<root>/<run>/sumo/map`` when the recording holds it (SPEC 9);
 - liveliness tokens ``<root>/<run>/sumo/alive`` and ``.../physics/<inst>/alive`` for every
   physics instance in the recording (declared when it first appears).
@@ -166,8 +167,13 @@ class Replayer:
         """Publish the recording once; False when stopped."""
         t0_rec = None
         t0_wall = time.monotonic()
+        first_static = self._static
         for m in self.recording.messages:
             kind = m.schema if m.schema in REPUBLISHED else kind_of_topic(m.topic)
+            if kind == "static" and self._static is not None:
+                # A later static version (SPEC 3.2) is served from the point it was recorded on.
+                self._static = (m.topic, m.data)
+                continue
             if kind not in REPUBLISHED:
                 continue
             if t0_rec is None:
@@ -186,6 +192,7 @@ class Replayer:
                 return False
             self._put(m)
         self.stats.truncated = self.stats.truncated or self.recording.truncated
+        self._static = first_static  # the next loop starts with the first version again
         return True
 
     def run(self) -> ReplayStats:
