@@ -137,7 +137,7 @@ def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
             if k == 10:
                 served[0] = encode(dataclasses.replace(fake.static(), version=1))
             pub.put(encode(dataclasses.replace(fake.step(k), static_version=int(k >= 10))))
-            time.sleep(0.02)
+            time.sleep(0.05)
         wait_until(lambda: live.static_versions == 1, 5.0, "the second static version recorded")
         live.stop()
     rec.close()
@@ -154,19 +154,18 @@ def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
     ep = endpoint()
     with open_session(ZenohConfig(listen=(ep,))) as a, open_session(ZenohConfig(listen=(endpoint(),),
                                                                                   connect=(ep,))) as b:
-        seen: list[tuple[int, int]] = []
-
-        def on_step(smp) -> None:
-            m = decode(smp.payload.to_bytes())
-            if m.step == 17:  # well after the version change: ask as a client would
-                got = [decode(r.ok.payload.to_bytes()).version for r in b.get(keys.static, timeout=2.0)
-                       if r.ok is not None]
-                seen.append((m.static_version, got[0] if got else -1))
-
-        b.declare_subscriber(keys.step, on_step)
-        rep = Replayer(a, path, speed=2.0, wait_subscriber_s=5.0)
+        newest: list[StepMessage] = []
+        b.declare_subscriber(keys.step, lambda smp: newest.append(decode(smp.payload.to_bytes())))
+        rep = Replayer(a, path, speed=0.25, loop=True, wait_subscriber_s=5.0)  # 0.2 s per step
         th = threading.Thread(target=rep.run)
         th.start()
-        th.join(20)
-        rep.close()
-    assert seen == [(1, 1)]
+        try:
+            wait_until(lambda: newest and newest[-1].step >= 13, 20.0, "replayed steps of version 1")
+            assert newest[-1].static_version == 1
+            got = [decode(r.ok.payload.to_bytes()).version for r in b.get(keys.static, timeout=5.0)
+                   if r.ok is not None]
+        finally:
+            rep.stop()
+            th.join(10)
+            rep.close()
+    assert got == [1]

@@ -176,8 +176,8 @@ class Replayer:
                 continue
             if kind not in REPUBLISHED:
                 continue
-            if t0_rec is None:
-                t0_rec = m.log_time_ns
+            if t0_rec is None:  # the clock starts at the first put, not at opening the file
+                t0_rec, t0_wall = m.log_time_ns, time.monotonic()
             rec_s = (m.log_time_ns - t0_rec) / 1e9
             if self.limit_s is not None and rec_s > self.limit_s:
                 break
