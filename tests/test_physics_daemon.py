@@ -193,3 +193,57 @@ def test_daemon_realtime_paces_ticks_by_the_wall_clock(tmp_path):
         token.undeclare()
         probe.close()
         sumo.close()
+
+
+def test_late_joiner_queries_static_data_for_an_unknown_static_version(tmp_path):
+    """Steps without their vType table (protocol 1.2) whose static version the daemon has
+    not seen: it queries the static data (once, not per step) and keeps following."""
+    from dataclasses import replace
+
+    from protocol.golden_vectors import valid_messages
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
+
+    run = "phys-static-test"
+    keys = Keys("sumoco", run)
+    cfg = tmp_path / "physics.toml"
+    cfg.write_text(CONFIG.format(run=run))
+    sumo_ep = endpoint()
+    sumo = open_session(ZenohConfig(listen=(sumo_ep,)))
+    static = encode(replace(valid_messages()["static"], run=run, version=3))
+    queries: list[int] = []
+    acks: list[int] = []
+    lock = threading.Lock()
+
+    def on_query(q):
+        with lock:
+            queries.append(1)
+        q.reply(keys.static, static)
+
+    def on_ack(s):
+        with lock:
+            acks.append(decode(s.payload.to_bytes()).step)
+
+    qable = sumo.declare_queryable(keys.static, on_query)
+    ack_sub = sumo.declare_subscriber(keys.ack_all, on_ack)
+    token = sumo.liveliness().declare_token(keys.sumo_alive)
+    daemon = Daemon("physics-static", ["physics", "--config", str(cfg), "--connect", sumo_ep,
+                                       "--listen", endpoint(), "--verbose"], tmp_path / "logs")
+    probe = Probe(keys, connect=[sumo_ep])
+    try:
+        wait_until(lambda: keys.physics_alive in probe.alive, 30.0, "the physics liveliness token", procs=[daemon])
+        for k in range(12):
+            sumo.put(keys.step, encode(replace(circle_traffic(3, k, run=run), vtypes=None, static_version=3)))
+            wait_until(lambda: k in acks, 20.0, f"ack of step {k}", procs=[daemon])
+        with lock:
+            assert len(queries) == 1, queries  # asked once: the reply's version matched
+        assert "refers to static version 3" in daemon.tail(400)
+        st = wait_until(lambda: probe.last_physics(), 5.0, "a physics state")
+        assert sorted(st.agents.ids) == ["veh0", "veh1", "veh2"] and st.counters["rejected"] == 0
+        assert daemon.terminate(15.0) == 0, daemon.tail()
+    finally:
+        daemon.kill()
+        for d in (qable, ack_sub, token):
+            d.undeclare()
+        probe.close()
+        sumo.close()
