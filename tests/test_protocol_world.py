@@ -246,3 +246,12 @@ def test_spec_only_client_decodes_golden_vectors_like_the_codec():
     st = _load("static")
     flat = [p for poly in doc["lanes"]["shape"] for p in poly]
     np.testing.assert_array_equal(np.array(flat), st.lanes.shape_xy)
+
+
+def test_position_encoding_bench_compares_both_encodings():
+    """The numbers behind SPEC.md 6: offsets are smaller than float64 and just as precise."""
+    from sumoco.app.bench import run_position_encoding_bench
+
+    (row,) = run_position_encoding_bench(sizes=(200,), repeat=2)
+    assert row["offsets_bytes_per_agent"] < 0.7 * row["f64_bytes_per_agent"]
+    assert row["offsets_max_error_mm"] <= 1.0 and row["path_points_per_agent"] == 12

@@ -11,10 +11,11 @@ import json
 import sys
 import time
 
+import msgpack
 import numpy as np
 
 from protocol.codec import decode, encode
-from sumoco.testing.synthetic import synthetic_step
+from sumoco.testing.synthetic import circle_traffic, synthetic_step
 
 
 def _best_ms(fn, repeat: int) -> float:
@@ -34,6 +35,7 @@ def run_codec_bench(sizes=(250, 1000, 2500), repeat: int = 200) -> list[dict]:
             msg = synthetic_step(n, path_points=pts)
             data = encode(msg)
             rows.append({
+                "case": "synthetic",
                 "agents": n,
                 "path_points_per_agent": pts,
                 "bytes": len(data),
@@ -41,6 +43,76 @@ def run_codec_bench(sizes=(250, 1000, 2500), repeat: int = 200) -> list[dict]:
                 "encode_ms": round(_best_ms(lambda: encode(msg), repeat), 4),
                 "decode_ms": round(_best_ms(lambda: decode(data), repeat), 4),
             })
+    return rows + run_position_encoding_bench(repeat=repeat)
+
+
+def _absolute_f64(wire: dict, a) -> dict:
+    """The step of ``wire`` with look-ahead points and paths as absolute float64 (the
+    alternative to protocol 1.2's float32 offsets, for comparison only)."""
+    ag = {k: v for k, v in wire["agents"].items() if k not in ("la_dx", "la_dy", "path")}
+    ag["la_x"] = np.asarray(a.la_x, "<f8").tobytes()
+    ag["la_y"] = np.asarray(a.la_y, "<f8").tobytes()
+    ag["path"] = {"off": np.asarray(a.path_offsets, "<u4").tobytes(), "xy": np.asarray(a.path_xy, "<f8").tobytes()}
+    return {**wire, "agents": ag}
+
+
+def run_position_encoding_bench(sizes=(1000, 2500), repeat: int = 200) -> list[dict]:
+    """Float32 offsets from each agent's float64 position (protocol 1.2) against absolute
+    float64, at UTM-sized coordinates with 12 path points per agent (SPEC.md 6). Encode and
+    decode time the look-ahead points and paths only: packing them and building the
+    absolute float64 arrays a receiver needs; ``codec_*`` is the whole message."""
+    rows = []
+    for n in sizes:
+        msg = circle_traffic(n, 5, centre=(691_000.0, 5_335_000.0))
+        a = msg.agents
+        wire = encode(msg)
+        doc = msgpack.unpackb(wire, raw=False)
+        w64 = msgpack.packb(_absolute_f64(doc, a), use_bin_type=True)
+        off = np.asarray(a.path_offsets, np.int64)
+        counts = np.diff(off)
+
+        def enc_offsets():
+            dxy = np.empty(a.path_xy.shape, np.float32)
+            dxy[:, 0] = a.path_xy[:, 0] - np.repeat(a.x, counts)
+            dxy[:, 1] = a.path_xy[:, 1] - np.repeat(a.y, counts)
+            return msgpack.packb([(a.la_x - a.x).astype("<f4").tobytes(), (a.la_y - a.y).astype("<f4").tobytes(),
+                                  dxy.tobytes()])
+
+        def enc_f64():
+            return msgpack.packb([np.asarray(a.la_x, "<f8").tobytes(), np.asarray(a.la_y, "<f8").tobytes(),
+                                  np.asarray(a.path_xy, "<f8").tobytes()])
+
+        def dec_offsets():
+            ag = msgpack.unpackb(wire, raw=False)["agents"]
+            x, y = np.frombuffer(ag["x"], "<f8"), np.frombuffer(ag["y"], "<f8")
+            lx, ly = x + np.frombuffer(ag["la_dx"], "<f4"), y + np.frombuffer(ag["la_dy"], "<f4")
+            c = np.diff(np.frombuffer(ag["path"]["off"], "<u4").astype(np.int64))
+            xy = np.frombuffer(ag["path"]["dxy"], "<f4").reshape(-1, 2).astype(np.float64)
+            xy[:, 0] += np.repeat(x, c)
+            xy[:, 1] += np.repeat(y, c)
+            return lx, ly, xy
+
+        def dec_f64():
+            ag = msgpack.unpackb(w64, raw=False)["agents"]
+            return (np.frombuffer(ag["la_x"], "<f8"), np.frombuffer(ag["la_y"], "<f8"),
+                    np.frombuffer(ag["path"]["xy"], "<f8").reshape(-1, 2))
+
+        out = decode(wire).agents
+        err = max(np.abs(out.path_xy - a.path_xy).max(), np.abs(out.la_x - a.la_x).max(), np.abs(out.la_y - a.la_y).max())
+        rows.append({
+            "case": "positions_utm",
+            "agents": n,
+            "path_points_per_agent": int(len(a.path_xy) // n),
+            "f64_bytes_per_agent": round(len(w64) / n, 1),
+            "offsets_bytes_per_agent": round(len(wire) / n, 1),
+            "f64_encode_ms": round(_best_ms(enc_f64, repeat), 4),
+            "offsets_encode_ms": round(_best_ms(enc_offsets, repeat), 4),
+            "f64_decode_ms": round(_best_ms(dec_f64, repeat), 4),
+            "offsets_decode_ms": round(_best_ms(dec_offsets, repeat), 4),
+            "codec_encode_ms": round(_best_ms(lambda: encode(msg), repeat), 4),
+            "codec_decode_ms": round(_best_ms(lambda: decode(wire), repeat), 4),
+            "offsets_max_error_mm": round(float(err) * 1e3, 4),
+        })
     return rows
 
 
