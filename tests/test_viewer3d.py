@@ -90,6 +90,16 @@ def test_3d_page_shows_map_agents_and_signal_heads(browser, tmp_path):  # noqa: 
         assert inst["wheels"] == 4 * (inst["car"] + inst["bus"]) + 2 * inst["bicycle"]
         assert inst["lamps"] == 4 * (inst["car"] + inst["bus"])
         assert s["ghosts"] == 50 and s["instance"] == "default"
+        # Brake lights and blinkers follow the step's signal bits (vehicles with lamps: not bikes).
+        browser.execute_script("window.sumoco3d.pause(true);")
+        _next_render(browser, _stats(browser)["renders"])
+        held = _stats(browser)
+        browser.execute_script("window.sumoco3d.pause(false);")
+        sig = live.fake.signals(held["step"])
+        lamps = (live.fake.cls != 3) & (live.fake.cls != 4)
+        want = {"brake": int(((sig & 8) > 0)[lamps].sum()), "left": int(((sig & 6) > 0)[lamps].sum()),
+                "right": int(((sig & 5) > 0)[lamps].sum())}
+        assert held["signalled"] == want and want["brake"] > 0 and want["left"] > 0, (held["signalled"], want)
         assert live.status()["map_source"] == "static"  # the synthetic feed serves no GLB: built from static data
 
         # Pixels: close to a car, the square around it changes when the agents are hidden;

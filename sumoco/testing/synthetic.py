@@ -268,6 +268,13 @@ class FakeRun:
             x -= dur
         return TLS_PHASES[-1][1], len(TLS_PHASES) - 1, 0.0
 
+    def signals(self, k: int) -> np.ndarray:
+        """SUMO signal bits of step k: brake lights on a sixth of the vehicles (changing every
+        2 s), left (2) / right (1) blinkers on a ninth each; none for pedestrians."""
+        i = np.arange(self.n)
+        sig = np.where((i + k // 20) % 6 == 0, 8, 0) | np.where(i % 9 == 1, 2, 0) | np.where(i % 9 == 2, 1, 0)
+        return np.where(self.cls == 4, 0, sig).astype(np.uint16)
+
     def step(self, k: int) -> StepMessage:
         t = k * self.dt
         xy, angle, tvec, u = self._pose(t)
@@ -279,7 +286,7 @@ class FakeRun:
         agents = AgentBatch(
             ids=list(self.ids), cls=self.cls.copy(), vtype=self.cls.astype(np.uint16),
             x=xy[:, 0].copy(), y=xy[:, 1].copy(), angle=angle.astype(np.float32),
-            speed=self.speed.copy(), accel=np.zeros(n, np.float32), signals=np.zeros(n, np.uint16),
+            speed=self.speed.copy(), accel=np.zeros(n, np.float32), signals=self.signals(k),
             la_x=la[:, 0].astype(np.float32), la_y=la[:, 1].astype(np.float32),
             length=self.length.copy(), width=self.width.copy(),
             lane=self.track_lane[self.track, piece].astype(np.int32),

@@ -145,8 +145,16 @@ async function loadMap(sha) {
     mapRoot.updateMatrixWorld(true);
     let meshes = 0;
     heads = [];
+    const lambert = new Map(); // flat, matte surfaces: Lambert looks the same and costs far less per pixel
     mapRoot.traverse((o) => {
-      if (o.isMesh) meshes++;
+      if (o.isMesh) {
+        meshes++;
+        const m = o.material;
+        if (m && m.isMeshStandardMaterial) {
+          if (!lambert.has(m)) lambert.set(m, new THREE.MeshLambertMaterial({ color: m.color, side: m.side, name: m.name }));
+          o.material = lambert.get(m);
+        }
+      }
       // Heads by their extras (three.js rewrites '/' in node names).
       const x = o.userData || {};
       if (typeof x.tls === 'string' && Number.isInteger(x.link)) {
@@ -295,6 +303,7 @@ function update(now, dt) {
   const counts = { car: 0, bus: 0, bicycle: 0, pedestrian: 0 };
   for (const k of Object.keys(MODELS)) pickIds[k] = [];
   let nw = 0, nl = 0, ng = 0, nc = 0;
+  const lit = { brake: 0, left: 0, right: 0 }; // vehicles drawn with brake lights / blinkers
   const blinkOn = (now % 700) < 350;
   for (let i = 0; i < n; i++) {
     const id = src.id[i];
@@ -365,6 +374,9 @@ function update(now, dt) {
       if (cls !== 3) {
         // Lamps: rear pair brake (red) / blinkers, front pair blinkers (amber) else dim white.
         const brake = sig & SIG_BRAKE;
+        if (brake) lit.brake++;
+        if (sig & (SIG_LEFT | SIG_EMERGENCY)) lit.left++;
+        if (sig & (SIG_RIGHT | SIG_EMERGENCY)) lit.right++;
         const left = (sig & (SIG_LEFT | SIG_EMERGENCY)) && blinkOn;
         const right = (sig & (SIG_RIGHT | SIG_EMERGENCY)) && blinkOn;
         const y = CLEARANCE[cls] + h * 0.45;
@@ -427,6 +439,7 @@ function update(now, dt) {
   stats.physicsAgents = phys ? n : 0;
   stats.ghosts = showGhosts ? ng / 4 : 0;
   stats.instances = { ...counts, wheels: nw, lamps: lamps.count, legs: legs.count, cabins: nc };
+  stats.signalled = lit;
   stats.updateMs = performance.now() - t0;
   // Follow camera: move target and camera with the agent.
   if (follow) {
