@@ -273,8 +273,10 @@ class SumoSim:
             args += ["--begin", repr(float(cfg.begin_s))]
         if self.output_dir is not None:
             # SUMO resolves output names against the config's folder and puts the prefix in
-            # front of them, so a relative prefix moves every output (also detector files of
-            # additional files and the scenario's <log>) into the run's folder.
+            # front of each name's last component, so a relative prefix moves every output
+            # written next to the scenario (also detector files of additional files there and
+            # the scenario's <log>) into the run's folder. (Outputs the scenario puts into
+            # other folders stay relative to those.)
             self.output_dir.mkdir(parents=True, exist_ok=True)
             args += ["--output-prefix", os.path.relpath(self.output_dir.resolve(), path.parent) + os.sep]
         args += list(cfg.extra_args)
@@ -427,7 +429,7 @@ class SumoSim:
             import traci
 
             return (traci.TraCIException, traci.FatalTraCIError)
-        return (_C.TraCIException,)
+        return (_C.TraCIException, _C.FatalTraCIError)
 
     def read(self) -> Snapshot:
         """Subscribe the agents that departed in the last step and read every agent."""
@@ -629,8 +631,9 @@ def _repeat_minus_one(n: int):
 
 
 def _exc_text(e: BaseException) -> str:
+    """SUMO's message on one line (SUMO wraps long ones)."""
     text = str(e)
     if not text or text.startswith("<libsumo"):
         get = getattr(e, "getString", None)
         text = get() if callable(get) else type(e).__name__
-    return text
+    return " ".join(text.split())
