@@ -139,6 +139,16 @@ def _last_error_line(log_file: Path, name: str) -> str:
     return ""
 
 
+def _sumo_error(log_file: Path) -> str:
+    """SUMO's own last ``Error:`` line in a log, if any."""
+    try:
+        lines = log_file.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    errors = [ln.removeprefix("Error: ").strip() for ln in lines if ln.startswith("Error: ")]
+    return errors[-1] if errors else ""
+
+
 def _exit_text(code: int) -> str:
     if code < 0:
         try:
@@ -245,7 +255,10 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
             except DaemonFailed as e:
                 if procs.procs["sumo"].poll() == ExitCode.USAGE:
                     # SUMO could not load the scenario: a configuration problem, not a run.
-                    raise ConfigError(_last_error_line(procs.log_dir / "sumo.log", "sumo") or str(e)) from None
+                    own = (_last_error_line(procs.log_dir / "sumo.log", "sumo").removeprefix("configuration error: ")
+                           .replace("; SUMO's own messages are above", ""))
+                    said = _sumo_error(procs.log_dir / "sumo.log")
+                    raise ConfigError((own or str(e)) + (f"; SUMO said: {said}" if said else "")) from None
                 raise
             log.info("all daemons up after %.1f s; running (wall limit %.0f s)",
                      time.monotonic() - t_start, demo.wall_limit_s)

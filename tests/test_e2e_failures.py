@@ -1,0 +1,123 @@
+"""Failures a user meets, as real processes: one line, a documented exit code, no traceback.
+
+- a missing or broken .sumocfg, or one SUMO cannot load: ``sumoco demo`` exits 2;
+- SUMO failing mid-run: the SUMO side exits 1 with SUMO's message, its liveliness token
+  goes (peers see it);
+- a daemon killed by a signal: ``sumoco demo`` names the daemon and the signal, exits 2.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import uuid
+
+import pytest
+
+from protocol.keys import Keys
+from tests.harness import ROOT, Daemon, Probe, endpoint, wait_until
+from tests.test_e2e_demo import _sumo_steps
+from tests.sumo_testnet import make_testnet
+from tests.test_sumo_scenario_options import BAD_ROUTES
+
+pytestmark = pytest.mark.integration
+
+
+def _demo(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "sumoco.app.cli", "demo", "--quiet", *args],
+                          capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def _one_line(stderr: str) -> str:
+    lines = [ln for ln in stderr.splitlines() if ln.startswith("sumoco demo:")]
+    assert "Traceback" not in stderr, stderr[-2000:]
+    assert len(lines) == 1, stderr[-2000:]
+    return lines[0]
+
+
+def test_missing_and_malformed_sumocfg_exit_2(tmp_path):
+    r = _demo("--sumocfg", str(tmp_path / "nope.sumocfg"), "--out", str(tmp_path / "a"))
+    assert r.returncode == 2
+    assert "nope.sumocfg" in _one_line(r.stderr) and "not found" in r.stderr
+    bad = tmp_path / "bad.sumocfg"
+    bad.write_text("<configuration><input>")
+    r = _demo("--sumocfg", str(bad), "--out", str(tmp_path / "b"))
+    assert r.returncode == 2
+    assert "bad.sumocfg" in _one_line(r.stderr) and "not well-formed" in r.stderr
+
+
+def test_scenario_sumo_cannot_load_exits_2(tmp_path):
+    cfg = tmp_path / "missing_net.sumocfg"
+    cfg.write_text('<configuration><input><net-file value="no_such.net.xml"/></input></configuration>')
+    r = _demo("--sumocfg", str(cfg), "--out", str(tmp_path / "out"), "--duration", "5")
+    assert r.returncode == 2
+    line = _one_line(r.stderr)
+    assert "missing_net.sumocfg" in line and "no_such.net.xml" in line
+
+
+def test_sumo_error_mid_run_exits_1_and_peers_see_it_leave(tmp_path):
+    net = make_testnet(tmp_path / "net")
+    (net.parent / "bad.rou.xml").write_text(BAD_ROUTES)
+    cfg = net.parent / "bad.sumocfg"
+    cfg.write_text(net.read_text().replace("routes.rou.xml", "bad.rou.xml")
+                   .replace("</time>", '<route-steps value="1"/></time>'))
+    run = f"err{uuid.uuid4().hex[:6]}"
+    ep = endpoint()
+    probe = Probe(Keys("sumoco", run), [ep])
+    sumo = Daemon("sumo", ["sumo", "--sumocfg", str(cfg), "--run", run, "--listen", ep, "--timing", "realtime"],
+                  tmp_path / "logs")
+    try:
+        wait_until(lambda: probe.keys.sumo_alive in probe.alive, 30, "the SUMO side's token", procs=[sumo])
+        wait_until(lambda: sumo.poll() is not None, 30, "the SUMO side to end on SUMO's error")
+        wait_until(lambda: probe.keys.sumo_alive not in probe.alive, 5, "the token to go")
+    finally:
+        code = sumo.terminate(5)
+        probe.close()
+    assert code == 1
+    log = sumo.log.read_text()
+    assert "Traceback" not in log
+    last = [ln for ln in log.splitlines() if ln.startswith("sumoco sumo:")]
+    assert len(last) == 1 and "NOPE" in last[0] and "SUMO failed" in last[0]
+    assert probe.steps and probe.steps[-1].time == pytest.approx(4.0, abs=0.15)
+
+
+def _pids_with(text: str) -> list[int]:
+    pids = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                cmd = f.read().split(b"\0")
+        except OSError:
+            continue
+        if text.encode() in cmd and b"sumo" in cmd:
+            pids.append(int(pid))
+    return pids
+
+
+def test_a_crashed_daemon_is_named_with_its_signal_exit_2(tmp_path):
+    run = f"crash{uuid.uuid4().hex[:6]}"
+    net = make_testnet(tmp_path / "net")
+    out = tmp_path / "out"
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "sumoco.app.cli", "demo", "--sumocfg", str(net), "--out", str(out),
+         "--run", run, "--timing", "realtime", "--duration", "120"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+    )
+    try:
+        wait_until(lambda: (out / "logs" / "physics-default.log").is_file() and _pids_with(run), 60,
+                   "the SUMO side to start")
+        wait_until(lambda: _sumo_steps(out / "logs" / "sumo.log") >= 10, 60, "SUMO past step 10")
+        for pid in _pids_with(run):  # the SUMO side: `sumoco sumo ... --run <run>`
+            os.kill(pid, signal.SIGSEGV)
+        _, err = demo.communicate(timeout=60)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+    assert demo.returncode == 2
+    line = _one_line(err)
+    assert "sumo" in line and "SIGSEGV" in line
+    assert (out / "summary.json").is_file()
