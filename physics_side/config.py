@@ -51,6 +51,8 @@ class PhysicsConfig:
     pool_chunk: int = 32  # [slots] a pool that runs out grows by at least this many per shard
     lod_radius_m: float = 0.0  # [m] level of detail: full physics within this of every ego, kinematic beyond (0 = off)
     lod_regions: tuple[tuple[float, ...], ...] = ()  # [[x, y, r], ...] [m] regions that always run full physics
+    shard_tile_m: float = 250.0  # [m] tile edge of the spatial partition between shard processes (--shard i/k)
+    shard_halo_m: float = 30.0  # [m] an agent keeps its shard this far beyond the shard's tiles
     expect: dict[str, int] = field(default_factory=dict)  # [agents] at once per type, e.g. {passenger = 3000}: pools sized up front
     step_queue: int = 64  # [messages] bounded FIFO of received SUMO steps
     step_queue_mb: float = 64.0  # [MiB] byte bound of that FIFO (full: the oldest step is dropped)
@@ -80,6 +82,8 @@ class PhysicsConfig:
                 raise ConfigError(f"physics.initial_slots.{k}: unknown agent type")
             if v < 0:
                 raise ConfigError(f"physics.initial_slots.{k}: expected >= 0, got {v}")
+        if self.shard_tile_m <= 0 or not 0 <= self.shard_halo_m < self.shard_tile_m:
+            raise ConfigError("physics: need shard_tile_m > 0 and 0 <= shard_halo_m < shard_tile_m [m]")
         if self.lod_radius_m < 0:
             raise ConfigError(f"physics.lod_radius_m: expected >= 0, got {self.lod_radius_m}")
         for i, r in enumerate(self.lod_regions):

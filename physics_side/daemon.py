@@ -36,6 +36,7 @@ import zenoh
 
 from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config, parse_expect, ticks_to
 from physics_side.fleet import Fleet
+from physics_side.shard import ShardFilter, parse_shard, shard_instance, shard_of_instance, subset
 from physics_side.models import TYPE_NAMES
 from physics_side.world import PhysicsWorld
 from protocol.codec import decode_as, encode
@@ -59,8 +60,12 @@ class PhysicsDaemon:
 
     def __init__(
         self, session: zenoh.Session, keys: Keys, fleet: Fleet, settings: PhysicsSettings, run: RunConfig,
+        shard: ShardFilter | None = None,
     ):
+        """``shard``: simulate only this shard's agents (``--shard i/k``); None = all."""
         self.session = session
+        self.shard = shard
+        self._shard_events: collections.deque[tuple[str, bool]] = collections.deque(maxlen=256)
         self.keys = keys
         self.fleet = fleet
         self.settings = settings
@@ -104,6 +109,10 @@ class PhysicsDaemon:
         self._alive_events.append(sample.kind == zenoh.SampleKind.PUT)
         self._wake.set()
 
+    def _on_peer_alive(self, sample: zenoh.Sample) -> None:
+        self._shard_events.append((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+        self._wake.set()
+
     def start(self) -> "PhysicsDaemon":
         s = self.session
         cc = zenoh.CongestionControl.BLOCK if self.lockstep else zenoh.CongestionControl.DROP
@@ -113,6 +122,9 @@ class PhysicsDaemon:
         self._sub_alive = s.liveliness().declare_subscriber(self.keys.sumo_alive, self._on_alive, history=True)
         self._token = s.liveliness().declare_token(self.keys.physics_alive)
         self._declared = [self._token, self._sub_alive, self._sub_step, self._pub_ack, self._pub_state]
+        if self.shard is not None:  # sibling shards: a lost one's tiles go to the survivors
+            self._declared.append(s.liveliness().declare_subscriber(
+                self.keys.physics_alive_all, self._on_peer_alive, history=True))
         log.info(
             "physics %s/%s: %s, preset %s%s, control %g Hz, %d substeps of %g s, %d shard(s)",
             self.keys.run, self.keys.physics, self.run_cfg.timing, self.cfg.preset,
@@ -201,8 +213,23 @@ class PhysicsDaemon:
                 self.sumo_present = False
                 self.fleet.begin_stop()
 
+    def _handle_shards(self) -> None:
+        mine = shard_of_instance(self.keys.physics)
+        while self._shard_events:
+            key, up = self._shard_events.popleft()
+            other = shard_of_instance(Keys.instance_of(key))
+            if mine is None or other is None or other[0] != mine[0] or other[2] != mine[2]:
+                continue
+            if self.shard.set_alive(other[1], up):
+                log.warning("shard %d/%d %s: %d of %d shards alive (%s)", other[1], other[2],
+                            "is back" if up else "is gone, taking over its tiles", len(self.shard.living),
+                            self.shard.count, ", ".join(map(str, self.shard.living)))
+
     def _apply(self, msg: StepMessage) -> bool:
         """Apply one step; False if it was a duplicate and ignored."""
+        if self.shard is not None:
+            self._handle_shards()
+            msg = replace(msg, agents=subset(msg.agents, self.shard.rows(msg.agents)))
         resync = self._resync
         if msg.step <= self._last_step and not resync:
             if msg.step == self._last_step:
@@ -251,6 +278,9 @@ class PhysicsDaemon:
         c.update(self.fleet.counters)
         c.update(self.counters)
         c.update(self.fleet.mode_counts())
+        if self.shard is not None:
+            c["shards_alive"] = len(self.shard.living)
+            c["shard_takeovers"] = self.shard.takeovers
         return c
 
     def _publish_state(self) -> None:
@@ -417,11 +447,16 @@ def cli_main(args) -> int:
         phys = replace(phys, instance=args.instance)
     if getattr(args, "expect", None):
         phys = replace(phys, expect=parse_expect(args.expect))
+    shard = None
+    if getattr(args, "shard", None):
+        i, k = parse_shard(args.shard)
+        shard = ShardFilter(i, k, phys.shard_tile_m, phys.shard_halo_m)
+        phys = replace(phys, instance=shard_instance(phys.instance, i, k))
     settings = replace(settings, physics=phys)
     keys = Keys(common.zenoh.root, common.run.id, phys.instance)
     fleet = build_fleet(settings, realtime=common.run.timing == "realtime")
     with open_session(common.zenoh, role="physics") as session:
-        daemon = PhysicsDaemon(session, keys, fleet, settings, common.run).start()
+        daemon = PhysicsDaemon(session, keys, fleet, settings, common.run, shard=shard).start()
         old = {}
 
         def _handler(signum, frame):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import re
 import math
 import signal
 import threading
@@ -142,6 +143,7 @@ class SumoDaemon:
         self._alive_events: LatestPerKey[bool] = LatestPerKey(
             cfg.max_peer_keys, frozenset(k.physics_alive for k in waited))
         self._alive: set[str] = set()
+        self._waited = list(cfg.lockstep_instances)  # shrinks when a physics shard is lost
         self._last_reject_log = -math.inf
         self._limits = run.decode_limits  # acks and ego poses are small: any bound holds them
         self._static_bytes = encode(sim.static_data())
@@ -271,7 +273,14 @@ class SumoDaemon:
                 self._alive.add(inst)
             elif inst in self._alive:
                 self._alive.discard(inst)
-                if inst in self.cfg.lockstep_instances and not self._stop.is_set():
+                if inst in self._waited and not self._stop.is_set():
+                    siblings = [i for i in self._waited if i != inst and _shard_group(i) == _shard_group(inst)]
+                    if _shard_group(inst) is not None and any(i in self._alive for i in siblings):
+                        # a physics shard: its siblings take over its agents
+                        self._waited.remove(inst)
+                        log.warning("lockstep: physics shard %r left; waiting for %s from now on",
+                                    inst, ", ".join(self._waited))
+                        continue
                     raise PeerLost(
                         f"lockstep: physics instance {inst!r} left (its liveliness token on "
                         f"{key} disappeared); stopping instead of waiting for it"
@@ -298,7 +307,7 @@ class SumoDaemon:
             self._stop.wait(0.02)
 
     def _all_acked(self, step: int) -> bool:
-        return all(self._acked.get(i, -1) >= step for i in self.cfg.lockstep_instances)
+        return all(self._acked.get(i, -1) >= step for i in self._waited)
 
     # ------------------------------------------------------------------ main loop
 
@@ -417,7 +426,7 @@ class SumoDaemon:
                 self._update_alive()
             except PeerLost:  # leaving after the last step is what peers are asked to do
                 pass
-            missing = [i for i in self.cfg.lockstep_instances
+            missing = [i for i in self._waited
                        if self._acked.get(i, -1) < step and i in self._alive]
             if not missing:
                 return
@@ -435,7 +444,7 @@ class SumoDaemon:
                 return
             left = t_end - self.clock()
             if left <= 0:
-                missing = [i for i in self.cfg.lockstep_instances if self._acked.get(i, -1) < step]
+                missing = [i for i in self._waited if self._acked.get(i, -1) < step]
                 raise LockstepTimeout(
                     f"lockstep: no acknowledgement of step {step} from physics instance(s) "
                     f"{', '.join(missing)} within {timeout:g} s ([run] lockstep_timeout_s) on "
@@ -547,3 +556,12 @@ def cli_main(args) -> int:
         sim.close()
         if session is not None:
             session.close()
+
+
+_SHARD = re.compile(r"^(.+)\.\d+of(\d+)$")
+
+
+def _shard_group(instance: str) -> tuple[str, str] | None:
+    """(base, count) of a physics shard instance ``<base>.<i>of<k>`` (``--shard i/k``), else None."""
+    m = _SHARD.match(instance)
+    return (m[1], m[2]) if m else None

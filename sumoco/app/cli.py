@@ -70,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.add_argument("--preset", help="control preset for every agent type (paper|default|kinematic)")
     p.add_argument("--instance", help="physics instance name in the keys (default: [physics].instance or 'main')")
+    p.add_argument("--shard", help="i/k: simulate only shard i of k (spatial tiles); the instance becomes "
+                                   "<instance>.<i>of<k>")
     p.add_argument("--expect", help="agents expected at once, to size the pools up front: N passenger cars "
                                     "or type=N,type=N (overrides [physics].expect)")
 
