@@ -149,6 +149,10 @@ def cli_main(args) -> int:
 
         rows = run_scenario_bench(getattr(args, "pack", None), getattr(args, "duration", None) or 60.0,
                                   quick=quick, out_root=getattr(args, "out", None))
+    elif args.what == "scale":
+        from sumoco.app.scale_bench import run_scale_bench
+
+        rows = run_scale_bench(quick=quick)
     elif args.what == "e2e":
         from sumoco.app.e2e_bench import run_e2e_bench
 

@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
     p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway",
-                                    "scenarios"])
+                                    "scenarios", "scale"])
     p.add_argument("--pack", help="scenarios: folder of the scenario pack (default ../shared/scenarios "
                                   "beside the repository)")
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
