@@ -155,20 +155,22 @@ def test_3d_page_shows_map_agents_and_signal_heads(browser, tmp_path):  # noqa: 
         live.close()
 
 
-def test_3d_page_draw_calls_do_not_grow_with_2500_agents(browser, tmp_path):  # noqa: F811
-    live = LiveRun(tmp_path, FakeRun(grid=4, n=2500, run="viewer-3d-2500"), physics_hz=10.0)
+def test_3d_page_draw_calls_do_not_grow_with_the_agents(browser, tmp_path):  # noqa: F811
+    # 1,000 agents and 128 signal heads (4 x 4 junctions); frames per second at 2,500 agents
+    # are measured by hand (the FakeRun feed at 2,500 costs a core for a minute).
+    live = LiveRun(tmp_path, FakeRun(grid=4, n=1000, run="viewer-3d-1000"), physics_hz=10.0)
     try:
         live.wait_ready(timeout=40.0)
-        s = _open_3d(browser, live, 2500, timeout=60.0)
+        s = _open_3d(browser, live, 1000, timeout=60.0)
         browser.execute_script("window.sumoco3d.fit();")
         r0, t0 = _stats(browser)["renders"], time.monotonic()
-        time.sleep(5.0)
+        time.sleep(3.0)
         s = _stats(browser)
         fps = (s["renders"] - r0) / (time.monotonic() - t0)
         inst = s["instances"]
-        print(f"2500 agents: {fps:.1f} fps in headless Chromium (SwiftShader), {s['drawCalls']} draw calls, "
+        print(f"1000 agents: {fps:.1f} fps in headless Chromium (SwiftShader), {s['drawCalls']} draw calls, "
               f"{s['triangles']} triangles, update {s['updateMs']:.1f} ms, submit {s['renderMs']:.1f} ms; {inst}")
-        assert inst["car"] + inst["bus"] + inst["bicycle"] + inst["pedestrian"] == 2500
+        assert inst["car"] + inst["bus"] + inst["bicycle"] + inst["pedestrian"] == 1000
         # One draw call per model class and map layer (128 signal heads: one instanced mesh).
         assert s["drawCalls"] <= 25, s["drawCalls"]
         assert fps > 0.5, fps
