@@ -21,6 +21,7 @@ from protocol.messages import (
     StaticData,
     StepAck,
     StepMessage,
+    SumoStatus,
     TlsLinks,
     TrafficLights,
     VType,
@@ -30,6 +31,6 @@ from protocol.messages import (
 __all__ = [
     "SCHEMA_VERSION", "AgentBatch", "AgentClass", "AgentFlag", "AgentMode", "ConfigError",
     "EgoPose", "JunctionTable", "Keys", "LaneTable", "PhysicsAgents", "PhysicsState",
-    "ProtocolError", "StaticData", "StepAck", "StepMessage", "SumocoError", "TlsLinks", "TrafficLights",
+    "ProtocolError", "StaticData", "StepAck", "StepMessage", "SumoStatus", "SumocoError", "TlsLinks", "TrafficLights",
     "VType", "VCLASS_TO_AGENT_CLASS", "decode", "decode_as", "encode",
 ]

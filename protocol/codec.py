@@ -32,12 +32,13 @@ from protocol.messages import (
     StaticData,
     StepAck,
     StepMessage,
+    SumoStatus,
     TlsLinks,
     TrafficLights,
     VType,
 )
 
-Message = Union[StepMessage, EgoPose, PhysicsState, StepAck, StaticData]
+Message = Union[StepMessage, EgoPose, PhysicsState, StepAck, StaticData, SumoStatus]
 
 #: Hard limits that make a hostile or corrupt message fail fast instead of allocating.
 MAX_AGENTS = 200_000
@@ -249,6 +250,9 @@ def encode(msg: Message) -> bytes:
         }
     elif isinstance(msg, StepAck):
         d = _head("ack") | {"run": msg.run, "step": int(msg.step), "tick": int(msg.tick)}
+    elif isinstance(msg, SumoStatus):
+        d = _head("status") | {"counters": {str(k): v if isinstance(v, int) else float(v)
+                                            for k, v in msg.counters.items()}}
     elif isinstance(msg, StaticData):
         ln = msg.lanes
         d = _head("static") | {
@@ -606,6 +610,16 @@ def _decode_ack(d: dict, r: _Reader) -> StepAck:
     return StepAck(run=r.str(d, "run", ""), step=_int(d, "step", "", 0), tick=_int(d, "tick", "", 0))
 
 
+def _decode_status(d: dict, r: _Reader) -> SumoStatus:
+    c = _map(d, "counters", "")
+    for k, v in c.items():
+        if not isinstance(k, str) or len(k) > r.lim.max_str:
+            raise ProtocolError(f"expected counter names of at most {r.lim.max_str} characters", "counters")
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+            raise ProtocolError(f"expected a finite number, got {v!r}", f"counters.{k}")
+    return SumoStatus(counters=dict(c))
+
+
 def _decode_static(d: dict, r: _Reader) -> StaticData:
     rows = r.lim.max_static_rows
     net = _map(d, "net", "")
@@ -671,6 +685,7 @@ _DECODERS = {
     "physics": _decode_physics,
     "ack": _decode_ack,
     "static": _decode_static,
+    "status": _decode_status,
 }
 
 

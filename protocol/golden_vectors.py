@@ -28,6 +28,7 @@ from protocol.messages import (
     StaticData,
     StepAck,
     StepMessage,
+    SumoStatus,
     TlsLinks,
     TrafficLights,
     VType,
@@ -172,6 +173,7 @@ def valid_messages() -> dict[str, object]:
         "physics": _physics(),
         "ack": StepAck("golden", 41, 210),
         "static": _static(),
+        "status": SumoStatus({"steps": 42, "rejected": 0, "acks": 42, "teleports": 0, "ego_drift_max_m": 0.0125}),
     }
 
 

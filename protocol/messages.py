@@ -276,6 +276,14 @@ class StepAck:
 
 
 @dataclass(frozen=True)
+class SumoStatus:
+    """The SUMO side's counters, the reply on ``<root>/<run>/sumo/status`` (informational)."""
+
+    counters: dict[str, float]
+    """Counter name -> value (steps, rejected messages, acks, teleports, ...)."""
+
+
+@dataclass(frozen=True)
 class LaneTable:
     """All lanes of the network, internal (junction) lanes, crossings and walking areas included."""
 

@@ -30,13 +30,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import msgpack
 import zenoh
 
 from protocol.codec import decode, encode
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
-from protocol.messages import SCHEMA_VERSION, EgoPose, StepAck
+from protocol.messages import EgoPose, StepAck, SumoStatus
 from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.ego import EgoManager
@@ -199,8 +198,7 @@ class SumoDaemon:
     def _on_status_query(self, query: zenoh.Query) -> None:
         # Counters for tests and operators (SPEC.md 3.6); read on Zenoh's thread, so copy.
         try:
-            doc = {"v": list(SCHEMA_VERSION), "kind": "status", "counters": dict(self.stats())}
-            query.reply(self.keys.sumo_status, msgpack.packb(doc, use_bin_type=True))
+            query.reply(self.keys.sumo_status, encode(SumoStatus(dict(self.stats()))))
         except Exception as e:  # the querier may be gone, or a dict changed size mid-copy
             log.debug("status reply failed: %s", e)
 
