@@ -244,3 +244,38 @@ def test_bad_scenarios_exit_2_naming_the_file(tmp_path, procs):
     p = SumoProcess(["--sumocfg", str(ok_cfg), "--gui"], tmp_path / "gui.log", env_no_display)
     procs.append(p)
     assert p.wait(60) == 2 and "needs a display" in p.output()
+
+
+def test_lockstep_ends_on_a_final_step_that_waits_for_its_ack(tmp_path, scenario, procs):
+    """The scenario ends (end 1 s) before --duration (10 s): the last step says so, SUMO waits
+    for its acknowledgement and exits 0."""
+    short = tmp_path / "short.sumocfg"
+    short.write_text(scenario.read_text().replace('<begin value="0"/>', '<begin value="0"/><end value="1"/>')
+                     .replace('value="net.net.xml"', f'value="{scenario.parent / "net.net.xml"}"')
+                     .replace('value="routes.rou.xml"', f'value="{scenario.parent / "routes.rou.xml"}"'))
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    toml = tmp_path / "final.toml"
+    toml.write_text('[run]\nid = "fin"\ntiming = "lockstep"\nlockstep_timeout_s = 10.0\nduration_s = 10.0\n\n'
+                    f'[sumo]\nsumocfg = "{short}"\nlockstep_instances = ["main"]\n')
+    p = SumoProcess(["--config", str(toml), "--listen", ep], tmp_path / "final.log")
+    procs.append(p)
+    keys = Keys("sumoco", "fin")
+    with client(ep) as s:
+        sub, q = collect_steps(s, keys)
+        token = s.liveliness().declare_token(keys.physics_alive)
+        ack = s.declare_publisher(keys.ack)
+        seen = []
+        while not (seen and seen[-1].final):
+            m = next_step(q, p)
+            seen.append(m)
+            if not m.final:
+                ack.put(encode(StepAck("fin", m.step, m.step)))
+        assert [m.step for m in seen] == list(range(10)) and seen[-1].time == pytest.approx(1.0)
+        assert not any(m.final for m in seen[:-1])
+        time.sleep(0.3)  # not acknowledged yet: SUMO must still be waiting for it
+        assert p.proc.poll() is None
+        ack.put(encode(StepAck("fin", seen[-1].step, 0)))
+        assert p.wait(10) == 0
+        assert "the scenario's end time 1 s reached" in p.output()
+        token.undeclare()
+        sub.undeclare()
