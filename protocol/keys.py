@@ -10,11 +10,12 @@
 | <root>/<run>/physics/<inst>/state | physics side | PhysicsState, per control tick     |
 | <root>/<run>/physics/<inst>/ack   | physics side | StepAck (lockstep)                 |
 | <root>/<run>/physics/<inst>/alive | physics side | liveliness token                   |
+| <root>/<run>/ego/<id>       | outside clients   | EgoPose of ego vehicle <id>           |
 
 ``<inst>`` names one physics process ("main" by default): several can follow the same SUMO
 run side by side (the demo runs the ``paper`` and ``default`` presets at once) or split
-the agents between them (shards).
-| <root>/<run>/ego/<id>       | outside clients   | EgoPose of ego vehicle <id>           |
+the agents between them (shards). Every liveliness token: ``<root>/<run>/**/alive``
+(``*`` matches one chunk only).
 """
 
 from __future__ import annotations
