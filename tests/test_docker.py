@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import subprocess
 import sys
@@ -40,8 +42,8 @@ def test_compose_file_parses_and_wires_router():
     yaml = pytest.importorskip("yaml")
     doc = yaml.safe_load((DOCKER / "compose.yaml").read_text())
     services = doc["services"]
-    assert {"router", "sumo", "physics"} <= set(services)
-    for name in ("sumo", "physics"):
+    assert {"router", "sumo", "physics-0", "physics-1"} <= set(services)
+    for name in ("sumo", "physics-0", "physics-1"):
         svc = services[name]
         assert (ROOT / "docker" / svc["build"]["context"] / svc["build"]["dockerfile"]).is_file()
         env = svc["environment"]
@@ -49,6 +51,67 @@ def test_compose_file_parses_and_wires_router():
         config = env["SUMOCO_CONFIG"].removeprefix("/app/")
         assert (ROOT / config).is_file(), f"{name} uses missing config {config}"
         assert "router" in svc["depends_on"]
+    assert services["physics-0"]["command"] == ["--shard", "0/2"]
+
+
+def _entrypoint(dockerfile: str) -> list[str]:
+    for line in (DOCKER / dockerfile).read_text().splitlines():
+        if line.startswith("ENTRYPOINT "):
+            return json.loads(line.removeprefix("ENTRYPOINT "))
+    raise AssertionError(f"{dockerfile}: no ENTRYPOINT")
+
+
+def _service_argv(svc: dict, port: int) -> tuple[list[str], dict[str, str]]:
+    """The service's command and environment as a local process: the router's address and
+    /app paths rewritten to this machine (only the docker network knows ``router``)."""
+    argv = list(svc.get("entrypoint") or _entrypoint(Path(svc["build"]["dockerfile"]).name))
+    argv += [str(a) for a in svc.get("command", [])]
+    local = f"tcp/127.0.0.1:{port}"
+    argv = [a.replace("tcp/0.0.0.0:7447", local) for a in argv]
+    env = {k: str(v).replace("tcp/router:7447", local).replace("/app/", f"{ROOT}/")
+           for k, v in svc.get("environment", {}).items()}
+    assert argv[0] == "sumoco"
+    return argv[1:], env
+
+
+@pytest.mark.integration
+def test_compose_services_run_as_local_processes(tmp_path, monkeypatch):
+    """Docker cannot run here: start exactly the services' commands and environment from
+    compose.yaml as local processes (router, SUMO with the bundled scenario, two shards)."""
+    yaml = pytest.importorskip("yaml")
+    from protocol.keys import Keys
+    from sumoco.common.transport import free_tcp_port
+    from tests.harness import Daemon, Probe, wait_until
+
+    services = yaml.safe_load((DOCKER / "compose.yaml").read_text())["services"]
+    port = free_tcp_port()
+    daemons = []
+    probe = None
+    try:
+        for name in ("router", "sumo", "physics-0", "physics-1"):  # the depends_on order
+            argv, env = _service_argv(services[name], port)
+            for k in [k for k in os.environ if k.startswith("SUMOCO_")]:
+                monkeypatch.delenv(k)
+            for k, v in env.items():
+                monkeypatch.setenv(k, v)
+            daemons.append(Daemon(name, argv, tmp_path / "logs"))
+        for k in env:
+            monkeypatch.delenv(k)
+        probe = Probe(Keys("sumoco", "docker"), [f"tcp/127.0.0.1:{port}"])
+
+        def both_shards_busy():
+            s0, s1 = probe.last_physics("main.0of2"), probe.last_physics("main.1of2")
+            return s0 is not None and s1 is not None and len(s0.agents.ids) and len(s1.agents.ids)
+        wait_until(both_shards_busy, 180, "states with agents from both shards", procs=daemons)
+        step = probe.last_step()
+        assert step is not None and step.agents.n > 0
+        s0, s1 = probe.last_physics("main.0of2"), probe.last_physics("main.1of2")
+        assert not set(s0.agents.ids) & set(s1.agents.ids)
+    finally:
+        if probe is not None:
+            probe.close()
+        codes = {d.name: d.terminate(10) for d in reversed(daemons)}
+    assert codes == {"router": 0, "sumo": 0, "physics-0": 0, "physics-1": 0}, codes
 
 
 def test_cli_takes_settings_from_environment(monkeypatch):
