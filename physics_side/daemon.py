@@ -165,7 +165,7 @@ class PhysicsDaemon:
         """Fill in the vType table; query the static data when this step's version is unknown."""
         while self._static_replies:
             try:
-                self._tables.on_static(decode_as(self._static_replies.popleft(), StaticData, self._limits))
+                self._tables.on_static(decode_as(self._static_replies.popleft(), StaticData))
             except ProtocolError as e:
                 self._reject(f"static data: {e}")
         msg = self._tables.resolve(msg)

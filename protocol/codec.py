@@ -76,12 +76,13 @@ class DecodeLimits:
 
     @classmethod
     def for_agents(cls, max_agents: int) -> "DecodeLimits":
-        """Limits for a receiver configured for at most ``max_agents`` agents.
-
-        Paths get up to 200 vertices per agent; static tables keep their own bound.
-        """
+        """Limits for the live messages (steps, physics states, acks, egos) of a receiver
+        configured for at most ``max_agents`` agents: arrays hold at most that many agents
+        or 65,535 traffic lights (their index is u16), paths up to 200 vertices per agent.
+        Static data needs the default limits (a city has more lanes than agents)."""
         n = max(1, int(max_agents))
-        return cls(max_agents=n, max_points=max(MAX_POINTS // 100, 200 * n))
+        return cls(max_agents=n, max_static_rows=MAX_VTYPES, max_points=max(MAX_POINTS // 100, 200 * n),
+                   max_bytes=min(MAX_MESSAGE_BYTES, (1 << 20) + 4096 * n))
 
     def unpack_kwargs(self) -> dict[str, int]:
         rows = max(self.max_agents, self.max_static_rows)

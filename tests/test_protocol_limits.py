@@ -22,6 +22,11 @@ def test_limits_follow_the_configured_maximum_agents():
     kw = lim.unpack_kwargs()
     assert kw["max_ext_len"] == 0 and kw["max_str_len"] == 4 * lim.max_str
     assert DecodeLimits.for_agents(50).max_points < DEFAULT_LIMITS.max_points
+    assert kw["max_array_len"] == 65_535  # 50 agents, or as many traffic lights as u16 indexes
+    assert lim.max_bytes < DEFAULT_LIMITS.max_bytes
+    # the golden world decodes under live limits; static data keeps the default ones
+    for name in ("step", "physics", "ack", "ego"):
+        decode(encode(valid_messages()[name]), lim)
     with pytest.raises(ConfigError, match="run.max_agents"):
         from_dict(RunConfig, {"max_agents": 0}, "run")
 
