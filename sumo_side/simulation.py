@@ -66,6 +66,8 @@ TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT, TL_PROGRAM)
 #: [m] beyond speed x step length, a position change this large is a jump (flag JUMPED);
 #: larger than one lane width so that SUMO's instant lane changes stay ordinary motion.
 JUMP_MARGIN_M = 5.0
+#: [s] ``next`` of a traffic light that has no switch scheduled (SPEC.md: |next| <= 1e9)
+NO_SWITCH_S = 1e9
 
 
 class SumoFailed(SumocoError):
@@ -601,7 +603,12 @@ class SumoSim:
             ids=list(self.tls_ids),
             state=[r[TL_STATE] for r in rows],
             phase=np.fromiter((r[TL_PHASE] for r in rows), np.int32, len(rows)),
-            next_switch=np.fromiter((r[TL_NEXT] - now for r in rows), np.float32, len(rows)),
+            # A program without phases (old nets) reports ~1e15 s: "no switch scheduled" is
+            # NO_SWITCH_S on the wire, inside the range receivers accept.
+            next_switch=np.nan_to_num(
+                np.clip(np.fromiter((r[TL_NEXT] - now for r in rows), np.float64, len(rows)), -NO_SWITCH_S, NO_SWITCH_S),
+                nan=NO_SWITCH_S,
+            ).astype(np.float32),
             program=programs,
         )
 
