@@ -21,7 +21,7 @@ class Bridge:
         self.cfg = cfg
         self.run_id = run_id
         self.planner = PathPlanner(
-            sim.graph, cfg.lad_min_m, cfg.lad_max_m, cfg.k_lad_s, cfg.path_length_m
+            sim.graph, cfg.lad_min_m, cfg.lad_max_m, cfg.k_lad_s, cfg.path_length_m, reach_s=sim.step_length
         )
         self._last_serial = -1
         self._sent_version = -1  # static version whose vType table went out last

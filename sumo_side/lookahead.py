@@ -42,6 +42,8 @@ _EPS = 1e-6
 _GAP = 1.0
 #: A lane walk never takes more lanes than this (guards against cycles in odd nets).
 MAX_WALK_LANES = 64
+#: [m/s] lane walks cover the extra path (speed x reach) of agents up to this speed.
+MAX_REACH_SPEED = 50.0
 
 # Path modes per agent.
 MODE_LANES = 0  # along a lane sequence
@@ -229,12 +231,17 @@ class PathPlanner:
         lad_max: float = 10.0,
         k_lad: float = 1.0,
         path_length: float = 25.0,
+        reach_s: float = 0.0,
     ) -> None:
+        """``path_length`` [m] ahead of the front bumper, plus ``speed x reach_s`` [s] per
+        agent: the physics side follows the path until the next SUMO step arrives (one step
+        length later), and then still needs its own look-ahead beyond that point."""
         self.graph = graph
         self.lad_min = float(lad_min)
         self.lad_max = float(lad_max)
         self.k_lad = float(k_lad)
         self.path_length = float(max(path_length, lad_max))
+        self.reach_s = float(max(reach_s, 0.0))
         self.store = PolylineStore()
         self._seq_of_lanes: dict[tuple[int, ...], int] = {}
         # Per-agent memory from the previous step, aligned with _prev_ids.
@@ -253,7 +260,7 @@ class PathPlanner:
         """
         g = self.graph
         lanes = [lane]
-        need = self.path_length
+        need = self.path_length + MAX_REACH_SPEED * self.reach_s
         acc = 0.0
         cur = lane
         idx = self._route_position(cur, route, route_index)
@@ -426,7 +433,8 @@ class PathPlanner:
             order = np.argsort(base + s0, kind="stable")
             on, sq, s0, base = on[order], sq[order], s0[order], base[order]
             # Three distances per agent located in one pass: start, look-ahead, path end.
-            dist = np.stack([s0, s0 + lad[on], s0 + self.path_length])
+            ahead = self.path_length + np.minimum(np.asarray(speed, np.float64)[on], MAX_REACH_SPEED) * self.reach_s
+            dist = np.stack([s0, s0 + lad[on], s0 + ahead])
             np.clip(dist, 0.0, store.length[sq], out=dist)
             gq = base + dist
             gs = store.g

@@ -213,3 +213,13 @@ def test_demo_runs_a_scenario_the_user_brings(tmp_path):
     assert {"passenger", "bus", "bicycle", "pedestrian"} <= set(s["agents_seen_sumo"])
     assert s["presets"]["default"]["reference_car"]["overall"]["samples"] > 20
     assert (tmp_path / "own" / "fig07_trajectory.png").is_file()
+
+
+def test_a_users_scenario_gets_its_own_run_folder(tmp_path):
+    from pathlib import Path
+
+    from sumoco.app.demo import default_out
+
+    cfg = tmp_path / "city" / "run.sumocfg"
+    assert default_out(None) == Path("runs/demo")
+    assert default_out(cfg) == Path("runs/city/run")  # not runs/demo: the demo's results stay
