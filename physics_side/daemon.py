@@ -220,6 +220,8 @@ class PhysicsDaemon:
             other = shard_of_instance(Keys.instance_of(key))
             if mine is None or other is None or other[0] != mine[0] or other[2] != mine[2]:
                 continue
+            if not up and self._duration_done(self.time + 2.0 * self.fleet.step_length):
+                continue  # a sibling that finished the run's last step leaves: nothing to take over
             if self.shard.set_alive(other[1], up):
                 log.warning("shard %d/%d %s: %d of %d shards alive (%s)", other[1], other[2],
                             "is back" if up else "is gone, taking over its tiles", len(self.shard.living),
