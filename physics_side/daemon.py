@@ -244,7 +244,9 @@ class PhysicsDaemon:
         # difference). Setting it back to each step's time made two states share one time.
         # It jumps (forward) when physics is behind, and restarts after a resync or when it
         # ran further ahead than the extrapolation limit (a stalled SUMO side).
-        ahead = self.time - msg.time
+        # Interpolating, physics covers (previous step, this step]: it starts a step length back.
+        start = msg.time - (msg.step_length if self.fleet.interpolates(msg.step_length) else 0.0)
+        ahead = self.time - start
         limit = self.cfg.max_extrapolation_steps * msg.step_length
         restart = resync or ahead < -self.fleet.dt or ahead > limit
         try:
@@ -258,7 +260,7 @@ class PhysicsDaemon:
         self._resync = False
         self._last_step = msg.step
         if restart:
-            self.time = msg.time
+            self.time = start
         self.fleet.rates = self._rate_cache[msg.step_length]
         if stats.spawned or stats.parked:
             log.debug("step %d: +%d -%d agents (%d)", msg.step, stats.spawned, stats.parked, self.fleet.n)
@@ -333,7 +335,8 @@ class PhysicsDaemon:
                 msg = self._decode(self._steps.get())
                 if msg is None or not self._apply(msg):
                     continue
-                for _ in range(ticks_to(self.time, msg.time + msg.step_length, self.fleet.dt)):
+                end = msg.time + msg.step_length - self.fleet.lag
+                for _ in range(ticks_to(self.time, end, self.fleet.dt)):
                     self._tick()
                 self._ack(msg.step)
                 # The SUMO side ends on the same step: it marks it final, and it applies the

@@ -244,10 +244,12 @@ def track_reference(
     t = 0.0
     for msg in step_messages(traj, cls, length, spec.width, phys.sumo_step_s, lad_params):
         fleet.apply_step(msg)
-        t = msg.time
+        t = msg.time - fleet.lag  # interpolating, physics covers (previous step, this step]
         for _ in range(rates.ticks_per_step):
             fleet.tick()
             t += rates.control_dt
+            if t < -1e-9:  # interpolating, the first step covers the time before the reference starts
+                continue
             snap = fleet.snapshot()
             rec["t"].append(t)
             rec["x"].append(snap.x[0])

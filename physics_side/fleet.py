@@ -48,6 +48,23 @@ PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
 PED_YAW_KD = 15.0  # [N*m*s/rad]
 
 
+def _stack_batches(a, b):
+    """The columns ``Reference.from_batch`` reads of batch ``a`` (or nothing) followed by ``b``."""
+    from types import SimpleNamespace
+
+    parts = [x for x in (a, b) if x is not None]
+    cols = {k: np.concatenate([np.asarray(getattr(x, k), np.float64) for x in parts])
+            for k in ("x", "y", "angle", "speed", "accel", "la_x", "la_y")}
+    offs, xys, base = [np.zeros(1, np.int64)], [], 0
+    for x in parts:
+        o = np.asarray(x.path_offsets, np.int64) if len(x.path_offsets) else np.zeros(x.n + 1, np.int64)
+        offs.append(o[1:] - o[0] + base)
+        xys.append(np.asarray(x.path_xy[o[0]:o[-1]], np.float64).reshape(-1, 2))
+        base += int(o[-1] - o[0])
+    return SimpleNamespace(n=sum(x.n for x in parts), path_offsets=np.concatenate(offs),
+                           path_xy=np.concatenate(xys) if xys else np.zeros((0, 2)), **cols)
+
+
 def footprints_overlap(ax, ay, ah, al, aw, bx, by, bh, bl, bw, margin: float = 0.0) -> np.ndarray:
     """Do rectangles a and b (centre x, y [m], heading [rad], length, width [m]) overlap,
     each grown by ``margin`` [m]? Separating-axis test, vectorised (arrays broadcast)."""
@@ -145,6 +162,10 @@ class Fleet:
         self.mode = np.zeros(n, np.uint8)
         self.kind = np.zeros(n, np.int8)
         self.ref: Reference | None = None
+        self._sample_ref: Reference | None = None
+        self._prev_batch = None
+        self._prev_rows: dict[str, int] = {}
+        self._prev_time = 0.0
         self.ghost = np.zeros(0, bool)
         self.sumo_len = np.zeros(0)
         self.sumo_wid = np.zeros(0)
@@ -167,6 +188,46 @@ class Fleet:
     @property
     def n(self) -> int:
         return len(self.ids)
+
+    def interpolates(self, step_length: float) -> bool:
+        """Does physics run one SUMO step behind, between the last two samples, for steps of
+        ``step_length`` [s]? Extrapolating past the newest sample misses what SUMO decides
+        within the step (a stop: (a_new - a_old) * step^2, 1.5 m at 0.5 s); interpolating
+        costs one step of latency, which is small for short steps."""
+        mode = self.cfg.reference
+        return mode == "interpolate" or (mode == "auto" and step_length > self.cfg.interpolate_above_s + 1e-9)
+
+    @property
+    def interpolating(self) -> bool:
+        """``interpolates`` for the newest step."""
+        return self.interpolates(self.step_length)
+
+    @property
+    def lag(self) -> float:
+        """How far physics time runs behind the newest SUMO step [s]: a step length when
+        interpolating (the interval between the previous and the newest sample), else 0."""
+        return self.step_length if self.interpolating else 0.0
+
+    def _interpolation(self, msg: StepMessage, rows, ids, flags, cur: Reference, yaw_rate, have_prev: bool):
+        """The reference over (previous step, this step]: each known agent's previous sample and
+        path, reaching this step's sample at its end (SUMO's own motion, no guess); new or
+        teleported agents follow their own sample shifted one step back."""
+        L = float(msg.step_length)
+        pb = self._prev_batch if have_prev else None
+        src = np.fromiter((self._prev_rows.get(i, -1) for i in ids), np.int64, len(ids)) if pb is not None \
+            else np.full(len(ids), -1, np.int64)
+        known = (src >= 0) & ((flags & AgentFlag.JUMPED) == 0)
+        n_prev = pb.n if pb is not None else 0
+        merged = _stack_batches(pb, msg.agents)
+        sel = np.where(known, src, n_prev + np.asarray(rows, np.int64))
+        ref = Reference.from_batch(self._prev_time if pb is not None else msg.time, merged, sel, yaw_rate)
+        if known.any():
+            guess = 0.5 * (ref.speed + cur.speed) * L
+            s_end, lat_end, _ = ref.project_far(cur.x, cur.y, guess, iterations=3)
+        else:
+            s_end = lat_end = np.zeros(len(ids))
+        ref.interpolate_to(L, known, s_end, cur.speed, cur.accel, lat_end)
+        return ref
 
     @property
     def max_extrapolation(self) -> float:
@@ -197,10 +258,11 @@ class Fleet:
         control tick, realtime jitter): placements and errors use the reference then."""
         self._cache = None
         self._last_obs = None
-        old_ref = self.ref
+        old_ref = self._sample_ref
         w = self.world
         a = msg.agents
         st = StepStats()
+        self.step_length = float(msg.step_length)
         rows = np.flatnonzero((a.flags & AgentFlag.INSIDE_VEHICLE) == 0)
         st.skipped = a.n - len(rows)
         self.counters["skipped_inside_vehicle"] += st.skipped
@@ -243,7 +305,7 @@ class Fleet:
         if old_ref is not None and len(ids):
             had = prev >= 0
             yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
-        ref = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
+        ref = cur = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
         side_rate = np.zeros(len(ids))
         if old_ref is not None and bool((prev >= 0).any()):  # (the previous step may have had no agents)
             had = prev >= 0
@@ -254,6 +316,11 @@ class Fleet:
             side = (ref.side_offset - old_ref.side_offset[p0]) / gap
             side_rate = np.where(had & (np.abs(side) < self.cfg.max_side_speed), side, 0.0)
             ref.set_side_rate(side_rate)
+        if self.interpolating:
+            ref = self._interpolation(msg, rows, ids, flags, cur, yaw_rate, old_ref is not None)
+        self._sample_ref = cur
+        self._prev_batch, self._prev_time = a, msg.time
+        self._prev_rows = {aid: int(r) for aid, r in zip(ids, rows)}
 
         slots = w.slot_of(ids)
         new = np.flatnonzero(slots < 0)
@@ -288,7 +355,6 @@ class Fleet:
         self.mode = np.where(ego, AgentMode.EXTERNAL, mode).astype(np.uint8)
         lod_in = (prev >= 0) & full & ~was_full & (self.mode == AgentMode.PHYSICAL)
         self.ref = ref
-        self.step_length = float(msg.step_length)
         self.tau = max(0.0, float(tau))
         self.state = self.state.take(prev)
         self.stopping = False
@@ -296,7 +362,8 @@ class Fleet:
 
         # placements: new agents, teleported agents, diverged or flipped physical agents
         obs = w.observe(slots)
-        held = ref.at(min(self.tau, self.max_extrapolation)) if self.tau > 0 else ref.held()
+        held = (ref.at(min(self.tau, self.max_extrapolation)) if self.tau > 0 or self.interpolating
+                else ref.held())
         e_lon, e_lat = tracking_error(obs.fx, obs.fy, held)
         dist = np.hypot(e_lon, e_lat)
         physical = self.mode == AgentMode.PHYSICAL

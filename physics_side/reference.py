@@ -362,6 +362,38 @@ class Reference:
             a.la_x[rows], a.la_y[rows], new_off, xy, yaw_rate,
         )
 
+    def interpolate_to(self, step_length: float, known: np.ndarray, s_end: np.ndarray, v_end: np.ndarray,
+                       a_end: np.ndarray, lat_end: np.ndarray) -> None:
+        """Follow the *next* sample instead of guessing: agents ``known`` reach arc length
+        ``s_end`` [m] and ``lat_end`` [m, left of the path] ``step_length`` [s] after this
+        sample, moving at a constant speed in between (SUMO's Euler position update), then
+        go on with ``v_end`` [m/s] and ``a_end`` [m/s^2]. The others are extrapolated from
+        their own sample, which is ``step_length`` later than this one (new agents)."""
+        self._interp = np.asarray(known, bool)
+        self._L = float(step_length)
+        self._s_end = np.where(self._interp, np.maximum(s_end, 0.0), 0.0)
+        self._v_end = np.maximum(np.asarray(v_end, np.float64), 0.0)
+        self._a_end = np.asarray(a_end, np.float64)
+        lat = np.where(self._interp, lat_end, 0.0)
+        self.side_rate = np.where(self._interp, lat / self._L, self.side_rate)
+        self._side_cap = np.where(self._interp, np.abs(lat), self._side_cap)
+        self._drift = bool(np.any(self.side_rate != 0.0))
+        self._last_at = None
+
+    def profile(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """Arc length [m] and speed [m/s] ``tau`` [s] after the sample (never reversing)."""
+        interp = getattr(self, "_interp", None)
+        if interp is None:
+            return stopping_distance(self.speed, self.accel, tau)
+        L = self._L
+        s_x, v_x = stopping_distance(self.speed, self.accel, tau - L)  # own sample is L later
+        if tau <= L:
+            s_i, v_i = self._s_end * (tau / L), self._s_end / L
+        else:
+            s2, v_i = stopping_distance(self._v_end, self._a_end, tau - L)
+            s_i = self._s_end + s2
+        return np.where(interp, s_i, s_x), np.where(interp, v_i, v_x)
+
     def held(self) -> ReferencePoint:
         """The sample itself (zero-order hold)."""
         return ReferencePoint(self.x, self.y, self.yaw, self.speed, self.accel, self._k0, np.zeros(self.n), self._h0)
@@ -375,7 +407,7 @@ class Reference:
         return r
 
     def _at(self, tau: float) -> ReferencePoint:
-        s, v = stopping_distance(self.speed, self.accel, tau)
+        s, v = self.profile(tau)
         return self._point(s, v, self.path.at(s), tau)
 
     def _point(self, s: np.ndarray, v: np.ndarray, p: PathPoint, tau: float = 0.0) -> ReferencePoint:
@@ -393,7 +425,7 @@ class Reference:
         s_guess = np.asarray(s_guess, np.float64)
         if self._last_at is not None and self._last_at[0] == tau:
             return self._last_at[1], self.project(px, py, s_guess, tau)
-        s, v = stopping_distance(self.speed, self.accel, tau)
+        s, v = self.profile(tau)
         p = self.path.at(np.array([s, s_guess]))
         r = self._point(s, v, PathPoint(p.x[0], p.y[0], p.heading[0], p.curvature[0]), tau)
         self._last_at = (tau, r)

@@ -89,11 +89,13 @@ def run_one(
             rec.step(msg)
             for p, fleet in fleets.items():
                 w0 = time.perf_counter()
-                t = msg.time if clock[p] is None else clock[p]
-                if t < msg.time - fleet.dt:
-                    t = msg.time
-                fleet.apply_step(msg, tau=t - msg.time)
-                for _ in range(ticks_to(t, msg.time + msg.step_length, fleet.dt)):
+                # the daemon's lockstep clock: interpolating, physics covers (previous step, this step]
+                start = msg.time - (msg.step_length if fleet.interpolates(msg.step_length) else 0.0)
+                t = start if clock[p] is None else clock[p]
+                if t < start - fleet.dt:
+                    t = start
+                fleet.apply_step(msg, tau=t - start)
+                for _ in range(ticks_to(t, start + msg.step_length, fleet.dt)):
                     fleet.tick()
                     t += fleet.dt
                     rec.state(p, t, fleet)
