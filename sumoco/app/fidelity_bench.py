@@ -32,23 +32,12 @@ STEP_LENGTHS = (0.05, 0.1, 0.2, 0.5, 1.0)
 PRESETS = ("paper", "default")
 
 
-def pack_dir() -> Path | None:
-    """The scenario pack beside the repository (``../shared/scenarios``), if present."""
-    d = ROOT.parent / "shared" / "scenarios"
-    return d if d.is_dir() else None
-
-
 def pack_scenarios() -> list[Path]:
-    """The pack's ``.sumocfg`` files named in its MANIFEST (60 s variants where there are)."""
-    d = pack_dir()
-    if d is None:
-        return []
-    names = (
-        "bologna_acosta/sumoco_60s.sumocfg", "doerpfeldstr/sumoco_trams_60s.sumocfg",
-        "tavf_hamburg/sumoco_60s.sumocfg", "synth_lefthand_grid/lefthand.sumocfg",
-        "synth_utm_grid/grid_utm.sumocfg", "synth_features_grid/features.sumocfg",
-    )
-    return [d / n for n in names if (d / n).is_file()]
+    """The pack's scenarios (the list ``sumoco bench scenarios`` runs) where the pack is."""
+    from sumoco.app.scenario_bench import PACK_RUNS, default_pack
+
+    d = default_pack()
+    return [d / folder / name for folder, name, _ in PACK_RUNS if (d / folder / name).is_file()]
 
 
 def run_one(
