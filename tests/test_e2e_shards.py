@@ -71,7 +71,8 @@ shard_halo_m = 10.0
         # ~1-2 s on a loaded 2-core machine)
         assert took < 5.0, took
         # the run goes on to its end in lockstep with the surviving shard
-        wait_until(lambda: sumo.poll() is not None, 180, "SUMO side reaching the run's duration", procs=[p0])
+        # (shard 0 may finish its last step and exit before the SUMO side does)
+        wait_until(lambda: sumo.poll() is not None, 180, "SUMO side reaching the run's duration")
         assert sumo.returncode == 0, sumo.tail()
         assert max(m.step for m in probe.steps) >= 399
         wait_until(lambda: p0.poll() is not None, 30, "shard 0 finishing")
