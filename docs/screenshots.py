@@ -71,21 +71,39 @@ def main() -> int:
     driver = webdriver.Chrome(service=Service("/usr/bin/chromedriver"), options=opts)
     try:
         url = f"http://127.0.0.1:{vport}/?token={TOKEN}"
+        import urllib.request
+
+        for _ in range(600):  # load the page once the viewer serves it (an error page never retries)
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{vport}/status?token={TOKEN}", timeout=1).close()
+                break
+            except OSError:
+                time.sleep(0.2)
+        driver.get(url)
         deadline = time.monotonic() + 300
         stats = None
+        said = time.monotonic()
         while time.monotonic() < deadline:
-            if any(p.poll() is not None for p in procs):
-                raise SystemExit("a daemon exited early; logs in " + str(work))
+            dead = [(n, p.returncode) for n, p in zip(("sumo", "physics", "view"), procs)
+                    if p.poll() is not None and (p.returncode != 0 or n == "view")]
+            if dead:
+                for f in logs:
+                    f.flush()
+                tails = "\n".join(f"--- {n} (exit {rc}):\n" + (work / f"{n}.log").read_text(errors="replace")[-1500:]
+                                  for n, rc in dead)
+                raise SystemExit(f"a daemon exited early:\n{tails}")
             try:
-                if driver.current_url != url:
-                    driver.get(url)
                 stats = driver.execute_script("const s = window.sumoco3d; return s ? {map: s.mapLoaded, t: s.simTime,"
                                               " phys: s.physicsAgents, agents: s.agents} : null;")
             except Exception:
                 stats = None
             if stats and stats["map"] and stats["t"] and stats["t"] >= a.wait and stats["phys"] > 0:
+                driver.execute_script("window.sumoco3d.pause(true);")  # hold this moment for the shot
                 break
-            time.sleep(1.0)
+            if time.monotonic() - said > 10:
+                said = time.monotonic()
+                print("waiting:", stats, file=sys.stderr, flush=True)
+            time.sleep(0.3)
         else:
             raise SystemExit(f"no picture after 300 s ({stats}); logs in {work}")
         if a.at:
@@ -100,7 +118,7 @@ def main() -> int:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         driver.save_screenshot(a.out)
         print(a.out, driver.execute_script("const s = window.sumoco3d; return {agents: s.agents, physics: s.physicsAgents,"
-                                           " fps: s.fps, drawCalls: s.drawCalls, t: s.simTime};"))
+                                           " fps: s.fps, drawCalls: s.drawCalls, t: s.simTime, rtf: s.rtf};"))
     finally:
         driver.quit()
         for p in procs:
