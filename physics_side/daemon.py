@@ -36,6 +36,7 @@ import zenoh
 
 from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config, parse_expect, ticks_to
 from physics_side.fleet import Fleet
+from physics_side.lod import DetailSplit, DetailZones
 from physics_side.shard import ShardFilter, parse_shard, shard_instance, shard_of_instance, subset
 from physics_side.models import TYPE_NAMES
 from physics_side.world import PhysicsWorld
@@ -65,6 +66,11 @@ class PhysicsDaemon:
         """``shard``: simulate only this shard's agents (``--shard i/k``); None = all."""
         self.session = session
         self.shard = shard
+        zones = DetailZones.from_config(settings.physics.lod_radius_m, settings.physics.lod_regions)
+        # far agents extrapolate as far as the fleet's reference does (steps of 0.1 s assumed
+        # until the first step tells the step length)
+        self.detail = None if zones is None else DetailSplit(
+            zones, settings.physics.max_extrapolation_steps * settings.physics.sumo_step_s)
         self._shard_events: collections.deque[tuple[str, bool]] = collections.deque(maxlen=256)
         self.keys = keys
         self.fleet = fleet
@@ -232,6 +238,8 @@ class PhysicsDaemon:
         if self.shard is not None:
             self._handle_shards()
             msg = replace(msg, agents=subset(msg.agents, self.shard.rows(msg.agents)))
+        if self.detail is not None:  # agents outside every detail zone never enter MuJoCo
+            msg = self.detail.apply(msg)
         resync = self._resync
         if msg.step <= self._last_step and not resync:
             if msg.step == self._last_step:
@@ -282,15 +290,23 @@ class PhysicsDaemon:
         c.update(self.fleet.counters)
         c.update(self.counters)
         c.update(self.fleet.mode_counts())
+        if self.detail is not None:
+            c["kinematic"] = c.get("kinematic", 0) + self.detail.far.n
+            c["lod_far"] = self.detail.far.n
         if self.shard is not None:
             c["shards_alive"] = len(self.shard.living)
             c["shard_takeovers"] = self.shard.takeovers
         return c
 
+    def _agents(self):
+        """The fleet's agents, then those outside every detail zone (mode KINEMATIC)."""
+        near = self.fleet.snapshot()
+        return near if self.detail is None else self.detail.snapshot(near, self.time)
+
     def _publish_state(self) -> None:
         msg = PhysicsState(
             run=self.keys.run, tick=self.fleet.tick_count, time=self.time, sumo_step=self._last_step,
-            agents=self.fleet.snapshot(), counters=self.all_counters(),
+            agents=self._agents(), counters=self.all_counters(),
         )
         self._pub_state.put(encode(msg))
         self.counters["states"] += 1

@@ -26,7 +26,6 @@ import numpy as np
 from physics_side import control as C
 from physics_side import models as M
 from physics_side.config import PhysicsSettings, Rates
-from physics_side.lod import DetailZones
 from physics_side.reference import Reference, tracking_error
 from physics_side.world import PhysicsWorld
 from protocol.frames import sumo_angle_to_yaw, wrap_pi, yaw_to_sumo_angle
@@ -140,11 +139,7 @@ class Fleet:
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
             "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "retyped": 0,
-            "placements_lod": 0,
         }
-        self.lod = DetailZones.from_config(self.cfg.lod_radius_m, self.cfg.lod_regions)
-        self.interest_points: np.ndarray | None = None  # (m, 2) [m] extra LOD centres (viewer cameras)
-        self.full_detail = np.zeros(0, bool)
         self.wire_vtype = np.zeros(0, np.uint16)  # vType index per agent of the newest step
         self._empty()
         self.sumo_step = -1
@@ -343,17 +338,7 @@ class Fleet:
         self.kind = w.tables.kind[slots].astype(np.int8)
         self.preset = preset
         mode = np.where(preset == P_KINEMATIC, AgentMode.KINEMATIC, AgentMode.PHYSICAL)
-        # level of detail: beyond every interest zone a physical agent is placed kinematically
-        was_full = np.where(prev >= 0, self.full_detail[np.maximum(prev, 0)], False) if len(self.full_detail) \
-            else np.zeros(len(ids), bool)
-        if self.lod is not None:
-            full = self.lod.full(x, y, ego, np.where(prev >= 0, was_full, True), self.interest_points)
-            mode = np.where(full, mode, AgentMode.KINEMATIC)
-        else:
-            full = np.ones(len(ids), bool)
-        self.full_detail = full
         self.mode = np.where(ego, AgentMode.EXTERNAL, mode).astype(np.uint8)
-        lod_in = (prev >= 0) & full & ~was_full & (self.mode == AgentMode.PHYSICAL)
         self.ref = ref
         self.tau = max(0.0, float(tau))
         self.state = self.state.take(prev)
@@ -391,8 +376,7 @@ class Fleet:
         flip = math.radians(self.cfg.flip_deg)
         flipped = ~is_new & ~jumped & physical & ((np.abs(obs.roll) > flip) | (np.abs(obs.pitch) > flip))
         diverged = ~is_new & ~jumped & ~flipped & physical & (dist > self.cfg.divergence_m)
-        lod_in &= ~is_new & ~jumped & ~flipped & ~diverged  # from kinematic to full physics
-        place = is_new | jumped | flipped | diverged | lod_in
+        place = is_new | jumped | flipped | diverged
         if place.any():
             idx = np.flatnonzero(place)
             self._place(idx, held, count=True)
@@ -403,7 +387,6 @@ class Fleet:
         self.counters["placements_jump"] += st.jumped
         self.counters["placements_divergence"] += st.diverged
         self.counters["placements_flip"] += st.flipped
-        self.counters["placements_lod"] += int(lod_in.sum())
         if st.diverged or st.flipped:
             log.info("step %d: placed %d diverged and %d flipped agents", msg.step, st.diverged, st.flipped)
         # along-path position of each bumper on the new path (guess for the projection)

@@ -9,7 +9,7 @@ import pytest
 
 from physics_side.config import PhysicsConfig, PhysicsSettings
 from physics_side.daemon import build_fleet
-from physics_side.lod import HYSTERESIS, DetailZones
+from physics_side.lod import HYSTERESIS, DetailSplit, DetailZones
 from protocol.errors import ConfigError
 from protocol.messages import AgentMode
 from sumoco.testing.synthetic import circle_traffic
@@ -36,29 +36,57 @@ def test_lod_config_is_checked():
         PhysicsConfig(lod_radius_m=-1.0).validate()
 
 
-def test_fleet_runs_full_physics_only_in_the_zone_and_switches_smoothly():
+def test_far_agents_never_reach_the_fleet_and_follow_their_sumo_trajectory():
     # circle traffic on a 300 m circle around (1000, 1000); a region on it that the
     # eighth car (at 0.51 rad, 10 m/s) reaches after about a second
     cx, cy = 1000.0 + 300.0 * np.cos(0.6), 1000.0 + 300.0 * np.sin(0.6)
-    f = build_fleet(PhysicsSettings(physics=replace(
-        PhysicsConfig(), shards=1, initial_slots={"passenger": 24}, lod_regions=((cx, cy, 12.0),))))
+    split = DetailSplit(DetailZones.from_config(0.0, [[cx, cy, 12.0]]))
+    f = build_fleet(PhysicsSettings(physics=replace(PhysicsConfig(), shards=1, initial_slots={"passenger": 4})))
     n = 20
-    seen_in = set()
+    entered = set()
     for k in range(30):
         msg = circle_traffic(n, k)
-        f.apply_step(msg)
+        near = split.apply(msg)
+        f.apply_step(near)
         for _ in range(f.rates.ticks_per_step):
             f.tick()
-        snap = f.snapshot()
         a = msg.agents
-        inside = np.hypot(a.x - cx, a.y - cy) < 12.0 * HYSTERESIS
-        outside = np.hypot(a.x - cx, a.y - cy) > 12.0
-        assert np.all(snap.mode[inside] == AgentMode.PHYSICAL)
-        assert np.all(snap.mode[outside] == AgentMode.KINEMATIC)
-        seen_in |= {snap.ids[i] for i in np.flatnonzero(inside)}
-        # every agent stays on its SUMO trajectory whichever mode produced its state
-        assert np.abs(snap.err_lat).max() < 0.3 and np.abs(snap.err_lon).max() < 0.6
-    assert f.counters["placements_lod"] >= 1  # agents that drove into the zone
-    assert len(seen_in) >= 1
-    counts = f.mode_counts()
-    assert counts["physical"] >= 1 and counts["kinematic"] >= n // 2
+        d = np.hypot(a.x - cx, a.y - cy)
+        assert set(near.agents.ids) >= {a.ids[i] for i in np.flatnonzero(d < 12.0 * HYSTERESIS)}
+        assert not set(near.agents.ids) & {a.ids[i] for i in np.flatnonzero(d > 12.0)}
+        entered |= set(near.agents.ids)
+        t = msg.time + 0.05
+        snap = split.snapshot(f.snapshot(), t)
+        assert sorted(snap.ids) == sorted(a.ids) and len(snap.ids) == n
+        far = snap.mode == AgentMode.KINEMATIC
+        assert far.sum() == n - near.agents.n and np.all(snap.mode[~far] == AgentMode.PHYSICAL)
+        # far agents: on the circle, 0.5 m (10 m/s x 0.05 s) past their SUMO pose
+        idx = [a.ids.index(i) for i in np.array(snap.ids)[far]]
+        moved = np.hypot(snap.x[far] - a.x[idx], snap.y[far] - a.y[idx])
+        assert np.allclose(moved, 0.5, atol=0.02)
+        assert np.allclose(np.hypot(snap.x[far] - 1000.0, snap.y[far] - 1000.0), 300.0 + 4.0 * a.lane[idx], atol=0.05)
+    assert entered and f.world.counters["spawned"] == len(entered) < n // 2  # only the zone's agents got a slot
+    assert f.world.capacity < n
+
+
+def test_daemon_publishes_far_agents_as_kinematic_without_simulating_them():
+    from physics_side.daemon import PhysicsDaemon
+    from protocol.codec import encode
+    from protocol.keys import Keys
+    from sumoco.common.config import RunConfig
+
+    cx, cy = 1000.0 + 300.0 * np.cos(0.6), 1000.0 + 300.0 * np.sin(0.6)
+    settings = PhysicsSettings(physics=replace(
+        PhysicsConfig(), shards=1, initial_slots={"passenger": 4}, lod_regions=((cx, cy, 12.0),)))
+    fleet = build_fleet(settings)
+    d = PhysicsDaemon(None, Keys("sumoco", "lod"), fleet, settings, RunConfig(timing="lockstep"))
+    for k in range(3):
+        msg = d._decode(encode(circle_traffic(20, k)))  # as received
+        assert d._apply(msg)
+        for _ in range(fleet.rates.ticks_per_step):
+            fleet.tick()
+    snap = d._agents()
+    c = d.all_counters()
+    assert len(snap.ids) == 20 and fleet.n == c["physical"] < 20
+    assert c["lod_far"] == 20 - fleet.n and c["kinematic"] == c["lod_far"]
+    assert int((snap.mode == AgentMode.KINEMATIC).sum()) == c["lod_far"]

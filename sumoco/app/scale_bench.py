@@ -17,7 +17,8 @@ Rows (one JSON object each; field names stable across versions):
   these rows (``sumoco bench e2e`` measures it against raw Zenoh).
 
 With LOD on, a region around the network centre holds about ``FULL_AGENTS`` agents in
-full physics; the rest are placed kinematically.
+full physics; the rest never enter MuJoCo (``physics_side.lod.DetailSplit``, as in the
+daemon) and are published on their extrapolated SUMO pose.
 """
 
 from __future__ import annotations
@@ -29,8 +30,6 @@ import resource
 import subprocess
 import sys
 import time
-from dataclasses import replace
-
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -76,6 +75,7 @@ def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -
     """SUMO alone, then the lockstep chain with LOD off / on, on one grid scenario."""
     from physics_side.config import PhysicsConfig, PhysicsSettings, check_rates
     from physics_side.daemon import build_fleet
+    from physics_side.lod import DetailSplit, DetailZones
     from protocol.codec import decode_as, encode
     from protocol.messages import AgentMode, PhysicsState, StepMessage
     from sumo_side.bench import _cache_dir
@@ -111,14 +111,18 @@ def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -
                 alone_cpu.append(cpu() - c0)
                 snap = sim.read()
                 bridge.build(k, snap)
-            phys = PhysicsConfig(shards=2, threads=2, initial_slots={}, expect={"passenger": int(snap.n * 1.1)},
+            split = None
+            expect = snap.n * 1.1
+            if lod:  # as the daemon does: agents outside the zone never reach the fleet
+                region = _lod_region(np.asarray(snap.x), np.asarray(snap.y), FULL_AGENTS)
+                split = DetailSplit(DetailZones.from_config(0.0, [region]))
+                expect = FULL_AGENTS * 1.3
+            phys = PhysicsConfig(shards=2, threads=2, initial_slots={}, expect={"passenger": int(expect)},
                                  preset="default")
-            if lod:
-                phys = replace(phys, lod_regions=(_lod_region(np.asarray(snap.x), np.asarray(snap.y), FULL_AGENTS),))
             settings = PhysicsSettings(physics=phys)
             rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
             fleet = build_fleet(settings)
-            sumo_t, bridge_t, total_t, tick_t, mj_t, nbytes, agents, full, total_cpu = ([] for _ in range(9))
+            sumo_t, bridge_t, total_t, tick_t, mj_t, nbytes, agents_n, full, total_cpu = ([] for _ in range(9))
             for i in range(steps + 5):
                 k += 1
                 t0, c0 = perf(), cpu()
@@ -128,15 +132,17 @@ def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -
                 data = encode(bridge.build(k, snap))
                 t2 = perf()
                 msg = decode_as(data, StepMessage)
-                fleet.apply_step(msg)
+                near = msg if split is None else split.apply(msg)
+                fleet.apply_step(near)
                 m0 = fleet.world.mujoco_s
                 ticks = []
                 for _ in range(rates.ticks_per_step):
                     tt = perf()
                     fleet.tick()
                     ticks.append(perf() - tt)
+                agents = fleet.snapshot() if split is None else split.snapshot(fleet.snapshot(), msg.time)
                 encode(PhysicsState(run="bench", tick=fleet.tick_count, time=msg.time, sumo_step=msg.step,
-                                    agents=fleet.snapshot(), counters={}))
+                                    agents=agents, counters={}))
                 t3, c3 = perf(), cpu()
                 if i < 5:  # the first steps spawn the whole network
                     continue
@@ -147,14 +153,14 @@ def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -
                 tick_t.append(float(np.mean(ticks)))
                 mj_t.append((fleet.world.mujoco_s - m0) / rates.ticks_per_step)
                 nbytes.append(len(data))
-                agents.append(msg.agents.n)
+                agents_n.append(msg.agents.n)
                 full.append(int((fleet.mode == AgentMode.PHYSICAL).sum()))
             fleet.world.close()
         finally:
             sim.close()
         ms = lambda xs: round(float(np.mean(xs)) * 1e3, 3)  # noqa: E731
         rows.append({
-            "agents": int(round(float(np.mean(agents)))), "lod": lod, "full_physics_agents": int(np.mean(full)),
+            "agents": int(round(float(np.mean(agents_n)))), "lod": lod, "full_physics_agents": int(np.mean(full)),
             "sumo_alone_steps_per_s": round(1.0 / float(np.mean(alone)), 2),
             "cosim_steps_per_s": round(1.0 / float(np.mean(total_t)), 2),
             "cosim_to_sumo_ratio": round(float(np.mean(alone)) / float(np.mean(total_t)), 3),
