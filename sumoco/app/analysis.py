@@ -1,8 +1,9 @@
 """Tracking analysis of a recorded run: tables of SUMO and physics samples, errors, summary.
 
 Error metric (the same for every preset): the physics agent's *front-bumper centre* at
-physics time t against SUMO's front-bumper centre at the same t, linearly interpolated
-between the two SUMO steps around t. Only agents in mode PHYSICAL count; kinematic and
+physics time t against SUMO's front-bumper centre at the same t, interpolated between
+the two SUMO steps around t along a cubic Hermite curve with the samples' headings (a
+straight line between samples would cut curves at long SUMO steps). Only agents in mode PHYSICAL count; kinematic and
 external (ego) agents are reported apart. Samples next to a SUMO step that flags the
 agent as jumped (teleport) or riding are left out: there SUMO moves the agent by fiat.
 
@@ -208,9 +209,8 @@ def tracking_errors(ref: RefTable, ph: PhysTable) -> Errors:
         ps, pt = ps[inside], pt[inside]
         if not len(ps):
             continue
-        rx = np.interp(pt, rt, ref.x[rs])
-        ry = np.interp(pt, rt, ref.y[rs])
         ang = np.unwrap(np.deg2rad(90.0 - ref.angle[rs]))
+        rx, ry = _hermite(pt, rt, ref.x[rs], ref.y[rs], ang)
         yaw = np.interp(pt, rt, ang)
         dx, dy = ph.x[ps] - rx, ph.y[ps] - ry
         out.lon[ps] = dx * np.cos(yaw) + dy * np.sin(yaw)
@@ -227,6 +227,28 @@ def tracking_errors(ref: RefTable, ph: PhysTable) -> Errors:
         lo = np.clip(hi - 1, 0, len(rt) - 1)
         out.valid[ps] = (ph.mode[ps] == AgentMode.PHYSICAL) & ~odd[lo] & ~odd[hi]
     return out
+
+
+def _hermite(pt: np.ndarray, rt: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray):
+    """SUMO's position between two samples: a cubic Hermite curve through both with the
+    samples' headings [rad] and the chord's speed (SUMO does not define it; a straight
+    line would cut every curve: 0.6 m in a 10 m turn at 7 m/s and 1 s steps, 6 mm at 0.1 s).
+    Standing or turning on the spot (no chord) stays the straight line."""
+    k = np.clip(np.searchsorted(rt, pt, side="right") - 1, 0, len(rt) - 2)
+    dt = rt[k + 1] - rt[k]
+    u = np.where(dt > 0, (pt - rt[k]) / np.where(dt > 0, dt, 1.0), 0.0)
+    cx, cy = x[k + 1] - x[k], y[k + 1] - y[k]
+    chord = np.hypot(cx, cy)
+    # tangents of chord length along each sample's heading (turns up to ~90 deg per step)
+    m0x, m0y = chord * np.cos(yaw[k]), chord * np.sin(yaw[k])
+    m1x, m1y = chord * np.cos(yaw[k + 1]), chord * np.sin(yaw[k + 1])
+    h10, h11 = u * (1 - u) ** 2, u * u * (u - 1)
+    h01 = u * u * (3 - 2 * u)
+    hx = x[k] + h01 * cx + h10 * m0x + h11 * m1x
+    hy = y[k] + h01 * cy + h10 * m0y + h11 * m1y
+    # a heading far from the chord (a reversing or jumping agent) gets the straight line
+    ok = (chord > 1e-3) & (np.cos(yaw[k] - np.arctan2(cy, cx)) > 0.5) & (np.cos(yaw[k + 1] - np.arctan2(cy, cx)) > 0.5)
+    return np.where(ok, hx, x[k] + u * cx), np.where(ok, hy, y[k] + u * cy)
 
 
 def _stats(e: np.ndarray) -> dict:
