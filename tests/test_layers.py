@@ -141,6 +141,12 @@ print(json.dumps({"decoded": decoded,
         r = subprocess.run([str(exe), *cmd.split()], capture_output=True, text=True, timeout=60, cwd=tmp_path)
         assert r.returncode == 2, (cmd, r.returncode, r.stderr)
         assert f"pip install 'sumoco[{extra}]'" in r.stderr, r.stderr
+    # The map export needs no SUMO: a renderer author gets the GLB from the bare install.
+    net = Path(__file__).resolve().parents[1] / "configs" / "scenarios" / "paper" / "paper.net.xml"
+    r = subprocess.run([str(exe), "map", "export", str(net), "--out", "m.glb", "--quiet"], capture_output=True,
+                       text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "m.glb").read_bytes()[:4] == b"glTF"
     _bare_replay_reaches_a_subscriber(exe, tmp_path)
 
 
