@@ -35,7 +35,7 @@ KNOWN_TABLES = ("run", "zenoh", "sumo", "physics", "control", "demo", "viewer", 
 class RunConfig:
     id: str = "default"  # run id, part of every key expression
     timing: Literal["realtime", "lockstep"] = "realtime"
-    duration_s: float = 0.0  # [s] simulated time to run; 0 = until SUMO has no more traffic
+    duration_s: float = 0.0  # [s] simulated time to run from the scenario's begin; 0 = until the scenario ends
     seed: int | None = None  # SUMO --seed (replaces the scenario's own, logged); none: the scenario's
     lockstep_timeout_s: float = 10.0  # [s] a silent peer in lockstep is an error after this
     max_agents: int = 200_000  # [agents] largest agent table a daemon decodes; bounds every decode (SPEC 5)
