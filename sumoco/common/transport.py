@@ -21,7 +21,7 @@ from pathlib import Path
 
 import zenoh
 
-from protocol.errors import ConfigError
+from protocol.errors import ConfigError, SumocoError
 from sumoco.common.config import SecurityConfig, ZenohConfig
 
 log = logging.getLogger(__name__)
@@ -153,7 +153,10 @@ def open_session(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Session:
     zenoh.try_init_log_from_env()
     log.debug("opening zenoh session mode=%s listen=%s connect=%s%s", cfg.mode, cfg.listen, cfg.connect,
               f" (TLS as {role!r})" if cfg.security.enabled else "")
-    return zenoh.open(zenoh_config(cfg, role))
+    try:
+        return zenoh.open(zenoh_config(cfg, role))
+    except zenoh.ZError as e:  # e.g. a listen port taken meanwhile: one line, not a traceback
+        raise SumocoError(f"cannot open the Zenoh session ({' '.join(str(e).split())})") from None
 
 
 def free_tcp_port() -> int:
