@@ -16,6 +16,7 @@ from protocol import (
 )
 from protocol.codec import STEP_AGENT_COLUMNS
 from protocol.golden_vectors import valid_messages
+from protocol.messages import SumoStatus
 from sumoco.testing.synthetic import synthetic_step
 
 
@@ -224,7 +225,7 @@ def test_mutated_valid_messages_only_raise_protocol_error(name, data):
         out = decode(_pack(d))
     except ProtocolError:
         return
-    assert isinstance(out, (StepMessage, EgoPose, PhysicsState, StepAck, StaticData))
+    assert isinstance(out, (StepMessage, EgoPose, PhysicsState, StepAck, StaticData, SumoStatus))
 
 
 @settings(max_examples=200, deadline=None)
