@@ -94,6 +94,15 @@ class Daemon:
         self._f.close()
         return self.proc.returncode
 
+    def leave(self, timeout_s: float = 10.0) -> int:
+        """Wait for the process to end by itself (a physics side leaves after SUMO's final
+        step), then ``terminate``; a SIGTERM during its own shutdown would kill it (-15)."""
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            pass
+        return self.terminate()
+
     def kill(self) -> None:
         """SIGKILL on purpose (``killed`` tells teardown checks to expect -9)."""
         self.killed = True

@@ -93,5 +93,6 @@ preset = "default"
         if client is not None and client.poll() is None:
             client.kill()
         probe.close()
-        codes = {"sumo": sumo.terminate(5), "physics": phys.terminate(5)}
+        codes = {"sumo": sumo.terminate(5)}
+        codes["physics"] = phys.leave(10)  # it leaves after SUMO's final step
     assert codes == {"sumo": 0, "physics": 0}

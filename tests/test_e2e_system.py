@@ -70,7 +70,9 @@ class System:
 
     def close(self) -> dict[str, int]:
         """Stop everything; exit codes of the daemons not killed on purpose."""
-        codes = {d.name: d.terminate(5) for d in self.daemons}
+        # SUMO first: its final step lets the physics side leave by itself
+        codes = {d.name: d.terminate(5) for d in self.daemons if d.name.startswith("sumo")}
+        codes.update({d.name: d.leave(10) for d in self.daemons if not d.name.startswith("sumo")})
         self.probe.close()
         return {n: c for n, c in codes.items() if not next(d for d in self.daemons if d.name == n).killed}
 
