@@ -476,23 +476,27 @@ def cli_main(args) -> int:
     settings = replace(settings, physics=phys)
     keys = Keys(common.zenoh.root, common.run.id, phys.instance)
     fleet = build_fleet(settings, realtime=common.run.timing == "realtime")
-    with open_session(common.zenoh, role="physics") as session:
-        daemon = PhysicsDaemon(session, keys, fleet, settings, common.run, shard=shard).start()
-        old = {}
+    old = {}
+    try:
+        with open_session(common.zenoh, role="physics") as session:
+            daemon = PhysicsDaemon(session, keys, fleet, settings, common.run, shard=shard).start()
 
-        def _handler(signum, frame):
-            log.info("signal %d: shutting down", signum)
-            daemon.stop()
+            def _handler(signum, frame):
+                log.info("signal %d: shutting down", signum)
+                daemon.stop()
 
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            old[sig] = signal.signal(sig, _handler)
-        try:
-            return daemon.run()
-        finally:
-            daemon.close()
-            fleet.world.close()
-            for sig, h in old.items():
-                signal.signal(sig, h)
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                old[sig] = signal.signal(sig, _handler)
+            try:
+                return daemon.run()
+            finally:
+                daemon.close()
+                fleet.world.close()
+    finally:
+        # Restored only after the session closed: a SIGTERM during that shutdown (the run
+        # already ended) must not kill the process with -15.
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 __all__ = ["PhysicsDaemon", "build_fleet", "cli_main"]
