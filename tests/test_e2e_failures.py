@@ -121,3 +121,36 @@ def test_a_crashed_daemon_is_named_with_its_signal_exit_2(tmp_path):
     line = _one_line(err)
     assert "sumo" in line and "SIGSEGV" in line
     assert (out / "summary.json").is_file()
+
+
+def test_a_port_taken_between_choosing_and_listening_is_retried(tmp_path, monkeypatch):
+    """The SUMO side's port is taken by someone else: the demo starts the daemons again."""
+    import socket
+
+    import sumoco.app.demo as demo_mod
+    from sumoco.common.config import load_common, replace, section
+
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", 0))
+    blocker.listen()
+    taken = blocker.getsockname()[1]
+    real = demo_mod.free_tcp_port
+    calls = []
+
+    def first_sumo_port_taken():
+        calls.append(1)
+        return taken if len(calls) == 2 else real()  # call 1: the hub, call 2: the SUMO side
+
+    monkeypatch.setattr(demo_mod, "free_tcp_port", first_sumo_port_taken)
+    config = ROOT / "configs" / "demo.toml"
+    common, data, base = load_common(config)
+    common = replace(common, run=replace(common.run, id=f"port{uuid.uuid4().hex[:6]}", duration_s=3.0))
+    demo = replace(section(data, "demo", demo_mod.DemoConfig, base, str(config)), presets=("default",),
+                   lad_sweep=False)
+    try:
+        summary = demo_mod.run_demo(config, tmp_path / "out", common, demo, quiet=True)
+    finally:
+        blocker.close()
+    assert summary["daemons"]["exit_codes"] == {"sumo": 0, "physics-default": 0}
+    assert summary["daemons"]["completed"] is True and summary["steps"] == 30
+    assert len(calls) == 5  # hub, SUMO (taken), physics; then SUMO and physics again

@@ -179,6 +179,42 @@ def _wait_for(cond, timeout_s: float, what: str, procs: Processes) -> None:
         time.sleep(0.05)
 
 
+#: Start-up attempts when a chosen port was taken before a daemon could listen on it.
+PORT_ATTEMPTS = 3
+
+
+def _port_clash(procs: Processes) -> bool:
+    """A daemon ended because its listen port was taken (its log says so)."""
+    for name, p in procs.procs.items():
+        if p.poll() is None:
+            continue
+        try:
+            if "Address already in use" in (procs.log_dir / f"{name}.log").read_text(errors="replace"):
+                return True
+        except OSError:
+            pass
+    return False
+
+
+def _start_daemons(procs: Processes, common_args: list[str], hub: str, sumo_ep: str, demo: DemoConfig,
+                   out: Path, sumocfg: str | None, begin: float | None, common: CommonConfig) -> None:
+    """The SUMO side listening on ``sumo_ep`` and one physics process per preset."""
+    sumo_args = ["sumo", *common_args, "--listen", sumo_ep, "--connect", hub, "--output-dir", str(out / "sumo")]
+    for p in demo.presets:
+        sumo_args += ["--wait-for", p]
+    if sumocfg:
+        sumo_args += ["--sumocfg", str(sumocfg)]
+    if begin is not None:
+        sumo_args += ["--begin", repr(float(begin))]
+    if common.run.seed is not None:
+        sumo_args += ["--seed", str(common.run.seed)]
+    procs.start("sumo", _cli(*sumo_args))
+    for p in demo.presets:
+        procs.start(f"physics-{p}", _cli(
+            "physics", *common_args, "--instance", p, "--preset", p,
+            "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub))
+
+
 def default_out(sumocfg: str | Path | None) -> Path:
     """``runs/demo`` for the bundled scenario, ``runs/<folder>/<name>`` for a .sumocfg."""
     if not sumocfg:
@@ -231,35 +267,28 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
                            "--timing", common.run.timing, "--duration", repr(float(common.run.duration_s))]
             if quiet:
                 common_args.append("--quiet")
-            sumo_args = ["sumo", *common_args, "--listen", sumo_ep, "--connect", hub,
-                         "--output-dir", str(out / "sumo")]
-            for p in demo.presets:
-                sumo_args += ["--wait-for", p]
-            if sumocfg:
-                sumo_args += ["--sumocfg", str(sumocfg)]
-            if begin is not None:
-                sumo_args += ["--begin", repr(float(begin))]
-            if common.run.seed is not None:
-                sumo_args += ["--seed", str(common.run.seed)]
-            procs.start("sumo", _cli(*sumo_args))
-            for p in demo.presets:
-                procs.start(f"physics-{p}", _cli(
-                    "physics", *common_args, "--instance", p, "--preset", p,
-                    "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub))
-            try:
-                _wait_for(lambda: keys.sumo_alive in alive, demo.startup_timeout_s, "the SUMO side", procs)
-                if live.fetch_static(timeout_s=10.0) is None:
-                    log.warning("no static data from the SUMO side")
-                want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
-                _wait_for(lambda: want <= alive, demo.startup_timeout_s, "the physics processes", procs)
-            except DaemonFailed as e:
-                if procs.procs["sumo"].poll() == ExitCode.USAGE:
-                    # SUMO could not load the scenario: a configuration problem, not a run.
-                    own = (_last_error_line(procs.log_dir / "sumo.log", "sumo").removeprefix("configuration error: ")
-                           .replace("; SUMO's own messages are above", ""))
-                    said = _sumo_error(procs.log_dir / "sumo.log")
-                    raise ConfigError((own or str(e)) + (f"; SUMO said: {said}" if said else "")) from None
-                raise
+            for attempt in range(1, PORT_ATTEMPTS + 1):
+                try:
+                    _start_daemons(procs, common_args, hub, sumo_ep, demo, out, sumocfg, begin, common)
+                    _wait_for(lambda: keys.sumo_alive in alive, demo.startup_timeout_s, "the SUMO side", procs)
+                    if live.fetch_static(timeout_s=10.0) is None:
+                        log.warning("no static data from the SUMO side")
+                    want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
+                    _wait_for(lambda: want <= alive, demo.startup_timeout_s, "the physics processes", procs)
+                    break
+                except DaemonFailed as e:
+                    if procs.procs["sumo"].poll() == ExitCode.USAGE:
+                        # SUMO could not load the scenario: a configuration problem, not a run.
+                        own = (_last_error_line(procs.log_dir / "sumo.log", "sumo")
+                               .removeprefix("configuration error: ").replace("; SUMO's own messages are above", ""))
+                        said = _sumo_error(procs.log_dir / "sumo.log")
+                        raise ConfigError((own or str(e)) + (f"; SUMO said: {said}" if said else "")) from None
+                    if attempt == PORT_ATTEMPTS or not _port_clash(procs):
+                        raise
+                    # Another program took a port between choosing and listening: new ports.
+                    log.warning("a daemon's port was taken meanwhile; starting the daemons again on new ports")
+                    procs.stop(timeout_s=demo.stop_timeout_s)
+                    sumo_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
             log.info("all daemons up after %.1f s; running (wall limit %.0f s)",
                      time.monotonic() - t_start, demo.wall_limit_s)
             t_run = time.monotonic()
