@@ -162,7 +162,7 @@ class DefaultControl:
     k_int: float = 0.5  # [1/s^3] gain on the integral of the along-path error (cornering drag, slopes)
     int_limit: float = 1.0  # [m/s^2] integral term clamp
     accel_max: float = 6.0  # [m/s^2] commanded acceleration limit
-    decel_max: float = 9.0  # [m/s^2] commanded deceleration limit
+    decel_max: float = 11.0  # [m/s^2] commanded deceleration limit (SUMO's motorcycles brake at 10)
     hold_speed: float = 0.2  # [m/s] below this reference speed a stopped agent holds its brakes
     hold_brake: float = 0.3  # [1] hold brake as a fraction of max brake torque
     ped_omega: float = 4.0  # [rad/s] pedestrian position-loop natural frequency

@@ -388,7 +388,8 @@ class Fleet:
         self.counters["placements_divergence"] += st.diverged
         self.counters["placements_flip"] += st.flipped
         if st.diverged or st.flipped:
-            log.info("step %d: placed %d diverged and %d flipped agents", msg.step, st.diverged, st.flipped)
+            log.warning("step %d: placed diverged %s, flipped %s", msg.step,
+                        [self.ids[i] for i in np.flatnonzero(diverged)], [self.ids[i] for i in np.flatnonzero(flipped)])
         # along-path position of each bumper on the new path (guess for the projection)
         # (``obs`` predates the placements: placed agents sit exactly at s = 0)
         self._update_ghosts(obs, held, is_new, prev, msg.time)
@@ -463,6 +464,8 @@ class Fleet:
                                                    cx[other], cy[other], h.yaw[other], self.sumo_len[other],
                                                    self.sumo_wid[other], SUMO_OVERLAP_M).any())
             self.counters["collisions_sumo_reported" if sumo else "collisions_physics_only"] += 1
+            if not sumo:
+                log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", t, self.ids[i])
 
     def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True) -> None:
         """Place agents ``idx`` at reference point ``at`` (full-length arrays)."""

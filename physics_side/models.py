@@ -111,6 +111,8 @@ class AgentSpec:
     """Pedestrian planar force limit [N] (~0.4 g for 70 kg)."""
     brake_front: float = 0.6
     """Share of brake torque on the front axle."""
+    tyre_mu: float = 1.0
+    """Tyre-road sliding friction [1]."""
 
     @property
     def front_offset(self) -> float:
@@ -155,11 +157,13 @@ def _car(cls: AgentClass, length: float, width: float, name: str = "", **kw) -> 
 
 def _heavy(cls: AgentClass, length: float, width: float, name: str, mass: float, height: float,
            wheelbase: float) -> AgentSpec:
-    """Bus, coach, truck, tram: 0.5 m wheels, high COM, ~2 m/s^2 drive, ~9 m/s^2 brakes."""
+    """Bus, coach, truck, tram: 0.5 m wheels, high COM, ~3.5 m/s^2 drive, ~9 m/s^2 brakes."""
     return _car(
         cls, length, width, name=name, height=height, mass=mass, com_height=1.0, wheelbase=wheelbase,
         track=max(width - 0.4, 1.2), wheel_radius=0.5, wheel_mass=120.0, clearance=0.35, max_steer_deg=40.0,
-        max_drive=2.0 * mass * 0.5 * 1.3, max_brake=9.0 * mass * 0.5 * 1.2,
+        # SUMO's coach accelerates at 2.0 m/s^2 (bus 1.2, truck 1.3): ~2 m/s^2 of drive left a
+        # coach ~6 m behind after every start, so the drive keeps a margin over the fastest
+        max_drive=3.5 * mass * 0.5 * 1.3, max_brake=9.0 * mass * 0.5 * 1.2,
         steer_kp=20_000.0, steer_kv=1_500.0,
     )
 
@@ -185,10 +189,13 @@ def _moto(length: float, width: float, name: str) -> AgentSpec:
     """Motorcycle / moped: a heavier, lower single-track vehicle (280 kg with rider)."""
     return AgentSpec(
         name=name, kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length, width=width, height=1.5, mass=260.0,
-        com_height=0.7, wheelbase=0.65 * length, wheel_radius=0.32, wheel_mass=10.0, clearance=0.3,
+        com_height=0.55, wheelbase=0.65 * length, wheel_radius=0.32, wheel_mass=10.0, clearance=0.3,
         max_steer_deg=35.0,
-        # ~4 m/s^2 of drive and ~6 m/s^2 of braking (a stoppie needs g * wheelbase / 2 / COM ~ 10)
-        max_drive=4.0 * 280.0 * 0.32, max_brake=6.0 * 280.0 * 0.32, brake_front=0.6,
+        # SUMO's motorcycle accelerates at 6 and decelerates at 10 m/s^2 (moped 1.1 / 7): with
+        # 4 / 6 m/s^2 they overshot SUMO's stops by ~6 m. ~8 m/s^2 of drive and ~12 m/s^2 of
+        # braking, mostly on the front wheel (at 10 m/s^2 the rear keeps ~10 % of the load);
+        # sport tyres (mu 1.2) carry it, and a stoppie needs g * wheelbase / 2 / COM ~ 12.7.
+        max_drive=8.0 * 280.0 * 0.32, max_brake=12.0 * 280.0 * 0.32, brake_front=0.85, tyre_mu=1.2,
         steer_kp=800.0, steer_kv=40.0, stab_max=4000.0,
     )
 
@@ -321,7 +328,7 @@ def _wheel(parent, name: str, pos, spec: AgentSpec, steer: bool):
         shape = dict(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[spec.wheel_radius, 0, 0])
     w.add_geom(
         name=f"g{name}", **shape, mass=spec.wheel_mass, contype=0, conaffinity=1, condim=3,
-        friction=list(GROUND_FRICTION), rgba=[0.1, 0.1, 0.1, 1],
+        friction=[spec.tyre_mu, *GROUND_FRICTION[1:]], rgba=[0.1, 0.1, 0.1, 1],
     )
 
 
