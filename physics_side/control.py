@@ -11,7 +11,6 @@ Building blocks (unit-tested on their own):
 - ``accel_to_torques`` / ``pedal_to_torques``: wheel torques and brakes.
 - ``roll_stabiliser``: bicycle roll PD towards the steady-turn lean.
 - ``planar_force``: pedestrian force with a bounded norm.
-- ``ackermann``: left/right road-wheel angles for a bicycle-model angle.
 
 ``control_vehicles`` / ``control_pedestrians`` compose them for one preset. Integrator
 state lives in ``ControlState`` (arrays aligned with the agents), nothing else is kept.
@@ -103,18 +102,6 @@ def stanley_bumper(
     return np.arctan(wheelbase * np.tan(beta) / d_bumper)
 
 
-def steady_state_delta(curvature: np.ndarray, d_bumper: np.ndarray, wheelbase: np.ndarray) -> np.ndarray:
-    """Road-wheel angle [rad] that keeps the front bumper on a circle of the given curvature.
-
-    The bumper's radius is sqrt(R^2 + d^2) with R the rear-axle radius: R = sqrt(1/k^2 - d^2).
-    """
-    k = np.asarray(curvature, np.float64)
-    kd = np.clip(np.abs(k) * d_bumper, 0.0, 0.95)
-    with np.errstate(divide="ignore"):
-        tan_d = wheelbase * np.abs(k) / np.sqrt(1.0 - kd * kd)
-    return np.sign(k) * np.arctan(tan_d)
-
-
 def accel_command(
     e_s: np.ndarray, e_v: np.ndarray, a_ref: np.ndarray, integ: np.ndarray, omega: float, zeta: float,
     k_int: float,
@@ -155,17 +142,6 @@ def planar_force(
     norm = np.hypot(fx, fy)
     scale = np.where(norm > fmax, fmax / np.maximum(norm, 1e-9), 1.0)
     return fx * scale, fy * scale
-
-
-def ackermann(delta: np.ndarray, wheelbase: np.ndarray, track: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(left, right) road-wheel angles [rad] sharing the turn centre of a bicycle-model angle."""
-    t = np.tan(delta)
-    half = 0.5 * track * t
-    lt = wheelbase * t
-    left = np.arctan2(lt, wheelbase - half)
-    right = np.arctan2(lt, wheelbase + half)
-    # atan2 keeps the sign of t through the numerator; denominators stay > 0 for sane tracks
-    return left, right
 
 
 # --------------------------------------------------------------------------- composed laws
@@ -341,7 +317,6 @@ def control_default(
 
 __all__ = [
     "ControlState", "VehicleCommand", "VehicleObs", "VehicleParams", "accel_command", "accel_to_torques",
-    "ackermann", "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
+    "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
-    "steady_state_delta",
 ]

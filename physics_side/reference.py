@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from physics_side.kinematics import concat_ranges
 from protocol.frames import sumo_angle_to_yaw, wrap_pi
 
 _BIG = 1.0e6  # [m] arc-length gap between agents in the global search key (> any path)
@@ -219,16 +220,6 @@ class PathSet:
         heading = h + np.where(in_s, neg_ds * (bs - tc) / two_bs, np.where(in_e, de * (tc - L + be) / two_be, 0.0))
         kappa = np.where(in_s, k_s, np.where(in_e, k_e, 0.0))
         return PathPoint(x0 + dx * t, y0 + dy * t, wrap_pi(heading), kappa)
-
-
-def concat_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """Concatenated ``arange(start, start + count)`` for every pair (vectorised)."""
-    counts = np.asarray(counts, np.int64)
-    total = int(counts.sum())
-    if total == 0:
-        return np.zeros(0, np.int64)
-    rep = np.repeat(np.asarray(starts, np.int64) - np.concatenate(([0], np.cumsum(counts)[:-1])), counts)
-    return rep + np.arange(total)
 
 
 def stopping_distance(v: np.ndarray, a: np.ndarray, tau: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:

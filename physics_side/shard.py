@@ -20,7 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from physics_side.reference import concat_ranges
+from physics_side.kinematics import concat_ranges
 from protocol.errors import ConfigError
 from protocol.messages import AgentBatch
 

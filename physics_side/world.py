@@ -31,9 +31,8 @@ import mujoco
 import numpy as np
 
 from physics_side import models as M
-from physics_side.control import ackermann, steady_state_delta
+from physics_side.kinematics import ackermann, concat_ranges, steady_state_delta
 from physics_side.layout import SLOTS_PER_SIM, Layout, Pool, SlotTables, carry_over, compile_layout
-from physics_side.reference import concat_ranges
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from physics_side import control as C
+from physics_side import kinematics as K
 from physics_side.reference import PathSet, Reference, stopping_distance, tracking_error
 
 
@@ -95,7 +96,7 @@ def test_stanley_bumper_reduces_to_stanley_at_the_front_axle():
 
 def test_steady_state_delta_keeps_the_bumper_on_the_circle():
     L, d, R = 2.8, 3.8, 12.0
-    delta = C.steady_state_delta(np.array([1 / R, -1 / R, 0.0]), np.full(3, d), np.full(3, L))
+    delta = K.steady_state_delta(np.array([1 / R, -1 / R, 0.0]), np.full(3, d), np.full(3, L))
     r_rear = L / np.tan(abs(delta[0]))
     assert math.hypot(r_rear, d) == pytest.approx(R)
     assert delta[1] == pytest.approx(-delta[0]) and delta[2] == 0.0
@@ -103,7 +104,7 @@ def test_steady_state_delta_keeps_the_bumper_on_the_circle():
 
 def test_ackermann_inner_wheel_turns_more_about_one_centre():
     L, T = np.full(2, 2.8), np.full(2, 1.6)
-    left, right = C.ackermann(np.array([0.3, -0.3]), L, T)
+    left, right = K.ackermann(np.array([0.3, -0.3]), L, T)
     assert left[0] > 0.3 > right[0] > 0  # left turn: left wheel inner
     assert right[1] < -0.3 < left[1] < 0
     # both wheel axes meet the rear-axle line at the same point

@@ -178,7 +178,8 @@ def test_no_roll_over_at_a_hard_lateral_acceleration(cls):
     R, a_lat = 25.0, 4.4
     v = math.sqrt(a_lat * R)
     d = spec.front_offset - spec.rear_axle
-    from physics_side.control import roll_stabiliser, steady_state_delta
+    from physics_side.control import roll_stabiliser
+    from physics_side.kinematics import steady_state_delta
 
     delta = float(steady_state_delta(np.array([1 / R]), np.array([d]), np.array([spec.wheelbase]))[0])
     w = _world(cls)
