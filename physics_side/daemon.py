@@ -90,7 +90,8 @@ class PhysicsDaemon:
         self._alive_events: collections.deque[bool] = collections.deque(maxlen=64)
         self._wake = threading.Event()
         self._stop = threading.Event()
-        self.counters: dict[str, int] = {"rejected": 0, "dropped_steps": 0, "acks": 0, "states": 0}
+        self.counters: dict[str, int] = {"rejected": 0, "dropped_steps": 0, "acks": 0, "states": 0,
+                                         "static_queries": 0}
         self.sumo_present = False
         self._seen_sumo = False
         self._resync = False
@@ -177,13 +178,18 @@ class PhysicsDaemon:
         msg = self._tables.resolve(msg)
         now = time.monotonic()
         if self._tables.stale and now - self._static_asked >= STATIC_QUERY_PERIOD_S:
-            self._static_asked = now
             log.info("step %d refers to static version %d: querying the static data", msg.step, msg.static_version)
-            try:
-                self.session.get(self.keys.static, self._on_static_reply, timeout=STATIC_QUERY_PERIOD_S)
-            except Exception as e:  # a closing session; the next stale step asks again
-                log.debug("static query failed: %s", e)
+            self._ask_static()
         return msg
+
+    def _ask_static(self) -> None:
+        """One static-data query; the reply comes on Zenoh's thread (the loop never waits)."""
+        self._static_asked = time.monotonic()
+        self.counters["static_queries"] += 1
+        try:
+            self.session.get(self.keys.static, self._on_static_reply, timeout=STATIC_QUERY_PERIOD_S)
+        except Exception as e:  # a closing session; the next stale step asks again
+            log.debug("static query failed: %s", e)
 
     def _decode(self, data: bytes) -> StepMessage | None:
         try:
@@ -214,6 +220,9 @@ class PhysicsDaemon:
                 self._resync = self._seen_sumo
                 self._seen_sumo = True
                 self.sumo_present = True
+                # A late join or a (re)started SUMO side: ask for the static tables now, as
+                # steps carry the vehicle-type table only when it changes (SPEC 3.1).
+                self._ask_static()
             elif not up and self.sumo_present:
                 log.warning("SUMO side is gone: bringing %d agents to a safe stop", self.fleet.n)
                 self.sumo_present = False

@@ -57,10 +57,6 @@ class LockstepTimeout(SumocoError):
     """No acknowledgement from a physics instance within ``lockstep_timeout_s``."""
 
 
-class PeerLost(SumocoError):
-    """A physics instance lockstep waits for disappeared (liveliness token gone)."""
-
-
 class HotLoopGC:
     """Keep Python's cyclic garbage collector out of the per-step hot path.
 
@@ -109,6 +105,7 @@ class Counters:
     rejected: int = 0  # malformed or foreign incoming messages
     acks: int = 0
     lag_resets: int = 0  # realtime: SUMO fell behind the wall clock by more than max_lag_s
+    rejoined: int = 0  # lockstep: awaited physics instances that left and came back
     max_agents: int = 0
     static_versions: int = 0  # static data re-encoded for a new static version
     extra: dict = field(default_factory=dict)
@@ -143,6 +140,7 @@ class SumoDaemon:
             cfg.max_peer_keys, frozenset(k.physics_alive for k in waited))
         self._alive: set[str] = set()
         self._waited = list(cfg.lockstep_instances)  # shrinks when a physics shard is lost
+        self._lost: dict[str, float] = {}  # awaited instances whose token went: clock() when
         self._last_reject_log = -math.inf
         self._limits = run.decode_limits  # acks and ego poses are small: any bound holds them
         self._static_bytes = encode(sim.static_data())
@@ -264,11 +262,17 @@ class SumoDaemon:
                 if msg.step > self._acked.get(inst, -1):
                     self._acked[inst] = msg.step
 
-    def _update_alive(self) -> None:
+    def _update_alive(self) -> bool:
+        """Apply liveliness changes; True when an awaited instance that had left is back."""
+        back = False
         for key, up in self._alive_events.drain().items():
             inst = Keys.instance_of(key)
             if up:
                 self._alive.add(inst)
+                if self._lost.pop(inst, None) is not None:
+                    back = True
+                    self.counters.rejoined += 1
+                    log.info("lockstep: physics instance %r is back", inst)
             elif inst in self._alive:
                 self._alive.discard(inst)
                 if inst in self._waited and not self._stop.is_set():
@@ -279,10 +283,13 @@ class SumoDaemon:
                         log.warning("lockstep: physics shard %r left; waiting for %s from now on",
                                     inst, ", ".join(self._waited))
                         continue
-                    raise PeerLost(
-                        f"lockstep: physics instance {inst!r} left (its liveliness token on "
-                        f"{key} disappeared); stopping instead of waiting for it"
-                    )
+                    # A restarted instance can take over where this one stopped: wait for it
+                    # (bounded by lockstep_timeout_s) instead of ending the run at once.
+                    self._lost[inst] = self.clock()
+                    log.warning("lockstep: physics instance %r left (its liveliness token on %s disappeared); "
+                                "waiting up to %g s ([run] lockstep_timeout_s) for it to come back",
+                                inst, key, self.run_cfg.lockstep_timeout_s)
+        return back
 
     def _wait_for_peers(self, publisher, ego_sub) -> None:
         """Lockstep: before step 0, wait until every instance is alive and subscribed."""
@@ -379,7 +386,8 @@ class SumoDaemon:
                 why = "stop requested"
             msg = self.bridge.build(k, snap, ego_flags, final=bool(why))
             self._refresh_static(msg.static_version)
-            publisher.put(encode(msg))
+            payload = encode(msg)
+            publisher.put(payload)
             t_d = perf()
             self.last_message = msg
             c = self.counters
@@ -397,7 +405,7 @@ class SumoDaemon:
                 break
             t_w = perf()
             if lockstep:
-                self._wait_for_acks(k, ego_sub)
+                self._wait_for_acks(k, ego_sub, publisher, payload)
             else:
                 deadline = anchor + (k + 1) * dt
                 now = clock()
@@ -420,10 +428,7 @@ class SumoDaemon:
         t_end = self.clock() + timeout
         while True:
             self._drain_acks(timeout=0.02)
-            try:
-                self._update_alive()
-            except PeerLost:  # leaving after the last step is what peers are asked to do
-                pass
+            self._update_alive()  # leaving after the last step is what peers are asked to do
             missing = [i for i in self._waited
                        if self._acked.get(i, -1) < step and i in self._alive]
             if not missing:
@@ -433,7 +438,7 @@ class SumoDaemon:
                             step, ", ".join(missing), timeout)
                 return
 
-    def _wait_for_acks(self, step: int, ego_sub) -> None:
+    def _wait_for_acks(self, step: int, ego_sub, publisher, payload: bytes) -> None:
         timeout = self.run_cfg.lockstep_timeout_s
         t_end = self.clock() + timeout
         self._drain_acks()
@@ -443,16 +448,23 @@ class SumoDaemon:
             left = t_end - self.clock()
             if left <= 0:
                 missing = [i for i in self._waited if self._acked.get(i, -1) < step]
+                gone = [i for i in missing if i in self._lost]
                 raise LockstepTimeout(
                     f"lockstep: no acknowledgement of step {step} from physics instance(s) "
                     f"{', '.join(missing)} within {timeout:g} s ([run] lockstep_timeout_s) on "
-                    f"{self.keys.ack_all}; is the physics side running with the same run id "
-                    f"{self.run_cfg.id!r}?"
+                    f"{self.keys.ack_all}; "
+                    + (f"{', '.join(gone)} left and did not come back" if gone else
+                       f"is the physics side running with the same run id {self.run_cfg.id!r}?")
                 )
             # Wake at least every 50 ms to keep ego poses flowing and notice stop requests.
             self._drain_acks(timeout=min(left, 0.05))
             self._drain_ego(ego_sub)
-            self._update_alive()
+            if self._update_alive():
+                # The returning instance subscribed after this step went out: send it again
+                # (others ignore a step they already have) and give it a full timeout.
+                log.info("lockstep: re-sending step %d", step)
+                publisher.put(payload)
+                t_end = self.clock() + timeout
 
     # ------------------------------------------------------------------ logging
 
@@ -477,6 +489,7 @@ class SumoDaemon:
             "rejected": c.rejected,
             "acks": c.acks,
             "lag_resets": c.lag_resets,
+            "rejoined": c.rejoined,
             "acks_coalesced": self._acks.replaced,
             "peer_keys_refused": self._acks.refused + self._alive_events.refused,
             **self.sim.counters,

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -38,6 +39,10 @@ log = logging.getLogger(__name__)
 MESSAGE_ENCODING = "msgpack"
 SPEC_URL = "protocol/SPEC.md"
 CHUNK_BYTES = 1024 * 1024  # [B] uncompressed chunk: what a crash can lose at most
+#: Free space below which the recorder finishes its file: the open chunk plus the summary
+#: must still fit, or a full disk cuts the file in the middle of a record [B].
+RESERVE_BYTES = 4 * CHUNK_BYTES
+SPACE_CHECK_S = 0.25  # [s] between free-space checks
 _RESTART_S = 1.0  # [s] simulated time going back this far means the run restarted
 
 
@@ -139,7 +144,28 @@ class McapRecorder:
             self.closed = True
             for ch in self._channels.values():
                 ch.close()
-            self._w.close()
+            try:
+                self._w.close()
+            except RuntimeError as e:  # a write failed earlier (disk full, I/O error)
+                raise RecordingError(
+                    f"{self.path}: writing the recording failed ({e}); it holds what was written before "
+                    "the failure (readers stop at the cut)") from None
+
+    def out_of_space(self) -> str | None:
+        """Finish the file while it still fits when free space drops below ``RESERVE_BYTES``.
+
+        A full disk would otherwise cut a chunk in half; closing early leaves a complete
+        file (summary and footer written). Returns the reason once closed, else None.
+        """
+        if self.closed:
+            return None
+        free = shutil.disk_usage(self.path.parent).free
+        if free >= RESERVE_BYTES:
+            return None
+        self.close()
+        return (f"{self.path}: disk nearly full ({free / 2**20:.1f} MiB free, {RESERVE_BYTES / 2**20:.0f} MiB "
+                f"kept in reserve): recording stopped after {self.count} messages; the file is complete "
+                "up to there")
 
 
 def _peek(payload: bytes, key: str) -> float | None:
@@ -185,6 +211,7 @@ class LiveRecorder:
         self._static_sv: int | None = None
         self._refetching = threading.Event()
         self.static_versions = 0
+        self.failed: str | None = None  # why recording stopped early (disk full), else None
         self._writer = threading.Thread(target=self._write_loop, name="record-writer", daemon=True)
         self._writer.start()
 
@@ -233,7 +260,13 @@ class LiveRecorder:
 
     def _write_loop(self) -> None:
         next_flush = time.monotonic() + self.config.flush_s
+        next_space = 0.0
         while True:
+            if time.monotonic() >= next_space and not self.failed:
+                next_space = time.monotonic() + SPACE_CHECK_S
+                self.failed = self.rec.out_of_space()
+                if self.failed:
+                    log.error("%s", self.failed)
             if self.config.flush_s and time.monotonic() >= next_flush:
                 self.rec.flush()
                 next_flush = time.monotonic() + self.config.flush_s
@@ -247,7 +280,7 @@ class LiveRecorder:
                 topic, payload, stamp, schema = item if len(item) == 4 else (*item, None)
                 with self._bytes_lock:
                     self._queued_bytes -= len(payload)
-                if not self._keep(topic, payload):
+                if self.failed or not self._keep(topic, payload):
                     continue
                 self.rec.write(topic, payload, stamp, schema=schema)
                 self.written += 1
@@ -384,10 +417,15 @@ def record_cli(args) -> int:
             if live.fetch_static(timeout_s=10.0) is None:
                 log.warning("no static data answered on %s (recording the live keys anyway)", keys.static)
             limit = float(args.duration) if getattr(args, "duration", None) else None
-            stop.wait(limit)
+            t_end = None if limit is None else time.monotonic() + limit
+            while not stop.wait(0.2) and not live.failed:
+                if t_end is not None and time.monotonic() >= t_end:
+                    break
             live.stop()
     finally:
         rec.close()
+    if live.failed:
+        raise RecordingError(live.failed)
     log.info("recorded %d messages to %s", rec.count, args.out)
     print(json.dumps({"out": str(args.out), **live.stats()}))
     return 0
