@@ -28,6 +28,7 @@ class PhysicsConfig:
     """``[physics]``: world, rates, pools, robustness."""
 
     instance: str = "main"  # physics instance name in the keys (several can follow one run)
+    follow_next_run: bool = False  # stay up after a run's final step and follow the next run of the same id
     control_hz: float = 50.0  # [Hz] control tick rate (one tick = controllers + substeps)
     timestep_s: float = 0.005  # [s] MuJoCo integration step (implicitfast)
     sumo_step_s: float = 0.1  # [s] SUMO step length for offline tools (experiments, benches); the daemon follows each message's

@@ -366,7 +366,7 @@ class PhysicsDaemon:
                 self._ack(msg.step)
                 # The SUMO side ends on the same step: it marks it final, and it applies the
                 # same duration rule to the same SUMO time.
-                if msg.final or self._duration_done(msg.time):
+                if (msg.final and not self.cfg.follow_next_run) or self._duration_done(msg.time):
                     log.info("last step %d at t=%.1f s (%s)", msg.step, msg.time,
                              "marked final" if msg.final else f"duration {self.run_cfg.duration_s:g} s")
                     break
@@ -378,7 +378,7 @@ class PhysicsDaemon:
                         newest = m
                 if newest is not None and self._apply(newest):
                     self._ack(newest.step)
-                    if newest.final:
+                    if newest.final and not self.cfg.follow_next_run:
                         log.info("last step %d at t=%.1f s (marked final)", newest.step, newest.time)
                         break
                 if self.fleet.ref is None and not self.fleet.n:
