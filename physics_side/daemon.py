@@ -220,9 +220,6 @@ class PhysicsDaemon:
                 self._resync = self._seen_sumo
                 self._seen_sumo = True
                 self.sumo_present = True
-                # A late join or a (re)started SUMO side: ask for the static tables now, as
-                # steps carry the vehicle-type table only when it changes (SPEC 3.1).
-                self._ask_static()
             elif not up and self.sumo_present:
                 log.warning("SUMO side is gone: bringing %d agents to a safe stop", self.fleet.n)
                 self.sumo_present = False
