@@ -39,7 +39,7 @@ _TYPE_NAME = {
     AgentClass.PASSENGER: "passenger", AgentClass.TAXI: "taxi", AgentClass.BUS: "bus",
     AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian", AgentClass.OTHER: "other",
 }
-A_LAT_MAX = 7.5  # [m/s^2] lateral acceleration the steering limit allows (0.75 g, tyre mu = 1)
+A_LAT_MAX = 9.0  # [m/s^2] lateral acceleration the steering limit allows (0.92 g, tyre mu = 1)
 GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
