@@ -27,8 +27,10 @@ model's own front bumper. Wheels are spheres (one contact each, the cheapest col
 pair) because the ground is a plane.
 
 Collision filter bits (contype / conaffinity):
-ground 1/0, wheels 0/1 (ground only), chassis and bicycle frames 2/3 (ground, chassis,
-pedestrians), pedestrians 4/2 (chassis only; SUMO lets pedestrians overlap each other).
+ground 1/0, wheels 0/1 (ground only), chassis 2/3 (ground, chassis, pedestrians), bicycle
+and motorcycle frames 2/2 (not the ground: a frame box as wide as the handlebars scraped the
+road at ~40 deg of lean in SUMO's tight turns and counted as a collision), pedestrians 4/2
+(chassis only; SUMO lets pedestrians overlap each other).
 """
 
 from __future__ import annotations
@@ -338,7 +340,8 @@ def _chassis(b, spec: AgentSpec) -> None:
     b.add_geom(
         name="chassis", type=mujoco.mjtGeom.mjGEOM_BOX,
         size=[spec.length / 2, spec.width / 2, h / 2],
-        pos=[0, 0, spec.clearance + h / 2 - r], density=0.0, contype=2, conaffinity=3,
+        pos=[0, 0, spec.clearance + h / 2 - r], density=0.0, contype=2,
+        conaffinity=2 if spec.kind == KIND_BIKE else 3,
         condim=3, rgba=[0.6, 0.6, 0.7, 1], **BODY_CONTACT,
     )
     # Explicit inertia: the COM height matters for load transfer and roll-over, and a
