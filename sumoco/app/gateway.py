@@ -345,11 +345,15 @@ def cli_main(args) -> int:
             loop.add_signal_handler(sig, stop.set)
 
         def ready(gw: Gateway) -> None:
-            print(json.dumps({"url": gw.url(), "run": keys.run}), flush=True)
+            # The token file is complete (written aside, then renamed) before the URL is announced,
+            # so whoever waits for the URL can read the token at once.
             if args.token_file:
-                fd = os.open(args.token_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                tmp = f"{args.token_file}.tmp{os.getpid()}"
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
                 with os.fdopen(fd, "w") as f:
                     f.write(gw.token + "\n")
+                os.replace(tmp, args.token_file)
+            print(json.dumps({"url": gw.url(), "run": keys.run}), flush=True)
 
         limit = getattr(args, "duration", None)
         if limit:
