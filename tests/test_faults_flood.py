@@ -14,6 +14,7 @@ import time
 
 import msgpack
 import pytest
+import zenoh
 
 from protocol.codec import decode, encode
 from protocol.keys import Keys
@@ -82,7 +83,8 @@ def test_sumo_side_survives_an_ack_flood_and_caps_egos(tmp_path):
     steps: list = []
     try:
         with open_session(ZenohConfig(connect=(ep,), listen=())) as s:
-            ack = s.declare_publisher(keys.ack)
+            # like the physics side: acknowledgements are never dropped, even behind the flood
+            ack = s.declare_publisher(keys.ack, congestion_control=zenoh.CongestionControl.BLOCK)
 
             def on_step(sample):  # we are physics "main": acknowledge every step at once
                 m = decode(sample.payload.to_bytes())
