@@ -7,6 +7,7 @@ Subcommands import their package lazily so ``sumoco sumo`` never loads MuJoCo an
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 
@@ -209,37 +210,29 @@ def main(argv: list[str] | None = None) -> int:
         return ExitCode.INTERRUPTED
 
 
+#: Subcommand -> "module:function" it runs; imported only when chosen.
+_COMMANDS = {
+    "sumo": "sumo_side.daemon:cli_main",
+    "physics": "physics_side.daemon:cli_main",
+    "demo": "sumoco.app.demo:cli_main",
+    "bench": "sumoco.app.bench:cli_main",
+    "record": "sumoco.app.record:record_cli",
+    "report": "sumoco.app.report:cli_main",
+    "replay": "sumoco.app.replay:cli_main",
+    "gateway": "sumoco.app.gateway:cli_main",
+    "foxglove": "sumoco.app.foxglove_live:cli_main",
+    "view": "sumoco.app.viewer.server:cli_main",
+    "map": "sumoco.app.mapexport:cli_main",
+    "router": "sumoco.app.router:cli_main",
+    "certs": "sumoco.app.certs:cli_main",
+}
+
+
 def _dispatch(args: argparse.Namespace) -> int:
     """Import the subcommand's package (lazily: a bare install lacks the sides' extras)."""
+    module, func = _COMMANDS[args.cmd].split(":")
     try:
-        if args.cmd == "sumo":
-            from sumo_side.daemon import cli_main
-        elif args.cmd == "physics":
-            from physics_side.daemon import cli_main
-        elif args.cmd == "demo":
-            from sumoco.app.demo import cli_main
-        elif args.cmd == "bench":
-            from sumoco.app.bench import cli_main
-        elif args.cmd == "record":
-            from sumoco.app.record import record_cli as cli_main
-        elif args.cmd == "report":
-            from sumoco.app.report import cli_main
-        elif args.cmd == "replay":
-            from sumoco.app.replay import cli_main
-        elif args.cmd == "gateway":
-            from sumoco.app.gateway import cli_main
-        elif args.cmd == "foxglove":
-            from sumoco.app.foxglove_live import cli_main
-        elif args.cmd == "view":
-            from sumoco.app.viewer.server import cli_main
-        elif args.cmd == "map":
-            from sumoco.app.mapexport import cli_main
-        elif args.cmd == "router":
-            from sumoco.app.router import cli_main
-        elif args.cmd == "certs":
-            from sumoco.app.certs import cli_main
-        else:  # pragma: no cover - argparse enforces the choices
-            return 2
+        cli_main = getattr(importlib.import_module(module), func)
     except ModuleNotFoundError as e:
         extra = _EXTRAS.get((e.name or "").split(".")[0])
         if extra is None:
