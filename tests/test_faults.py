@@ -174,11 +174,13 @@ def test_b_killed_sumo_side_physics_holds_then_resumes_with_a_new_one(tmp_path, 
 def test_c_a_stopped_peer_ends_the_run_cleanly_and_the_recording_is_complete(tmp_path, runs):
     r = runs(tmp_path, "fc", timeout_s=8.0)  # well below Zenoh's 10 s lease: the stopped peer stays "alive"
     out = tmp_path / "run.mcap"
-    k_rec = r.probe.last_step().step
     rec = Daemon("record", ["record", "--config", r.cfg, "--connect", r.sumo_ep, "--connect", r.phys_ep,
-                            "--out", str(out), "--quiet"], tmp_path / "logs")
+                            "--out", str(out)], tmp_path / "logs")
     r.daemons.append(rec)
     p = r.probe
+    # the recorder is slow to start under load: count steps from when it says it records
+    wait_until(lambda: "recording " in rec.log.read_text(), 60, "the recorder to subscribe", procs=[rec])
+    k_rec = p.last_step().step
     wait_until(lambda: p.last_step().step > k_rec + 60, 60, "the run to be under way with the recorder",
                procs=[r.sumo, r.physics, rec])
     os.kill(r.physics.proc.pid, signal.SIGSTOP)

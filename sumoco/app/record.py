@@ -418,6 +418,7 @@ def record_cli(args) -> int:
             live = LiveRecorder(session, keys, rec, config=cfg).start()
             if live.fetch_static(timeout_s=10.0) is None:
                 log.warning("no static data answered on %s (recording the live keys anyway)", keys.static)
+            log.info("recording %s/** to %s", keys.base, args.out)
             limit = float(args.duration) if getattr(args, "duration", None) else None
             t_end = None if limit is None else time.monotonic() + limit
             while not stop.wait(0.2) and not live.failed:
