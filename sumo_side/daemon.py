@@ -449,13 +449,19 @@ class SumoDaemon:
             if left <= 0:
                 missing = [i for i in self._waited if self._acked.get(i, -1) < step]
                 gone = [i for i in missing if i in self._lost]
+                alive = [i for i in missing if i in self._alive]
+                if gone:
+                    why = f"{', '.join(gone)} left and did not come back"
+                elif alive:
+                    # its liveliness token is here, so the run id matches: it is stuck or refuses the step
+                    why = (f"{', '.join(alive)} is alive but silent: stopped, overloaded, or rejecting "
+                           f"this step (its log and the 'rejected' counter of its states say which)")
+                else:
+                    why = f"is the physics side running with the same run id {self.run_cfg.id!r}?"
                 raise LockstepTimeout(
                     f"lockstep: no acknowledgement of step {step} from physics instance(s) "
                     f"{', '.join(missing)} within {timeout:g} s ([run] lockstep_timeout_s) on "
-                    f"{self.keys.ack_all}; "
-                    + (f"{', '.join(gone)} left and did not come back" if gone else
-                       f"is the physics side running with the same run id {self.run_cfg.id!r}?")
-                )
+                    f"{self.keys.ack_all}; {why}")
             # Wake at least every 50 ms to keep ego poses flowing and notice stop requests.
             self._drain_acks(timeout=min(left, 0.05))
             self._drain_ego(ego_sub)

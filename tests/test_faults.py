@@ -192,6 +192,7 @@ def test_c_a_stopped_peer_ends_the_run_cleanly_and_the_recording_is_complete(tmp
     assert code == 1
     assert (f"no acknowledgement of step {last} from physics instance(s) main within 8 s"
             in r.sumo.log.read_text()), r.sumo.tail()
+    assert "main is alive but silent" in r.sumo.log.read_text(), r.sumo.tail()
     assert rec.terminate(20) == 0, rec.tail()
     assert r.physics.terminate(20) == 0, r.physics.tail()
     recording = open_recording(out)
