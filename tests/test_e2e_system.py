@@ -233,7 +233,7 @@ def test_malformed_messages_on_every_input_key_are_rejected_and_change_nothing(s
         p.put(keys.ego("ego"), g)  # SUMO side input
     wait_until(lambda: p.last_physics().counters.get("rejected", 0) >= before_phys + len(garbage), 10,
                "physics to count the rejected steps")
-    wait_until(lambda: _sumo_status(p)["rejected"] >= before_sumo + len(garbage), 10,
+    wait_until(lambda: (c := _sumo_status(p)) is not None and c["rejected"] >= before_sumo + len(garbage), 10,
                "SUMO side to count the rejected ego messages")
     assert system.sumo.poll() is None and system.physics.poll() is None
     k = p.last_step().step

@@ -134,7 +134,7 @@ def test_a_killed_physics_instance_restarts_rejoins_and_catches_up(tmp_path, run
                procs=[r.sumo, restarted])
     st = p.last_physics()
     assert st.counters["rejected"] == 0
-    assert r.status()["rejoined"] == 1
+    assert wait_until(r.status, 10, "SUMO status")["rejoined"] == 1
     with p.lock:
         seen = {m.step for m in p.steps}
     assert seen >= set(range(min(seen), max(seen) + 1)), "a step index was skipped"

@@ -280,7 +280,7 @@ def test_renderer_may_drive_only_its_own_ego(run):
             attacker.put(run.keys.ego("ego"), pose("ego"))
             time.sleep(0.02)
         time.sleep(0.5)
-        assert run.status()["ego_poses"] == 0
+        assert wait_until(run.status, 10, "SUMO status")["ego_poses"] == 0
         with run.viewer.lock:
             assert not any("ego" in m.agents.ids for m in run.viewer.steps)
     finally:
@@ -292,6 +292,6 @@ def test_renderer_may_drive_only_its_own_ego(run):
             m = run.viewer.last_step()
             return "ego" in m.agents.ids
         wait_until(sent_and_seen, 20, "the rightful renderer's ego in SUMO's steps", poll_s=0.05)
-        assert run.status()["ego_poses"] > 0
+        assert wait_until(run.status, 10, "SUMO status")["ego_poses"] > 0
     finally:
         owner.close()
