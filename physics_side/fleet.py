@@ -40,6 +40,10 @@ _TYPE_NAME = {
     AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian", AgentClass.OTHER: "other",
 }
 A_LAT_MAX = 9.0  # [m/s^2] lateral acceleration the steering limit allows (0.92 g, tyre mu = 1)
+G = 9.81  # [m/s^2]
+GRIP_LATERAL = 1.0
+CURVE_PREVIEW_S = np.array([0.0, 0.5, 1.0])  # [s] path curvature taken this far ahead at the current speed
+DRIVE_GRIP_USE = 0.9  # [1] share of the driven wheels' grip the drive may use (traction control)
 GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
@@ -491,6 +495,11 @@ class Fleet:
         self.mass = t.mass[s]
         self.stab_max = t.stab_max[s]
         self._steer_lim_num = wb * A_LAT_MAX  # numerator of the friction-circle steering limit
+        # drive torque the driven wheels carry (four-wheeled vehicles; inf for the others)
+        grip = t.drive_grip[s]
+        self._grip_torque = np.where(np.isfinite(grip), DRIVE_GRIP_USE * np.where(np.isfinite(grip), grip, 0.0)
+                                     * t.r_wheel[s], np.inf)
+        self._any_grip = bool(np.isfinite(self._grip_torque).any())
         self._any_bike = bool(np.any(self.kind == M.KIND_BIKE))
         self._gen = self.world.generation
         self._groups = None
@@ -587,6 +596,20 @@ class Fleet:
         # limit): never steer beyond the friction circle at the current speed
         lim = np.minimum(p.max_steer, np.arctan(self._steer_lim_num / np.maximum(obs.speed, 0.1) ** 2))
         steer = np.minimum(np.maximum(steer, -lim), lim)
+        if self._any_grip:
+            # ... nor drive the driven wheels beyond their grip, what the turn leaves of it
+            # (friction circle): a spinning rear axle carries no side force and a rear-driven
+            # car pulling away in a bend spun round (1 s steps: cars flipped at junction exits)
+            use = np.minimum(np.abs(obs.speed * obs.yaw_rate) / G, 0.95) * GRIP_LATERAL
+            drive = np.minimum(drive, self._grip_torque * np.sqrt(1.0 - use * use))
+        if g.any_default and not self.stopping:
+            # ... nor catch up with a reference ahead faster than the bend ahead allows: a car
+            # behind SUMO speeding into a tight junction turn ran metres wide and was placed
+            v = np.maximum(obs.speed, 0.0)
+            kap = np.abs(ref.path.at(self.s_act + v * CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
+            v_curve = np.sqrt(A_LAT_MAX / np.maximum(kap, 1e-6))
+            over = g.use_default & (obs.speed > np.maximum(v_curve, ref.at(tau).speed))
+            drive = np.where(over, 0.0, drive)
         vi = g.veh_idx
         if len(vi):
             stab = None

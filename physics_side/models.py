@@ -140,6 +140,20 @@ class AgentSpec:
         return self.mass + self.n_wheels * self.wheel_mass
 
     @property
+    def drive_grip(self) -> float:
+        """Force the driven wheels of a four-wheeled vehicle carry when pulling away [N]: tyre
+        mu times the driven axles' load. The axles sit symmetric about the body, so a rear
+        axle carries half the weight at rest, plus the load that accelerating moves onto it
+        (COM height / wheelbase): at the grip limit ``a = mu g / 2 / (1 - mu h / L)``.
+        Infinite for the other kinds (their drive limits are tuned on their own)."""
+        if self.kind != KIND_CAR:
+            return math.inf
+        if self.awd:
+            return self.tyre_mu * 9.81 * self.total_mass
+        share = min(0.5 / max(1.0 - self.tyre_mu * self.com_height / self.wheelbase, 0.5), 1.0)
+        return self.tyre_mu * 9.81 * self.total_mass * share
+
+    @property
     def effective_mass(self) -> float:
         """Mass seen by the drive: body plus wheel spin inertia / r^2 [kg]."""
         if self.kind == KIND_PED:

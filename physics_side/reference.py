@@ -357,33 +357,64 @@ class Reference:
                        a_end: np.ndarray, lat_end: np.ndarray) -> None:
         """Follow the *next* sample instead of guessing: agents ``known`` reach arc length
         ``s_end`` [m] and ``lat_end`` [m, left of the path] ``step_length`` [s] after this
-        sample, moving at a constant speed in between (SUMO's Euler position update), then
-        go on with ``v_end`` [m/s] and ``a_end`` [m/s^2]. The others are extrapolated from
-        their own sample, which is ``step_length`` later than this one (new agents)."""
+        sample, then go on with ``v_end`` [m/s] and ``a_end`` [m/s^2]. The others are
+        extrapolated from their own sample, which is ``step_length`` later than this one
+        (new agents).
+
+        In between, the arc length is a cubic in time through both samples (``profile``).
+        SUMO's Euler update moves a vehicle at its new speed over the whole step, so a
+        reported speed is the mean over the step before its sample, which a smooth
+        trajectory reaches mid-step: the speed at this sample is the mean of its speed and
+        the step's chord speed ``s_end / step_length``, and the end speed follows for a
+        constant acceleration over the step (the cubic is then that parabola). Consecutive
+        steps join with a continuous speed unless SUMO's acceleration changes (a jump of
+        half a step of the change); a constant speed per step instead jumps ``a * step`` at
+        every sample, which no vehicle can follow (0.5 m of lag at 1 s steps).
+        """
         self._interp = np.asarray(known, bool)
-        self._L = float(step_length)
-        self._s_end = np.where(self._interp, np.maximum(s_end, 0.0), 0.0)
+        L = self._L = float(step_length)
+        S = self._s_end = np.where(self._interp, np.maximum(s_end, 0.0), 0.0)
         self._v_end = np.maximum(np.asarray(v_end, np.float64), 0.0)
         self._a_end = np.asarray(a_end, np.float64)
+        mean = S / L
+        v0 = 0.5 * (self.speed + mean)
+        v1 = np.maximum(2.0 * mean - v0, 0.0)  # < 0: stops within the step (cubic below)
+        # never reversing: end speeds inside the monotone region of the cubic (Fritsch-Carlson)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.hypot(v0, v1) / np.maximum(3.0 * mean, 1e-9)
+        sc = np.where(r > 1.0, 1.0 / np.maximum(r, 1e-9), 1.0)
+        self._v0, self._v1 = v0 * sc, v1 * sc
         lat = np.where(self._interp, lat_end, 0.0)
-        self.side_rate = np.where(self._interp, lat / self._L, self.side_rate)
+        self.side_rate = np.where(self._interp, lat / L, self.side_rate)
         self._side_cap = np.where(self._interp, np.abs(lat), self._side_cap)
         self._drift = bool(np.any(self.side_rate != 0.0))
         self._last_at = None
 
     def profile(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
         """Arc length [m] and speed [m/s] ``tau`` [s] after the sample (never reversing)."""
+        return self._profile(tau)[:2]
+
+    def _profile(self, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Arc length [m], speed [m/s] and acceleration [m/s^2] ``tau`` [s] after the sample."""
         interp = getattr(self, "_interp", None)
         if interp is None:
-            return stopping_distance(self.speed, self.accel, tau)
+            s, v = stopping_distance(self.speed, self.accel, tau)
+            return s, v, np.where(v > 0.0, self.accel, 0.0)
         L = self._L
         s_x, v_x = stopping_distance(self.speed, self.accel, tau - L)  # own sample is L later
+        a_x = np.where(v_x > 0.0, self.accel, 0.0)
+        S, v0, v1 = self._s_end, self._v0, self._v1
         if tau <= L:
-            s_i, v_i = self._s_end * (tau / L), self._s_end / L
+            u = max(tau, 0.0) / L
+            s_i = S * (3.0 - 2.0 * u) * u * u + L * (v0 * (1.0 - u) ** 2 * u + v1 * (u - 1.0) * u * u)
+            v_i = S * 6.0 * u * (1.0 - u) / L + v0 * (1.0 - u) * (1.0 - 3.0 * u) + v1 * u * (3.0 * u - 2.0)
+            a_i = (S * (6.0 - 12.0 * u) / L + v0 * (6.0 * u - 4.0) + v1 * (6.0 * u - 2.0)) / L
+            v_i = np.maximum(v_i, 0.0)
         else:
-            s2, v_i = stopping_distance(self._v_end, self._a_end, tau - L)
-            s_i = self._s_end + s2
-        return np.where(interp, s_i, s_x), np.where(interp, v_i, v_x)
+            s2, v_i = stopping_distance(v1, self._a_end, tau - L)
+            s_i = S + s2
+            a_i = np.where(v_i > 0.0, self._a_end, 0.0)
+        return np.where(interp, s_i, s_x), np.where(interp, v_i, v_x), np.where(interp, a_i, a_x)
 
     def held(self) -> ReferencePoint:
         """The sample itself (zero-order hold)."""
@@ -398,12 +429,11 @@ class Reference:
         return r
 
     def _at(self, tau: float) -> ReferencePoint:
-        s, v = self.profile(tau)
-        return self._point(s, v, self.path.at(s), tau)
+        s, v, a = self._profile(tau)
+        return self._point(s, v, a, self.path.at(s), tau)
 
-    def _point(self, s: np.ndarray, v: np.ndarray, p: PathPoint, tau: float = 0.0) -> ReferencePoint:
-        """The reference point at arc length ``s`` and speed ``v``; ``p``: the path there."""
-        a = np.where(v > 0.0, self.accel, 0.0)
+    def _point(self, s: np.ndarray, v: np.ndarray, a: np.ndarray, p: PathPoint, tau: float = 0.0) -> ReferencePoint:
+        """The reference point at arc length ``s``, speed ``v``, acceleration ``a``; ``p``: the path there."""
         sx, sy = self._shift(tau)
         return ReferencePoint(p.x + self._dx + sx, p.y + self._dy + sy, wrap_pi(p.heading + self._dyaw), v, a,
                               p.curvature, s, p.heading)
@@ -416,9 +446,9 @@ class Reference:
         s_guess = np.asarray(s_guess, np.float64)
         if self._last_at is not None and self._last_at[0] == tau:
             return self._last_at[1], self.project(px, py, s_guess, tau)
-        s, v = self.profile(tau)
+        s, v, a = self._profile(tau)
         p = self.path.at(np.array([s, s_guess]))
-        r = self._point(s, v, PathPoint(p.x[0], p.y[0], p.heading[0], p.curvature[0]), tau)
+        r = self._point(s, v, a, PathPoint(p.x[0], p.y[0], p.heading[0], p.curvature[0]), tau)
         self._last_at = (tau, r)
         sx, sy = self._shift(tau)
         g = PathPoint(p.x[1] + self._dx + sx, p.y[1] + self._dy + sy, p.heading[1], p.curvature[1])

@@ -307,3 +307,28 @@ def test_collisions_split_into_sumo_reported_and_physics_only():
         for _ in range(g.rates.ticks_per_step):
             g.tick()
     assert g.counters["collisions_physics_only"] >= 1 and g.counters["collisions_sumo_reported"] == 0
+
+
+def test_interpolated_speed_is_continuous_across_long_steps():
+    """1 s steps of a car accelerating at 2 m/s^2 under SUMO's Euler update (each step moves
+    it at its new speed): the interpolated reference hits every sample and its speed joins
+    across steps (a constant speed per step jumped a * step at every sample)."""
+    from physics_side.reference import Reference
+
+    L, a = 1.0, 2.0
+    v = 4.0 + a * np.arange(5)  # speed reported at samples 0..4 (the mean over the step before)
+    x = np.concatenate(([0.0], np.cumsum(v[1:] * L)))  # Euler: x_k = x_k-1 + v_k * L
+    ends, starts = [], []
+    for k in range(1, 5):
+        ref = Reference(float(k - 1), [x[k - 1]], [0.0], [90.0], [v[k - 1]], [a], [x[k - 1] + 5], [0.0],
+                        np.array([0, 2]), np.array([[x[k - 1], 0.0], [x[k - 1] + 200.0, 0.0]]))
+        ref.interpolate_to(L, np.array([True]), np.array([x[k] - x[k - 1]]), np.array([v[k]]), np.array([a]),
+                           np.array([0.0]))
+        assert ref.at(L).x[0] == pytest.approx(x[k], abs=1e-9)  # on the sample
+        s_mid, v_mid = ref.profile(0.5 * L)
+        assert v_mid[0] == pytest.approx(v[k], abs=1e-9)  # SUMO's speed is the step's mean, reached mid-step
+        starts.append(ref.profile(0.0)[1][0])
+        ends.append(ref.profile(L)[1][0])
+        assert ref.at(0.5 * L).accel[0] == pytest.approx(a, abs=1e-9)
+    # each step starts at the speed the previous one ended with (after the first)
+    assert np.allclose(starts[1:], ends[:-1])

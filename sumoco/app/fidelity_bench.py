@@ -102,6 +102,8 @@ def run_one(
             "step_s": round(float(rec.step_length or 0.0), 4), "preset": p,
             "sim_s": summary["sim_time_s"], "agents": summary["agents_seen_sumo"],
             "error_m": e.get("error_m", {}).get("overall"),
+            # the same at SUMO's sample times only (no assumption about SUMO between samples)
+            "error_at_samples_m": e.get("error_m", {}).get("at_samples"),
             "reference_car": summary.get("reference_car"),
             "reference_car_error_m": e.get("reference_car"),
             "per_type_error_m": e.get("error_m", {}).get("per_type"),

@@ -74,7 +74,9 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
     })
     for inst, p in s.get("presets", {}).items():
         e = p["error_m"]["overall"]
+        at = p["error_m"].get("at_samples", {}).get("overall", {})
         row[inst] = {"p50_m": e.get("p50"), "p95_m": e.get("p95"), "max_m": e.get("max"),
+                     "at_samples_p95_m": at.get("p95"),
                      "collisions": p.get("collisions"), "placements": p.get("placements"),
                      "rejected": p.get("rejected")}
     return row
