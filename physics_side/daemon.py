@@ -458,6 +458,7 @@ def build_fleet(settings: PhysicsSettings, realtime: bool = False) -> Fleet:
 def cli_main(args) -> int:
     """``sumoco physics --config X.toml [--preset P] [--instance I] [--listen ...] [--timing ...]``."""
     from sumoco.common.config import apply_cli, load_common
+    from sumoco.common.hotpath import freeze_startup_objects, tune_allocator
     from sumoco.common.transport import open_session
 
     if not args.config:
@@ -482,6 +483,8 @@ def cli_main(args) -> int:
     settings = replace(settings, physics=phys)
     keys = Keys(common.zenoh.root, common.run.id, phys.instance)
     fleet = build_fleet(settings, realtime=common.run.timing == "realtime")
+    tune_allocator()
+    freeze_startup_objects()
     old = {}
     try:
         with open_session(common.zenoh, role="physics") as session:

@@ -543,6 +543,7 @@ def load_configs(args) -> tuple[CommonConfig, SumoConfig]:
 
 def cli_main(args) -> int:
     """``sumoco sumo``: start SUMO, open Zenoh, run until done or SIGINT/SIGTERM."""
+    from sumoco.common.hotpath import tune_allocator
     from sumoco.common.transport import open_session
 
     common, scfg = load_configs(args)
@@ -551,6 +552,7 @@ def cli_main(args) -> int:
     sim = SumoSim(scfg, seed=common.run.seed, run_id=common.run.id,
                   output_dir=Path(out).expanduser() if out else None)
     sim.start()  # a broken scenario fails here (ConfigError -> exit 2) before Zenoh opens
+    tune_allocator()  # the loop's HotLoopGC freezes start-up objects
     session = None
     daemon = None
     previous = {}

@@ -1,14 +1,26 @@
-"""End-to-end latency: SUMO-side publish to physics-side decoded, two OS processes.
+"""End-to-end latency against raw Zenoh moving the same bytes between the same two processes.
 
-The publisher (this process) stamps each step index with ``time.monotonic_ns()`` just
-before ``put``; a subscriber process (``python -m sumoco.app.e2e_bench --sub``) stamps the
-same index when ``decode`` returns. CLOCK_MONOTONIC is shared by all processes of one
-host, so the difference is the one-way latency including encode-free transport and decode.
+One publisher process (this one) and one subscriber process (``python -m
+sumoco.app.e2e_bench --sub``) exchange two interleaved streams in the same run, on two
+keys with the SUMO daemon's publisher settings (``STEP_PUT``):
+
+- ``raw``: the already-encoded step bytes. Sent stamp just before ``put``; received stamp
+  in the subscriber callback once the payload is Python bytes (``to_bytes``, which any
+  Python receiver needs). This is the limit: Zenoh alone.
+- ``e2e``: the same step as the SUMO side sends it. Sent stamp just before ``encode``
+  (the message built from numpy columns); received stamp once the physics side's receive
+  path has decoded it: callback -> ``to_bytes`` -> bounded ``DropOldest`` queue -> wake the
+  main loop -> ``decode_as`` with the daemon's limits (``physics_side.daemon``).
+
+Both processes run with the daemons' process settings (``sumoco.common.hotpath``). CLOCK_MONOTONIC is shared by all processes of one host, so the difference of
+two stamps is the one-way latency. Messages alternate raw / e2e half a period apart, so
+machine load hits both streams alike; the row carries both and their ratio.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import subprocess
 import sys
@@ -18,75 +30,155 @@ import time
 import numpy as np
 import zenoh
 
-from protocol.codec import decode, encode
+from protocol.codec import DecodeLimits, decode_as, encode
 from protocol.keys import Keys
-from sumoco.testing.synthetic import synthetic_step
+from protocol.messages import StepMessage
 from sumoco.common.config import ZenohConfig
+from sumoco.common.hotpath import freeze_startup_objects, tune_allocator
+from sumoco.common.queues import DropOldest
 from sumoco.common.transport import free_tcp_port, open_session
+from sumoco.testing.synthetic import synthetic_step
 
 KEYS = Keys("sumocobench", "e2e")
+RAW_KEY = f"{KEYS.base}/raw/step"
+#: The SUMO daemon's step publisher settings (sumo_side.daemon): never dropped, not batched.
+STEP_PUT = {"congestion_control": zenoh.CongestionControl.BLOCK, "express": True}
 
 
-def _subscriber(connect: str, shm: bool, count: int, timeout_s: float) -> None:
+def _percentiles(a: np.ndarray) -> tuple[float | None, float | None, float | None]:
+    if not len(a):
+        return None, None, None
+    return (round(float(np.percentile(a, 50)), 4), round(float(np.percentile(a, 99)), 4),
+            round(float(a.max()), 4))
+
+
+def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agents: int) -> None:
     cfg = ZenohConfig(listen=(f"tcp/127.0.0.1:{free_tcp_port()}",), connect=(connect,), shared_memory=shm)
-    stamps: dict[int, int] = {}
-    done = threading.Event()
+    raw_at: list[int] = []
+    e2e_at: dict[int, int] = {}
+    decode_ns: list[int] = []
+    handoff_ns: list[int] = []
+    steps: DropOldest[tuple[bytes, int]] = DropOldest(64, 256 << 20, size=lambda item: len(item[0]))
+    wake = threading.Event()
+    stop = threading.Event()
+    limits = DecodeLimits.for_agents(max_agents)
 
-    def on_sample(sample: zenoh.Sample) -> None:
-        # Decode right where the sample lands (as the physics side's receive path does).
-        msg = decode(sample.payload.to_bytes())
-        stamps[msg.step] = time.monotonic_ns()
-        if len(stamps) >= count:
-            done.set()
+    def on_raw(sample: zenoh.Sample) -> None:
+        sample.payload.to_bytes()
+        raw_at.append(time.monotonic_ns())  # Zenoh keeps one publisher's order: index = arrival
 
+    def on_step(sample: zenoh.Sample) -> None:  # as PhysicsDaemon._on_step
+        data = sample.payload.to_bytes()
+        steps.put((data, time.monotonic_ns()))
+        wake.set()
+
+    def main_loop() -> None:  # as PhysicsDaemon.run in lockstep: wait, take one step, decode
+        while not stop.is_set():
+            if not steps:
+                wake.wait(0.05)
+                wake.clear()
+                continue
+            data, landed = steps.get()
+            t0 = time.monotonic_ns()
+            handoff_ns.append(t0 - landed)
+            msg = decode_as(data, StepMessage, limits)
+            t1 = time.monotonic_ns()
+            e2e_at[msg.step] = t1
+            decode_ns.append(t1 - t0)
+
+    tune_allocator()
+    freeze_startup_objects()
     with open_session(cfg) as s:
-        sub = s.declare_subscriber(KEYS.step, on_sample)
+        worker = threading.Thread(target=main_loop, daemon=True)
+        worker.start()
+        subs = [s.declare_subscriber(RAW_KEY, on_raw), s.declare_subscriber(KEYS.step, on_step)]
         tok = s.liveliness().declare_token(KEYS.physics_alive)
-        done.wait(timeout_s)
+        deadline = time.monotonic() + timeout_s
+        while (len(raw_at) < count or len(e2e_at) < count) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stop.set()
+        worker.join(1.0)
         tok.undeclare()
-        sub.undeclare()
-    json.dump(stamps, sys.stdout)
+        for sub in subs:
+            sub.undeclare()
+    json.dump({"raw": raw_at, "e2e": e2e_at, "decode_ns": decode_ns, "handoff_ns": handoff_ns}, sys.stdout)
 
 
-def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20) -> dict:
+def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
+            path_points: int = 12) -> dict:
+    """One row: raw and end-to-end latency at ``agents``, measured in the same run."""
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
     cfg = ZenohConfig(listen=(ep,), shared_memory=shm)
-    msgs = [encode(synthetic_step(agents, seed=i % 4, step=i)) for i in range(steps)]
-    sent: dict[int, int] = {}
+    # Distinct steps (a few seeds) so that no cache makes a repeat cheaper than a new step.
+    msgs = [synthetic_step(agents, seed=i % 4, step=i, path_points=path_points) for i in range(steps)]
+    wire = [encode(m) for m in msgs]
+    raw_sent: list[int] = []
+    e2e_sent: list[int] = []
+    encode_ns: list[int] = []
+    tune_allocator()
+    freeze_startup_objects()
     with open_session(cfg) as s:
-        pub = s.declare_publisher(KEYS.step, congestion_control=zenoh.CongestionControl.BLOCK)
+        pub_raw = s.declare_publisher(RAW_KEY, **STEP_PUT)
+        pub = s.declare_publisher(KEYS.step, **STEP_PUT)
         alive = s.liveliness().declare_subscriber(KEYS.physics_alive, history=True)
         proc = subprocess.Popen(
             [sys.executable, "-m", "sumoco.app.e2e_bench", "--sub", ep, "--count", str(steps),
-             "--timeout", str(steps * period_s + 30)] + (["--shm"] if shm else []),
+             "--timeout", str(steps * period_s + 30), "--max-agents", str(agents)] + (["--shm"] if shm else []),
             stdout=subprocess.PIPE,
         )
         try:
             if alive.recv() is None:  # blocks until the subscriber's token arrives
                 raise RuntimeError("subscriber never came up")
-            time.sleep(0.3)  # let the subscription declaration reach this session
+            deadline = time.monotonic() + 10.0
+            while not (pub.matching_status.matching and pub_raw.matching_status.matching):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("subscriber's subscriptions never reached the publisher")
+                time.sleep(0.01)
+            half = period_s / 2
             nxt = time.monotonic()
-            for i, data in enumerate(msgs):
-                nxt += period_s
-                sent[i] = time.monotonic_ns()
+            for i in range(steps):
+                nxt += half
+                raw_sent.append(time.monotonic_ns())
+                pub_raw.put(wire[i])
+                time.sleep(max(0.0, nxt - time.monotonic()))
+                nxt += half
+                t0 = time.monotonic_ns()
+                e2e_sent.append(t0)
+                data = encode(msgs[i])
+                encode_ns.append(time.monotonic_ns() - t0)
                 pub.put(data)
                 time.sleep(max(0.0, nxt - time.monotonic()))
             out, _ = proc.communicate(timeout=steps * period_s + 60)
         finally:
             if proc.poll() is None:
                 proc.kill()
-    got = {int(k): v for k, v in json.loads(out or b"{}").items()}
-    lat = np.array([(got[i] - sent[i]) / 1e6 for i in range(warmup, steps) if i in got])
+            gc.unfreeze()
+    got = json.loads(out or b"{}")
+    raw_at = got.get("raw", [])
+    e2e_at = {int(k): v for k, v in got.get("e2e", {}).items()}
+    raw = np.array([(raw_at[i] - raw_sent[i]) / 1e6 for i in range(warmup, min(steps, len(raw_at)))])
+    e2e = np.array([(e2e_at[i] - e2e_sent[i]) / 1e6 for i in range(warmup, steps) if i in e2e_at])
+    r50, r99, rmax = _percentiles(raw)
+    e50, e99, emax = _percentiles(e2e)
+    dec = np.asarray(got.get("decode_ns", []), float)[warmup:] / 1e6
+    enc = np.asarray(encode_ns, float)[warmup:] / 1e6
+    hand = np.asarray(got.get("handoff_ns", []), float)[warmup:] / 1e6
     return {
         "agents": agents,
+        "path_points_per_agent": path_points,
         "shm": shm,
-        "bytes": len(msgs[0]),
-        "received": len(got),
+        "bytes": len(wire[0]),
         "sent": steps,
-        "latency_ms_p50": round(float(np.percentile(lat, 50)), 4) if len(lat) else None,
-        "latency_ms_p99": round(float(np.percentile(lat, 99)), 4) if len(lat) else None,
-        "latency_ms_max": round(float(lat.max()), 4) if len(lat) else None,
+        "received_raw": len(raw_at),
+        "received_e2e": len(e2e_at),
+        "raw_ms_p50": r50, "raw_ms_p99": r99, "raw_ms_max": rmax,
+        "latency_ms_p50": e50, "latency_ms_p99": e99, "latency_ms_max": emax,
+        "ratio_p50": round(e50 / r50, 3) if e50 and r50 else None,
+        "ratio_p99": round(e99 / r99, 3) if e99 and r99 else None,
+        "encode_ms_p50": round(float(np.median(enc)), 4) if len(enc) else None,
+        "decode_ms_p50": round(float(np.median(dec)), 4) if len(dec) else None,
+        "handoff_ms_p50": round(float(np.median(hand)), 4) if len(hand) else None,
     }
 
 
@@ -100,9 +192,10 @@ if __name__ == "__main__":
     ap.add_argument("--sub")
     ap.add_argument("--count", type=int, default=100)
     ap.add_argument("--timeout", type=float, default=60)
+    ap.add_argument("--max-agents", type=int, default=10_000)
     ap.add_argument("--shm", action="store_true")
     a = ap.parse_args()
     if a.sub:
-        _subscriber(a.sub, a.shm, a.count, a.timeout)
+        _subscriber(a.sub, a.shm, a.count, a.timeout, a.max_agents)
     else:
         print(json.dumps(run_e2e_bench(), indent=1))

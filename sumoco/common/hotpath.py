@@ -1,0 +1,48 @@
+"""Process settings that keep per-step latency low in the daemons (called once at start-up).
+
+glibc serves every allocation above its mmap threshold (128 KB at first, raised
+dynamically) with a fresh ``mmap`` and returns it with ``munmap`` when freed; it also
+trims the heap top back to the kernel. A step of 1,000 agents with paths is ~160 KB and
+its arrays (paths: ~190 KB each) are exactly that size, so every encode and decode paid
+page faults on freshly mapped, zeroed pages: measured 70 us -> 160 us for one encode
+at 1,000 agents. A fixed, higher threshold keeps these buffers on the heap and reused.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import logging
+
+log = logging.getLogger(__name__)
+
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+MMAP_THRESHOLD = 16 << 20  # [bytes] larger blocks still get their own mapping (glibc max: 32 MB)
+TRIM_THRESHOLD = 64 << 20  # [bytes] free heap top kept before it goes back to the kernel
+
+
+def tune_allocator(mmap_threshold: int = MMAP_THRESHOLD, trim_threshold: int = TRIM_THRESHOLD) -> bool:
+    """Raise glibc's mmap and trim thresholds; False (and nothing changed) without glibc."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    ok = bool(mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold))) and bool(mallopt(_M_TRIM_THRESHOLD, int(trim_threshold)))
+    if not ok:
+        log.debug("mallopt refused the thresholds: allocator left as it is")
+    return ok
+
+
+def freeze_startup_objects() -> None:
+    """Move every object alive now (modules, configuration, models) out of the cyclic
+    collector's generations, so that collections during the run scan only what the run
+    allocates: a full collection over start-up objects is a latency spike at p99."""
+    gc.collect()
+    gc.freeze()
+
+
+__all__ = ["freeze_startup_objects", "tune_allocator"]
