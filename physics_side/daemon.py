@@ -36,6 +36,7 @@ import zenoh
 
 from physics_side.config import PhysicsSettings, Rates, check_rates, load_physics_config, parse_expect, ticks_to
 from physics_side.fleet import Fleet
+from physics_side.cameras import ViewerCameras
 from physics_side.lod import DetailSplit, DetailZones
 from physics_side.shard import ShardFilter, parse_shard, shard_instance, shard_of_instance, subset
 from physics_side.models import TYPE_NAMES
@@ -71,6 +72,7 @@ class PhysicsDaemon:
         # until the first step tells the step length)
         self.detail = None if zones is None else DetailSplit(
             zones, settings.physics.max_extrapolation_steps * settings.physics.sumo_step_s)
+        self.cameras = ViewerCameras()  # viewer cameras: interest points of the detail zones
         self._shard_events: collections.deque[tuple[str, bool]] = collections.deque(maxlen=256)
         self.keys = keys
         self.fleet = fleet
@@ -129,6 +131,9 @@ class PhysicsDaemon:
         self._sub_alive = s.liveliness().declare_subscriber(self.keys.sumo_alive, self._on_alive, history=True)
         self._token = s.liveliness().declare_token(self.keys.physics_alive)
         self._declared = [self._token, self._sub_alive, self._sub_step, self._pub_ack, self._pub_state]
+        if self.detail is not None:
+            self._declared += [s.declare_subscriber(self.keys.viewer_camera_all, self.cameras.on_camera),
+                               s.liveliness().declare_subscriber(self.keys.viewer_alive_all, self.cameras.on_alive)]
         if self.shard is not None:  # sibling shards: a lost one's tiles go to the survivors
             self._declared.append(s.liveliness().declare_subscriber(
                 self.keys.physics_alive_all, self._on_peer_alive, history=True))
@@ -245,6 +250,7 @@ class PhysicsDaemon:
             self._handle_shards()
             msg = replace(msg, agents=subset(msg.agents, self.shard.rows(msg.agents)))
         if self.detail is not None:  # agents outside every detail zone never enter MuJoCo
+            self.detail.points = self.cameras.points()
             msg = self.detail.apply(msg)
         resync = self._resync
         if msg.step <= self._last_step and not resync:
@@ -299,6 +305,8 @@ class PhysicsDaemon:
         if self.detail is not None:
             c["kinematic"] = c.get("kinematic", 0) + self.detail.far.n
             c["lod_far"] = self.detail.far.n
+            c["viewer_cameras"] = len(self.cameras)
+            c["rejected_cameras"] = self.cameras.rejected + self.cameras.refused
         if self.shard is not None:
             c["shards_alive"] = len(self.shard.living)
             c["shard_takeovers"] = self.shard.takeovers

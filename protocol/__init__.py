@@ -13,6 +13,7 @@ from protocol.messages import (
     AgentClass,
     AgentFlag,
     AgentMode,
+    CameraPose,
     EgoPose,
     JunctionTable,
     LaneTable,
@@ -30,7 +31,7 @@ from protocol.messages import (
 
 __all__ = [
     "SCHEMA_VERSION", "AgentBatch", "AgentClass", "AgentFlag", "AgentMode", "ConfigError",
-    "EgoPose", "JunctionTable", "Keys", "LaneTable", "PhysicsAgents", "PhysicsState",
+    "CameraPose", "EgoPose", "JunctionTable", "Keys", "LaneTable", "PhysicsAgents", "PhysicsState",
     "ProtocolError", "StaticData", "StepAck", "StepMessage", "SumoStatus", "SumocoError", "TlsLinks", "TrafficLights",
     "VType", "VCLASS_TO_AGENT_CLASS", "decode", "decode_as", "encode",
 ]

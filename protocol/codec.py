@@ -24,6 +24,7 @@ from protocol.messages import (
     AgentBatch,
     AgentClass,
     AgentMode,
+    CameraPose,
     EgoPose,
     JunctionTable,
     LaneTable,
@@ -38,7 +39,7 @@ from protocol.messages import (
     VType,
 )
 
-Message = Union[StepMessage, EgoPose, PhysicsState, StepAck, StaticData, SumoStatus]
+Message = Union[StepMessage, EgoPose, CameraPose, PhysicsState, StepAck, StaticData, SumoStatus]
 
 #: Hard limits that make a hostile or corrupt message fail fast instead of allocating.
 MAX_AGENTS = 200_000
@@ -237,6 +238,8 @@ def encode(msg: Message) -> bytes:
             "id": msg.id, "x": float(msg.x), "y": float(msg.y), "angle": float(msg.angle),
             "speed": float(msg.speed), "t": float(msg.time), "vtype": msg.vtype,
         }
+    elif isinstance(msg, CameraPose):
+        d = _head("camera") | {"id": msg.id, "x": float(msg.x), "y": float(msg.y), "t": float(msg.time)}
     elif isinstance(msg, PhysicsState):
         a = msg.agents
         d = _head("physics") | {
@@ -629,6 +632,15 @@ def _decode_ego(d: dict, r: _Reader) -> EgoPose:
     )
 
 
+def _decode_camera(d: dict, r: _Reader) -> CameraPose:
+    return CameraPose(
+        id=r.str(d, "id", ""),
+        x=_float(d, "x", "", -COORD_LIMIT, COORD_LIMIT),
+        y=_float(d, "y", "", -COORD_LIMIT, COORD_LIMIT),
+        time=_float(d, "t", "") if "t" in d else 0.0,
+    )
+
+
 def _decode_physics(d: dict, r: _Reader) -> PhysicsState:
     a = _map(d, "agents", "")
     n = r.count(a, "agents.", r.lim.max_agents)
@@ -725,6 +737,7 @@ def _decode_static(d: dict, r: _Reader) -> StaticData:
 _DECODERS = {
     "step": _decode_step,
     "ego": _decode_ego,
+    "camera": _decode_camera,
     "physics": _decode_physics,
     "ack": _decode_ack,
     "static": _decode_static,

@@ -11,11 +11,15 @@
 | <root>/<run>/physics/<inst>/ack   | physics side | StepAck (lockstep)                 |
 | <root>/<run>/physics/<inst>/alive | physics side | liveliness token                   |
 | <root>/<run>/ego/<id>       | outside clients   | EgoPose of ego vehicle <id>           |
+| <root>/<run>/viewer/<role>/<client>/camera | viewers, renderers | CameraPose (LOD interest point) |
+| <root>/<run>/viewer/<role>/<client>/alive  | viewers, renderers | liveliness token of that camera |
 
 ``<inst>`` names one physics process ("main" by default): several can follow the same SUMO
 run side by side (the demo runs the ``paper`` and ``default`` presets at once) or split
 the agents between them (shards). Every liveliness token: ``<root>/<run>/**/alive``
-(``*`` matches one chunk only).
+(``*`` matches one chunk only). ``<role>`` in a camera key is the publisher's certificate
+role (``viewer``, ``renderer-<ego>``; "viewer" without the secure profile), so that access
+control can let each role put only its own cameras; ``<client>`` tells cameras apart.
 """
 
 from __future__ import annotations
@@ -113,6 +117,30 @@ class Keys:
     @property
     def ego_all(self) -> str:
         return f"{self.base}/ego/*"
+
+    def viewer_camera(self, role: str, client: str) -> str:
+        """Camera of viewer ``client`` connected with certificate role ``role``."""
+        return f"{self.base}/viewer/{check_chunk(role, 'viewer role')}/{check_chunk(client, 'viewer client id')}/camera"
+
+    def viewer_alive(self, role: str, client: str) -> str:
+        """Liveliness token of that camera: its DELETE retires the camera at once."""
+        return f"{self.base}/viewer/{check_chunk(role, 'viewer role')}/{check_chunk(client, 'viewer client id')}/alive"
+
+    @property
+    def viewer_camera_all(self) -> str:
+        return f"{self.base}/viewer/*/*/camera"
+
+    @property
+    def viewer_alive_all(self) -> str:
+        return f"{self.base}/viewer/*/*/alive"
+
+    @staticmethod
+    def viewer_of(key: str) -> str:
+        """``<role>/<client>`` of a ``.../viewer/<role>/<client>/...`` key ("" if none)."""
+        parts = str(key).split("/")
+        if len(parts) >= 4 and parts[-4] == "viewer":
+            return f"{parts[-3]}/{parts[-2]}"
+        return ""
 
     @property
     def everything(self) -> str:

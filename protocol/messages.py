@@ -210,6 +210,20 @@ class EgoPose:
 
 
 @dataclass(frozen=True)
+class CameraPose:
+    """Where a viewer or renderer looks: an interest point for the physics level of detail."""
+
+    id: str
+    """Client id (equal to the last key chunk before ``camera``)."""
+    x: float
+    """Ground point the camera is centred on (orbit target), x [m]."""
+    y: float
+    """Ground point the camera is centred on, y [m]."""
+    time: float = 0.0
+    """Sender's clock [s] (informational)."""
+
+
+@dataclass(frozen=True)
 class PhysicsAgents:
     """Actual state of every agent in the physics world, one array per field."""
 

@@ -90,3 +90,111 @@ def test_daemon_publishes_far_agents_as_kinematic_without_simulating_them():
     assert len(snap.ids) == 20 and fleet.n == c["physical"] < 20
     assert c["lod_far"] == 20 - fleet.n and c["kinematic"] == c["lod_far"]
     assert int((snap.mode == AgentMode.KINEMATIC).sum()) == c["lod_far"]
+
+
+@pytest.mark.integration
+def test_viewer_camera_is_an_interest_point_of_a_real_physics_daemon(tmp_path):
+    """A camera on ``viewer/<role>/<client>/camera`` makes agents near it run full physics in
+    a real physics daemon; moving it away or closing it (liveliness) puts them back."""
+    import threading
+    import time
+
+    from protocol.codec import decode, encode
+    from protocol.keys import Keys
+    from protocol.messages import CameraPose
+    from sumoco.app.camera import CameraPublisher
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
+    from tests.harness import Daemon, Probe, endpoint, wait_until
+
+    run, r = "lod-camera", 30.0
+    keys = Keys("sumoco", run)
+    cfg = tmp_path / "physics.toml"
+    cfg.write_text(f"""
+[run]
+id = "{run}"
+timing = "lockstep"
+[physics]
+shards = 1
+initial_slots = {{passenger = 8}}
+lod_radius_m = {r}
+""")
+    sumo_ep = endpoint()
+    sumo = open_session(ZenohConfig(listen=(sumo_ep,)))
+    acked: set[int] = set()
+    lock = threading.Lock()
+
+    def on_ack(s):
+        with lock:
+            acked.add(decode(s.payload.to_bytes()).step)
+
+    ack_sub = sumo.declare_subscriber(keys.ack_all, on_ack)
+    token = sumo.liveliness().declare_token(keys.sumo_alive)
+    daemon = Daemon("physics", ["physics", "--config", str(cfg), "--connect", sumo_ep, "--listen", endpoint()],
+                    tmp_path / "logs")
+    probe = Probe(keys, connect=[sumo_ep])
+    cam = None
+    sent = {}
+    k = 0
+    here = [None]  # where the camera is (re-put at every step, as a viewer does at 2 Hz)
+    try:
+        wait_until(lambda: keys.physics_alive in probe.alive, 30.0, "the physics liveliness token", procs=[daemon])
+
+        def steps_until(cond, what: str, timeout_s: float = 60.0):
+            nonlocal k
+            deadline = time.monotonic() + timeout_s
+            while True:
+                if cam is not None and not cam.closed and here[0] is not None:
+                    cam.put(*here[0])
+                sent[k] = msg = circle_traffic(20, k, run=run)
+                sumo.put(keys.step, encode(msg))
+                wait_until(lambda: k in acked, 20.0, f"ack of step {k}", procs=[daemon])
+                k += 1
+                st = probe.last_physics()
+                if st is not None and st.sumo_step in sent and st.agents.n == 20 and cond(st, sent[st.sumo_step]):
+                    return st
+                assert time.monotonic() < deadline, f"timed out waiting for {what}: {st and st.counters} {daemon.tail(10)}"
+
+        def all_kinematic(st, msg):
+            return bool(np.all(st.agents.mode == AgentMode.KINEMATIC))
+
+        def near_full(st, msg):
+            a = msg.agents
+            d = dict(zip(a.ids, np.hypot(a.x - here[0][0], a.y - here[0][1])))
+            mode = dict(zip(st.agents.ids, st.agents.mode.tolist()))
+            near = [i for i in a.ids if d[i] < HYSTERESIS * r]
+            far = [i for i in a.ids if d[i] > r]
+            return bool(near) and all(mode[i] == AgentMode.PHYSICAL for i in near) \
+                and all(mode[i] == AgentMode.KINEMATIC for i in far)
+
+        # no ego, no region, no camera: nothing runs full physics
+        steps_until(all_kinematic, "every agent kinematic without a camera")
+        cam = CameraPublisher(probe.session, keys, "page1")
+        ahead = circle_traffic(20, k + 5, run=run).agents
+        here[0] = (float(ahead.x[10]), float(ahead.y[10]))  # where veh10 will be in 5 steps
+        st = steps_until(near_full, "agents near the camera in full physics, far ones kinematic")
+        assert st.counters["viewer_cameras"] == 1
+        assert 0 < int((st.agents.mode == AgentMode.PHYSICAL).sum()) < 20
+        # the camera moves away from every agent: all back to kinematic
+        here[0] = (0.0, 0.0)
+        steps_until(all_kinematic, "every agent kinematic after the camera moved away")
+        # and back; then the viewer closes: its liveliness token goes and so does the camera
+        ahead = circle_traffic(20, k + 5, run=run).agents
+        here[0] = (float(ahead.x[5]), float(ahead.y[5]))
+        steps_until(near_full, "agents near the camera's new place in full physics")
+        cam.close()
+        st = steps_until(all_kinematic, "every agent kinematic after the viewer closed")
+        assert st.counters["viewer_cameras"] == 0
+        # a camera whose id is not its key's client id is refused and counted
+        probe.put(keys.viewer_camera("viewer", "page2"), encode(CameraPose("other", *here[0])))
+        st = steps_until(lambda st, msg: st.counters["rejected_cameras"] >= 1, "the bad camera counted")
+        assert st.counters["viewer_cameras"] == 0 and np.all(st.agents.mode == AgentMode.KINEMATIC)
+        assert daemon.terminate(15.0) == 0, daemon.tail()
+    finally:
+        if cam is not None:
+            cam.close()
+        daemon.kill()
+        ack_sub.undeclare()
+        token.undeclare()
+        probe.close()
+        sumo.close()

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from protocol import (
-    SCHEMA_VERSION, AgentBatch, EgoPose, PhysicsState, ProtocolError, StaticData, StepAck, StepMessage,
+    SCHEMA_VERSION, AgentBatch, CameraPose, EgoPose, PhysicsState, ProtocolError, StaticData, StepAck, StepMessage,
     decode, decode_as, encode,
 )
 from protocol.codec import STEP_AGENT_COLUMNS
@@ -225,7 +225,7 @@ def test_mutated_valid_messages_only_raise_protocol_error(name, data):
         out = decode(_pack(d))
     except ProtocolError:
         return
-    assert isinstance(out, (StepMessage, EgoPose, PhysicsState, StepAck, StaticData, SumoStatus))
+    assert isinstance(out, (StepMessage, EgoPose, CameraPose, PhysicsState, StepAck, StaticData, SumoStatus))
 
 
 @settings(max_examples=200, deadline=None)

@@ -20,10 +20,10 @@ from cryptography import x509
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
-from protocol.codec import encode
+from protocol.codec import decode, encode
 from protocol.errors import ConfigError
 from protocol.keys import Keys
-from protocol.messages import EgoPose, StepAck
+from protocol.messages import CameraPose, EgoPose, StepAck
 from sumoco.app.certs import init_certs
 from sumoco.app.cli import main as cli
 from sumoco.common.config import SecurityConfig, ZenohConfig, load_common
@@ -80,13 +80,15 @@ def test_policy_denies_unless_allowed_and_grants_each_renderer_its_own_key_only(
     assert acl["default_permission"] == "deny"
     rules = {r["id"]: r for r in acl["rules"]}
     grants = {p["id"]: set(p["rules"]) for p in acl["policies"]}
-    assert grants["viewer"] == {"receive", "read"}
-    assert grants["renderer-a"] == {"receive", "read", "ego-a"}
+    assert grants["viewer"] == {"receive", "read", "camera-viewer", "camera-token-viewer"}
+    assert grants["renderer-a"] == {"receive", "read", "ego-a", "camera-renderer-a", "camera-token-renderer-a"}
     assert rules["ego-a"]["key_exprs"] == ["sumoco/*/ego/a"] and rules["ego-a"]["flows"] == ["ingress"]
     put_keys = {k for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
                 for k in r["key_exprs"]}
     assert put_keys == {"sumoco/*/sumo/step", "sumoco/*/physics/*/state", "sumoco/*/physics/*/ack",
-                        "sumoco/*/ego/a", "sumoco/*/ego/b"}
+                        "sumoco/*/ego/a", "sumoco/*/ego/b", "sumoco/*/viewer/viewer/*/camera",
+                        "sumoco/*/viewer/renderer-a/*/camera", "sumoco/*/viewer/renderer-b/*/camera"}
+    assert rules["camera-token-renderer-a"]["key_exprs"] == ["sumoco/*/viewer/renderer-a/*/alive"]
 
 
 # ------------------------------------------------------------------ real sessions, no daemons
@@ -295,3 +297,25 @@ def test_renderer_may_drive_only_its_own_ego(run):
         assert wait_until(run.status, 10, "SUMO status")["ego_poses"] > 0
     finally:
         owner.close()
+
+
+def test_each_role_may_put_only_its_own_cameras(run):
+    got: list[tuple[str, float]] = []
+    sub = run.viewer.session.declare_subscriber(
+        run.keys.viewer_camera_all, lambda s: got.append((str(s.key_expr), decode(s.payload.to_bytes()).x)))
+    own, foreign = run.keys.viewer_camera("renderer-ego", "c1"), run.keys.viewer_camera("viewer", "c1")
+    renderer = run.client("renderer-ego")
+    try:
+        def sent_and_seen():
+            renderer.put(own, encode(CameraPose("c1", 1.0, 2.0)))
+            return (own, 1.0) in got
+        wait_until(sent_and_seen, 20, "the renderer's own camera at the viewer", poll_s=0.05)
+        # a foreign camera, then an own one from the same session: once the own one is in,
+        # the foreign one would have been too
+        renderer.put(foreign, encode(CameraPose("c1", 1.0, 2.0)))
+        renderer.put(own, encode(CameraPose("c1", 99.0, 2.0)))
+        wait_until(lambda: (own, 99.0) in got, 10, "the renderer's second camera")
+        assert not [k for k, _ in got if k == foreign], got
+    finally:
+        renderer.close()
+        sub.undeclare()

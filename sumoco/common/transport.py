@@ -45,7 +45,9 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
     Ingress rules say what a peer of a role may send us: every role may subscribe and
     query; only ``sumo`` may put steps, serve static data and status and hold the SUMO
     liveliness token; only ``physics`` may put states and acks and hold physics tokens;
-    ``renderer-<id>`` may put ego poses on ``ego/<id>`` alone; ``viewer`` nothing more.
+    ``renderer-<id>`` may put ego poses on ``ego/<id>`` alone; ``viewer`` and every
+    ``renderer-<id>`` may put cameras and hold camera tokens under their own role only
+    (``viewer/<role>/*/camera``, ``viewer/<role>/*/alive``, SPEC 3.7).
     Egress is open to every authenticated role: anyone with a certificate may read.
     """
     r = root
@@ -69,6 +71,10 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
     for ego in sec.renderers:
         rules.append(rule(f"ego-{ego}", "ingress", ("put", "delete"), [f"{r}/*/ego/{ego}"]))
         grants[renderer_role(ego)] = [f"ego-{ego}"]
+    for role in ["viewer", *(renderer_role(e) for e in sec.renderers)]:
+        rules.append(rule(f"camera-{role}", "ingress", ("put", "delete"), [f"{r}/*/viewer/{role}/*/camera"]))
+        rules.append(rule(f"camera-token-{role}", "ingress", ("liveliness_token",), [f"{r}/*/viewer/{role}/*/alive"]))
+        grants[role] = [*grants[role], f"camera-{role}", f"camera-token-{role}"]
     subjects, policies = [], []
     for role, own in grants.items():
         # By certificate only: user/password authenticates the connecting side alone, so a
