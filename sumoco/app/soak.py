@@ -66,6 +66,19 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def heap_mb(pid: int) -> float:
+    """Anonymous memory of process ``pid`` [MB] (Linux ``smaps_rollup``): the heap and other
+    private allocations, without the shared libraries' pages that RSS gains as new code paths
+    run; a leak shows here. NaN if unknown."""
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Anonymous:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
 class _Hub:
     """The soak's own Zenoh session: counts steps, keeps the newest physics state."""
 
@@ -271,15 +284,15 @@ def run_soak(cfg: SoakConfig, emit=None) -> list[dict]:
 
 def _row(minute: int, elapsed: float, procs: Processes, hub: _Hub, ws: _WsClient, loops: int,
          sumo_rejected: int, exits: list[dict], log_dir: Path, sumo_up: bool) -> dict:
-    rss = {}
+    rss, heap = {}, {}
     for name, p in procs.procs.items():
         if name.startswith("sumo-"):
-            v = rss_mb(p.pid)
             if p.poll() is None and sumo_up:
-                rss["sumo"] = round(v, 1)
+                rss["sumo"], heap["sumo"] = round(rss_mb(p.pid), 1), round(heap_mb(p.pid), 1)
         else:
-            rss[name] = round(rss_mb(p.pid), 1)
+            rss[name], heap[name] = round(rss_mb(p.pid), 1), round(heap_mb(p.pid), 1)
     rss["soak+ws-client"] = round(rss_mb(_self_pid()), 1)
+    heap["soak+ws-client"] = round(heap_mb(_self_pid()), 1)
     pc = hub.physics_counters()
     with hub.lock:
         steps = hub.steps
@@ -288,7 +301,7 @@ def _row(minute: int, elapsed: float, procs: Processes, hub: _Hub, ws: _WsClient
     log_errors = _log_errors(log_dir)
     errors = len(exits) + log_errors + rejected + ws.disconnects
     return {
-        "bench": "soak", "minute": minute, "wall_s": round(elapsed, 1), "rss_mb": rss,
+        "bench": "soak", "minute": minute, "wall_s": round(elapsed, 1), "rss_mb": rss, "heap_mb": heap,
         "steps": steps, "sumo_loops": loops, "viewer_frames": ws.frames,
         "dropped_steps": dropped, "rejected": rejected, "log_errors": log_errors,
         "ws_disconnects": ws.disconnects, "bad_exits": list(exits), "errors": errors,
@@ -302,7 +315,8 @@ def _self_pid() -> int:
 
 
 def _summary(rows: list[dict], codes: dict, exits: list[dict], wall: float, out: Path) -> dict:
-    """Growth of each long-lived process's RSS from the first row to the last [%]."""
+    """Growth of each long-lived process's RSS from the first row to the last [%] (the verdict),
+    and of its anonymous memory (``heap_growth_pct``), which tells a leak from library pages."""
     growth = {}
     if len(rows) >= 2:
         first, last = rows[0]["rss_mb"], rows[-1]["rss_mb"]
@@ -312,6 +326,9 @@ def _summary(rows: list[dict], codes: dict, exits: list[dict], wall: float, out:
             peak = max(r["rss_mb"].get(name, v) for r in rows[1:])
             growth[name] = {"after_min1_mb": v, "last_mb": last[name], "peak_mb": peak,
                             "growth_pct": round((last[name] - v) / v * 100.0, 2) if v else None}
+            h0, h1 = rows[0].get("heap_mb", {}).get(name), rows[-1].get("heap_mb", {}).get(name)
+            if h0 and h1 and h0 == h0 and h1 == h1:  # both known (not NaN)
+                growth[name]["heap_growth_pct"] = round((h1 - h0) / h0 * 100.0, 2)
     sumo = [r["rss_mb"]["sumo"] for r in rows if "sumo" in r["rss_mb"]]
     rec = out / "run.mcap"
     return {
