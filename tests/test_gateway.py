@@ -10,13 +10,14 @@ import subprocess
 import threading
 
 import pytest
+import zenoh
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from protocol.codec import decode, encode
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
-from protocol.messages import EgoPose, StaticData, StepMessage
+from protocol.messages import CameraPose, EgoPose, StaticData, StepMessage
 from sumoco.app.gateway import pack_frame, unpack_frame
 from sumoco.common.config import ZenohConfig
 from sumoco.common.transport import open_session
@@ -114,6 +115,51 @@ def test_python_client_subscribes_gets_static_and_sends_ego(run_and_gateway):
             elif isinstance(m, str) and json.loads(m)["op"] == "error":
                 answers.append(json.loads(m)["error"])
         assert MAP_REPLY in answers and any(isinstance(a, str) and "map not ready" in a for a in answers)
+
+
+@pytest.mark.integration
+def test_client_camera_goes_to_zenoh_with_a_token_that_leaves_with_the_client(run_and_gateway):
+    url, _, gw = run_and_gateway
+    args = list(gw.proc.args)
+    run_ep = args[args.index("--connect") + 1]  # the run's session, which the gateway joined
+    s = open_session(ZenohConfig(listen=(endpoint(),), connect=(run_ep,)))
+    cams: list[tuple[str, bytes]] = []
+    alive: dict[str, bool] = {}
+    lock = threading.Lock()
+
+    def on_cam(x):
+        with lock:
+            cams.append((str(x.key_expr), x.payload.to_bytes()))
+
+    def on_alive(x):
+        with lock:
+            alive[str(x.key_expr)] = x.kind == zenoh.SampleKind.PUT
+
+    subs = [s.declare_subscriber(KEYS.viewer_camera_all, on_cam),
+            s.liveliness().declare_subscriber(KEYS.viewer_alive_all, on_alive, history=True)]
+    try:
+        with connect(url, max_size=None, open_timeout=10) as ws:
+            json.loads(ws.recv(timeout=5))
+
+            def sent_and_seen():
+                ws.send(pack_frame("viewer/camera", encode(CameraPose("anything", 12.5, -3.0))))
+                with lock:
+                    return cams[-1] if cams else None
+            key, payload = wait_until(sent_and_seen, 10.0, "the client's camera on Zenoh", poll_s=0.1)
+            who = Keys.viewer_of(key)
+            assert who.startswith("viewer/gw-") and key == f"{KEYS.base}/viewer/{who}/camera"
+            cam = decode(payload)
+            assert (cam.id, cam.x, cam.y) == (who.split("/")[1], 12.5, -3.0)  # the gateway's id
+            token = f"{KEYS.base}/viewer/{who}/alive"
+            wait_until(lambda: alive.get(token), 10.0, "the camera's liveliness token")
+            ws.send(pack_frame("viewer/camera", encode(EgoPose("e", 1, 2, 3, 4))))
+            err = json.loads(ws.recv(timeout=10))
+            assert err["op"] == "error" and "camera" in err["error"]
+        wait_until(lambda: alive.get(token) is False, 10.0, "the token gone with the client")
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        s.close()
 
 
 @pytest.mark.integration

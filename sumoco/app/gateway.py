@@ -18,7 +18,8 @@ Trust: listens on 127.0.0.1 by default; the handshake must carry the per-run tok
 names this server (against DNS rebinding) and, when a browser sends one, an ``Origin``
 from the allowed list (loopback pages by default). Every client has a bounded outbox
 that drops its oldest frame when the client lags (counted); upstream frames are size-
-bounded, decoded before they are forwarded, and only ``ego/<id>`` keys are accepted.
+bounded, decoded before they are forwarded, and only ``ego/<id>`` and ``viewer/camera``
+(the client's camera, published under an id the gateway assigns) are accepted.
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ from websockets.http11 import Request, Response
 from protocol.codec import decode
 from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys, check_chunk
-from protocol.messages import EgoPose
+from protocol.messages import CameraPose, EgoPose
+from sumoco.app.camera import CameraPublisher
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +54,10 @@ PATH = "/ws"
 MAX_UPSTREAM_BYTES = 64 * 1024  # [B] an EgoPose is ~100 B; anything near this is not one
 _KEY_LEN = struct.Struct("<H")
 _LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
+
+
+#: The gateway's certificate role (it opens its session as a viewer): cameras go under it.
+CAMERA_ROLE = "viewer"
 
 
 def pack_frame(key: str, payload: bytes) -> bytes:
@@ -113,6 +119,8 @@ class _Client:
     subs: dict[str, object] = field(default_factory=dict)
     upstream: int = 0
     rejected: int = 0
+    camera_id: str = field(default_factory=lambda: f"gw-{secrets.token_hex(4)}")
+    camera: CameraPublisher | None = None  # declared with the client's first camera
 
 
 class Gateway:
@@ -127,6 +135,7 @@ class Gateway:
         self.refused = 0
         self.relayed = 0
         self.ego_forwarded = 0
+        self.cameras_forwarded = 0
         self._ego_pubs: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
 
@@ -210,8 +219,11 @@ class Gateway:
         key, payload = unpack_frame(frame)
         rel = key[len(self.keys.base) + 1:] if key.startswith(self.keys.base + "/") else key
         parts = rel.split("/")
+        if parts == ["viewer", "camera"]:
+            return self._camera(client, payload)
         if len(parts) != 2 or parts[0] != "ego":
-            raise ProtocolError(f"expected 'ego/<id>' (only ego poses go upstream), got {key!r}", "key")
+            raise ProtocolError(f"expected 'ego/<id>' or 'viewer/camera' (only ego poses and cameras go "
+                                f"upstream), got {key!r}", "key")
         ego_id = check_chunk(parts[1], "ego id")
         msg = decode(payload)
         if not isinstance(msg, EgoPose):
@@ -223,6 +235,18 @@ class Gateway:
         pub.put(payload)
         client.upstream += 1
         self.ego_forwarded += 1
+
+    def _camera(self, client: _Client, payload: bytes) -> None:
+        """The client's camera (SPEC 3.7) under an id of the gateway's choosing, with a
+        liveliness token for as long as the client is connected."""
+        msg = decode(payload)
+        if not isinstance(msg, CameraPose):
+            raise ProtocolError(f"expected a camera message, got {type(msg).__name__}", "viewer/camera")
+        if client.camera is None:
+            client.camera = CameraPublisher(self.session, self.keys, client.camera_id, role=CAMERA_ROLE)
+        client.camera.put(msg.x, msg.y, msg.time)
+        client.upstream += 1
+        self.cameras_forwarded += 1
 
     def _request(self, client: _Client, text: str) -> None:
         try:
@@ -279,6 +303,8 @@ class Gateway:
             sender.cancel()
             for sub in client.subs.values():
                 sub.undeclare()
+            if client.camera is not None:  # its token goes: the physics side drops the camera
+                client.camera.close()
             log.info("client %s left: %d frames sent, %d dropped, %d ego poses, %d rejected",
                      ws.remote_address, client.box.sent, client.box.dropped, client.upstream, client.rejected)
 
@@ -294,7 +320,7 @@ class Gateway:
     def status(self) -> dict:
         return {"run": self.keys.run, "clients": len(self.clients), "relayed": self.relayed,
                 "dropped": sum(c.box.dropped for c in self.clients), "refused": self.refused,
-                "ego_forwarded": self.ego_forwarded,
+                "ego_forwarded": self.ego_forwarded, "cameras_forwarded": self.cameras_forwarded,
                 "rejected": sum(c.rejected for c in self.clients)}
 
     def url(self) -> str:
