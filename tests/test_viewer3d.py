@@ -11,6 +11,11 @@ from __future__ import annotations
 import json
 import time
 
+import zenoh
+
+from protocol.codec import decode
+from protocol.keys import Keys
+from protocol.messages import CameraPose
 from sumoco.testing.synthetic import FakeRun
 from tests.test_viewer import LiveRun, browser, wait_for  # noqa: F401  (browser is a fixture)
 
@@ -77,6 +82,13 @@ def test_3d_page_shows_map_agents_and_signal_heads(browser, tmp_path):  # noqa: 
     from selenium.webdriver.common.action_chains import ActionChains
 
     live = LiveRun(tmp_path, FakeRun(grid=1, n=50, run="viewer-3d"))
+    keys = Keys("sumoco", "viewer-3d")
+    cams: list = []
+    tokens: dict[str, bool] = {}
+    live.session.declare_subscriber(keys.viewer_camera_all, lambda x: cams.append(decode(x.payload.to_bytes())))
+    live.session.liveliness().declare_subscriber(
+        keys.viewer_alive_all, lambda x: tokens.__setitem__(str(x.key_expr), x.kind == zenoh.SampleKind.PUT),
+        history=True)
     try:
         live.wait_ready()
         s = _open_3d(browser, live, 50)
@@ -104,6 +116,15 @@ def test_3d_page_shows_map_agents_and_signal_heads(browser, tmp_path):  # noqa: 
 
         # Pixels: close to a car, the square around it changes when the agents are hidden;
         # a square of plain ground far from every agent does not.
+        browser.execute_script("window.sumoco3d.lookAt(0, 0, 70);")
+        _next_render(browser, _stats(browser)["renders"])
+        # The page's camera reaches Zenoh as a level-of-detail interest point (SPEC 3.7):
+        # the point it looks at, in SUMO coordinates, with a liveliness token of its own.
+        browser.execute_script("window.sumoco3d.lookAt(31, -12, 70);")
+        cam = wait_for(lambda: next((c for c in reversed(cams) if abs(c.x - 31) < 0.01), None), 10.0,
+                       "the page's camera on Zenoh", 0.1)
+        assert isinstance(cam, CameraPose) and abs(cam.y + 12) < 0.01 and cam.id.startswith("page-")
+        assert tokens.get(f"{keys.base}/viewer/viewer/{cam.id}/alive") is True
         browser.execute_script("window.sumoco3d.lookAt(0, 0, 70);")
         _next_render(browser, _stats(browser)["renders"])
         size = browser.execute_script("const c = document.querySelector('#view3d canvas'); return [c.clientWidth, c.clientHeight];")
@@ -151,6 +172,10 @@ def test_3d_page_shows_map_agents_and_signal_heads(browser, tmp_path):  # noqa: 
         assert "following" in hud and "agents" in hud and "real-time factor" in hud and "fps" in hud, hud
         assert _console_errors(browser) == []
         assert _stats(browser)["errors"] == 0
+        # The page goes: so does its camera's token.
+        browser.get("about:blank")
+        wait_for(lambda: tokens.get(f"{keys.base}/viewer/viewer/{cam.id}/alive") is False, 10.0,
+                 "the closed page's camera token gone", 0.1)
     finally:
         live.close()
 

@@ -40,6 +40,7 @@ import hmac
 import ipaddress
 import json
 import logging
+import math
 import secrets
 import signal
 import threading
@@ -54,10 +55,11 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from protocol.codec import decode_as
+from protocol.codec import COORD_LIMIT, decode_as
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import StaticData
+from sumoco.app.camera import CameraPublisher
 
 log = logging.getLogger(__name__)
 
@@ -248,6 +250,48 @@ def pack_static(static: bytes, map_sha256: str = "") -> bytes:
 # --------------------------------------------------------------------------- HTTP + WebSocket
 
 
+class CameraRelay:
+    """Every connected page's camera on Zenoh (SPEC 3.7): the page sends ``{"op": "camera",
+    "x", "y"}`` (SUMO coordinates of the point it looks at) about twice a second; each page
+    gets a ``CameraPublisher`` with an id of its own, whose liveliness token goes when the
+    page does. Faster messages than ``MIN_PERIOD_S`` are skipped."""
+
+    MIN_PERIOD_S = 0.2
+
+    def __init__(self, session: Any, keys: Keys, role: str = "viewer") -> None:
+        self.session, self.keys, self.role = session, keys, role
+        self._pubs: dict[object, tuple[CameraPublisher, float]] = {}
+        self.sent = 0
+        self.rejected = 0
+
+    def put(self, page: object, text: str) -> None:
+        """One message from ``page``; raises ``ProtocolError`` naming what is wrong."""
+        try:
+            req = json.loads(text)
+        except ValueError:
+            raise ProtocolError("expected a JSON object", "camera") from None
+        if not isinstance(req, dict) or req.get("op") != "camera":
+            raise ProtocolError('expected {"op": "camera", "x": ..., "y": ...}', "op")
+        for k in ("x", "y"):
+            v = req.get(k)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or abs(v) > COORD_LIMIT:
+                raise ProtocolError(f"expected a finite number of magnitude at most {COORD_LIMIT:g}", f"camera.{k}")
+        now = time.monotonic()
+        ent = self._pubs.get(page)
+        if ent is not None and now - ent[1] < self.MIN_PERIOD_S:
+            return
+        pub = ent[0] if ent is not None else CameraPublisher(self.session, self.keys, f"page-{secrets.token_hex(4)}",
+                                                             self.role)
+        pub.put(float(req["x"]), float(req["y"]))
+        self._pubs[page] = (pub, now)
+        self.sent += 1
+
+    def drop(self, page: object) -> None:
+        ent = self._pubs.pop(page, None)
+        if ent is not None:
+            ent[0].close()
+
+
 class ViewerServer:
     """Serves the page and feeds every connected browser from a ``LatestStore``."""
 
@@ -259,6 +303,7 @@ class ViewerServer:
         self.frames_built = 0
         self.frames_sent = 0
         self.clients_total = 0
+        self.cameras: CameraRelay | None = None  # set when there is a Zenoh session to put cameras on
         self.port: int | None = None
         self._wake: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -296,6 +341,8 @@ class ViewerServer:
             "map_sha256": self.store.map_sha256,
             "map_source": self.store.map_source,
             "map_bytes": len(self.store.map_glb or b""),
+            "cameras_sent": self.cameras.sent if self.cameras is not None else 0,
+            "cameras_rejected": self.cameras.rejected if self.cameras is not None else 0,
         }
 
     @property
@@ -364,8 +411,13 @@ class ViewerServer:
         self._wake_now()  # give the newcomer the current frame without waiting for new data
         sender = asyncio.create_task(self._send_loop(ws, box))
         try:
-            async for _ in ws:  # the page sends nothing we need; this waits for the close
-                pass
+            async for msg in ws:  # the page sends only its camera; this also waits for the close
+                if isinstance(msg, str) and self.cameras is not None:
+                    try:
+                        self.cameras.put(box, msg)
+                    except (ProtocolError, ValueError) as e:  # bad input: counted, the page stays
+                        self.cameras.rejected += 1
+                        log.info("rejected a message from %s: %s", peer, e)
         except ConnectionClosed:
             pass
         finally:
@@ -373,6 +425,9 @@ class ViewerServer:
             sender.cancel()
             log.info("browser %s left after %d frames (%d dropped as it lagged)",
                      peer, box.taken, box.dropped)
+            if self.cameras is not None:
+                self.cameras.drop(box)
+                log.info("camera of %s retired", peer)
 
     async def _send_loop(self, ws: ServerConnection, box: Mailbox) -> None:
         try:
@@ -661,6 +716,7 @@ def cli_main(args: Any) -> int:
 
     with open_session(common.zenoh) as session:
         feed = ZenohFeed(session, keys, store, vcfg).start()
+        server.cameras = CameraRelay(session, keys)
         try:
             asyncio.run(main())
         finally:

@@ -218,6 +218,7 @@ let pendingFrame = null;
 const stepHist = []; // [wall ms, sim s]
 let ws = null;
 let retryMs = 500;
+let leaving = false;
 
 function connect() {
   const url = (location.protocol === 'https:' ? 'wss://' : 'ws://') + location.host + '/ws?token=' + encodeURIComponent(token);
@@ -227,6 +228,7 @@ function connect() {
   ws.onclose = () => {
     stats.connected = false;
     hudConn();
+    if (leaving) return;
     setTimeout(connect, retryMs);
     retryMs = Math.min(retryMs * 2, 5000);
   };
@@ -245,6 +247,19 @@ function connect() {
     }
   };
 }
+
+// Where this page looks, for the physics level of detail (SPEC.md 3.7): the orbit target in
+// SUMO coordinates, twice a second (the physics side drops a camera silent for 5 s).
+setInterval(() => {
+  if (!ws || ws.readyState !== WebSocket.OPEN || !(mapRoot || step)) return;
+  const t = controls.target;
+  ws.send(JSON.stringify({ op: 'camera', x: t.x + origin[0], y: origin[1] - t.z }));
+  stats.camerasSent = (stats.camerasSent || 0) + 1;
+}, 500);
+// Leaving the page closes the socket at once (a page kept in the back/forward cache would
+// hold it open), so the server retires this page's camera.
+addEventListener('pagehide', () => { leaving = true; if (ws) ws.close(); });
+addEventListener('pageshow', (ev) => { if (ev.persisted) { leaving = false; connect(); } });
 
 function consumeFrame(now) {
   const env = pendingFrame;
