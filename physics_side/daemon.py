@@ -248,6 +248,9 @@ class PhysicsDaemon:
         """Apply one step; False if it was a duplicate and ignored."""
         if self.shard is not None:
             self._handle_shards()
+            # every size of the step gets a pool (compiled in the background): taking over a
+            # lost shard's agents then spawns them without a compile on this thread
+            self.fleet.reserve(msg.agents, msg.vtypes)
             msg = replace(msg, agents=subset(msg.agents, self.shard.rows(msg.agents)))
         if self.detail is not None:  # agents outside every detail zone never enter MuJoCo
             self.detail.points = self.cameras.points()

@@ -29,7 +29,7 @@ from physics_side.config import PhysicsSettings, Rates
 from physics_side.reference import Reference, tracking_error
 from physics_side.world import PhysicsWorld
 from protocol.frames import sumo_angle_to_yaw, wrap_pi, yaw_to_sumo_angle
-from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsAgents, StepMessage
+from protocol.messages import AgentBatch, AgentClass, AgentFlag, AgentMode, PhysicsAgents, StepMessage
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +136,7 @@ class Fleet:
         self.dt = rates.control_dt
         self._warned_vclass: set[str] = set()
         self._vtypes: list = []
+        self._reserved: set[tuple] = set()  # (class, vType, length mm, width mm) with a pool
         # preset code per wire class (the config names presets per agent type)
         self._preset_lut = np.array(
             [_PRESET_CODE[self.cfg.preset_for(_TYPE_NAME[c])] for c in AgentClass], np.int8)
@@ -250,6 +251,28 @@ class Fleet:
                     self._warned_vclass.add(vclass)
                     log.info("vClass %r has no wire class of its own: driven by the %s model", vclass, f)
         return out
+
+    def reserve(self, agents: AgentBatch, vtypes: list | None = None) -> int:
+        """Pools for every size in ``agents`` (e.g. a whole step, other shards' agents too),
+        compiled in the background (``PhysicsWorld.reserve``); returns the new pools."""
+        if vtypes is not None and list(vtypes) != self._vtypes:
+            self._vtypes = list(vtypes)
+            self._reserved.clear()  # vType indexes may mean other types now
+        if agents.n == 0:
+            return 0
+        cls = np.asarray(agents.cls, np.int64)
+        vt = np.asarray(agents.vtype, np.int64)
+        # one row per distinct (class, vType, size) in mm: a handful per step
+        key = np.stack([cls, vt, np.round(np.asarray(agents.length) * 1e3).astype(np.int64),
+                        np.round(np.asarray(agents.width) * 1e3).astype(np.int64)], axis=1)
+        uniq = np.unique(key, axis=0)
+        todo = [tuple(r) for r in uniq.tolist() if tuple(r) not in self._reserved]
+        if not todo:
+            return 0
+        self._reserved.update(todo)
+        u = np.asarray(todo, np.int64)
+        fam = self._families(u[:, 0], u[:, 1], u[:, 2] / 1e3)
+        return self.world.reserve(zip(fam, u[:, 2] / 1e3, u[:, 3] / 1e3))
 
     def apply_step(self, msg: StepMessage, resync: bool = False, tau: float = 0.0) -> StepStats:
         """Sync with a SUMO step (see module docstring). ``resync`` after a SUMO restart;

@@ -205,6 +205,7 @@ class PhysicsWorld:
             "placements": 0, "spawned": 0, "parked": 0, "collisions": 0, "pool_grows": 0, "growth_waits": 0,
         }
         self.mujoco_s = 0.0  # [s] wall time spent in MuJoCo steps (cumulative)
+        self.mujoco_cpu_s = 0.0  # [s] CPU time of the process (all threads) in MuJoCo steps (cumulative)
         self.build_s = 0.0  # [s] wall time spent compiling on the stepping thread (cumulative)
         self.wait_s = 0.0  # [s] wall time spent waiting for a background growth (cumulative)
         self.time = 0.0  # [s] simulated time
@@ -363,14 +364,33 @@ class PhysicsWorld:
         self.counters["pool_grows"] += 1
         return True
 
+    def reserve(self, sizes) -> int:
+        """Make pools for agents that may come, given as (family, length, width) [m] (e.g.
+        every size of a step, also those of other shards' agents): a size seen for the first
+        time gets its pool compiled in the background, so that taking over an agent of that
+        size later spawns it without a compile on the stepping thread. Returns the number
+        of new pools."""
+        n = len(self._pools)
+        for fam, length, width in sizes:
+            self.pool_for(fam, float(length), float(width))
+        added = len(self._pools) - n
+        if self._growth is not None and self._growth.future.done() and any(
+            p.capacity == 0 for p in self._pools
+        ):
+            self._adopt(wait=False)  # (dropped if stale: pools were added meanwhile)
+        self._low_water()
+        return added
+
     def _low_water(self) -> None:
         """Start a background growth for pools with less than a quarter of their slots free
-        (each grows by half its size, at least ``pool_chunk`` per simulation)."""
+        (each grows by half its size, at least ``pool_chunk`` per simulation), and for pools
+        reserved without slots yet."""
         if self._growth is not None:
             return
         extra = {}
         for p in self._pools:
             if p.capacity == 0:
+                extra[p.index] = NEW_POOL_SLOTS
                 continue
             free = sum(len(self._free.get((p.index, s), ())) for s in range(self.shards))
             if 4 * free < p.capacity * self.shards:
@@ -664,9 +684,10 @@ class PhysicsWorld:
 
     def step(self) -> None:
         """Advance every shard by one control tick (``substeps`` MuJoCo steps)."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         self._batch.step(nstep=self.substeps)
         self.mujoco_s += time.perf_counter() - t0
+        self.mujoco_cpu_s += time.process_time() - c0
         self.time += self.substeps * self.timestep
 
     def set_ghost(self, slots: np.ndarray, ghost: bool | np.ndarray) -> None:

@@ -87,6 +87,29 @@ def test_growth_is_compiled_in_the_background_and_keeps_live_agents():
     w.close()
 
 
+def test_a_reserved_size_is_compiled_in_the_background_and_then_spawns_without_a_compile():
+    w = PhysicsWorld(0.005, 4, shards=1, initial={AgentClass.PASSENGER: 8})
+    car = _car_pool(w)
+    s = w.allocate(["a"], np.array([car]), np.array([0.0]), np.array([0.0]))
+    w.place(s, np.array([0.0]), np.array([0.0]), np.array([0.0]), np.array([5.0]))
+    gen = w.generation
+    # a bus size nobody here drives yet (another shard's agent): a pool, compiled off this thread
+    assert w.reserve([("bus", 12.0, 2.5), ("bus", 12.0, 2.5)]) == 1
+    assert w.reserve([("bus", 12.0, 2.5)]) == 0
+    assert w.growing and w.generation == gen
+    bus = w.pool_for("bus", 12.0, 2.5)
+    wait_until(lambda: w.growth_ready, timeout_s=60.0, what="background compile of the reserved pool")
+    w.step()
+    before = w.observe(w.slot_of(["a"]))
+    s2 = w.allocate(["b"], np.array([bus]), np.array([100.0]), np.array([0.0]))
+    # switched to the model compiled in the background: no compile and no wait on this thread
+    assert w.counters["growth_waits"] == 0 and w.build_s == 0.0
+    assert w.generation == gen + 1 and w.tables.pool[s2[0]] == bus
+    after = w.observe(w.slot_of(["a"]))
+    assert np.array_equal(before.fx, after.fx) and np.array_equal(before.speed, after.speed)
+    w.close()
+
+
 def test_parse_expect():
     assert parse_expect("3000") == {"passenger": 3000}
     assert parse_expect("passenger=100, bus=4") == {"passenger": 100, "bus": 4}

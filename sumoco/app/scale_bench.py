@@ -37,6 +37,9 @@ log = logging.getLogger(__name__)
 FULL_AGENTS = 500  # agents in full physics with LOD on (the issue's goal: >= 500)
 GOAL_BUILD_S = 5.0  # [s] pool build for 4,096 slots
 GOAL_RSS_MB = 2048.0  # [MB]
+# where the CPU time of one lockstep step goes (``cpu_ms_<phase>`` per co-simulation row)
+PHASES = ("sumo_step", "sumo_read_bridge_encode", "decode", "lod_split", "fleet_apply", "mujoco", "ticks_python",
+          "snapshot_encode")
 
 _POOL_CODE = """
 import json, resource, time
@@ -123,29 +126,39 @@ def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -
             rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
             fleet = build_fleet(settings)
             sumo_t, bridge_t, total_t, tick_t, mj_t, nbytes, agents_n, full, total_cpu = ([] for _ in range(9))
+            phase = {p: [] for p in PHASES}
             for i in range(steps + 5):
                 k += 1
                 t0, c0 = perf(), cpu()
                 sim.step()
-                t1 = perf()
+                t1, c1 = perf(), cpu()
                 snap = sim.read()
                 data = encode(bridge.build(k, snap))
-                t2 = perf()
+                t2, c2 = perf(), cpu()
                 msg = decode_as(data, StepMessage)
+                cd = cpu()
                 near = msg if split is None else split.apply(msg)
+                cl = cpu()
                 fleet.apply_step(near)
+                ca = cpu()
                 m0 = fleet.world.mujoco_s
+                mc0 = fleet.world.mujoco_cpu_s
                 ticks = []
                 for _ in range(rates.ticks_per_step):
                     tt = perf()
                     fleet.tick()
                     ticks.append(perf() - tt)
+                ct = cpu()
                 agents = fleet.snapshot() if split is None else split.snapshot(fleet.snapshot(), msg.time)
                 encode(PhysicsState(run="bench", tick=fleet.tick_count, time=msg.time, sumo_step=msg.step,
                                     agents=agents, counters={}))
                 t3, c3 = perf(), cpu()
                 if i < 5:  # the first steps spawn the whole network
                     continue
+                mj_cpu = fleet.world.mujoco_cpu_s - mc0
+                for p, v in zip(PHASES, (c1 - c0, c2 - c1, cd - c2, cl - cd, ca - cl, mj_cpu, ct - ca - mj_cpu,
+                                         c3 - ct)):
+                    phase[p].append(v)
                 sumo_t.append(t1 - t0)
                 bridge_t.append(t2 - t1)
                 total_t.append(t3 - t0)
@@ -173,6 +186,7 @@ def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -
             "sumo_alone_cpu_ms": ms(alone_cpu), "cosim_cpu_ms": ms(total_cpu),
             "cosim_to_sumo_cpu_ratio": round(float(np.mean(alone_cpu)) / float(np.mean(total_cpu)), 3),
             "load_avg_1min": round(os.getloadavg()[0], 2),
+            **{f"cpu_ms_{p}": ms(v) for p, v in phase.items()},
         })
         log.info("bench scale: %s", rows[-1])
     return rows
@@ -190,3 +204,252 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
 
 
 __all__ = ["cosim_rows", "pool_row", "run_scale_bench"]
+
+
+# ---------------------------------------------------------------------- shard processes
+
+_SHARD_WORKER = """
+import json, sys, time
+import numpy as np
+from dataclasses import replace
+from physics_side.config import PhysicsSettings, check_rates
+from physics_side.daemon import build_fleet
+from protocol.codec import decode_as, encode
+from protocol.messages import StepMessage
+from sumoco.testing.synthetic import circle_traffic
+n, seconds = {n}, {seconds}
+s = PhysicsSettings()
+s = replace(s, physics=replace(s.physics, shards=1, threads=1, initial_slots={{"passenger": n + 8}}, preset="default",
+                               presets={{}}))
+cfg = s.physics
+rates = check_rates(cfg.sumo_step_s, cfg.control_hz, cfg.timestep_s)
+fleet = build_fleet(s)
+for k in range(3):  # spawn and settle before the clock starts
+    fleet.apply_step(decode_as(encode(circle_traffic(n, k, cfg.sumo_step_s)), StepMessage))
+    for _ in range(rates.ticks_per_step):
+        fleet.tick()
+print("ready", flush=True)
+sys.stdin.readline()  # every shard process starts measuring at once
+ticks = []
+k = 3
+t_end = time.perf_counter() + seconds
+while time.perf_counter() < t_end:
+    t0 = time.perf_counter()
+    fleet.apply_step(decode_as(encode(circle_traffic(n, k, cfg.sumo_step_s)), StepMessage))
+    for _ in range(rates.ticks_per_step):
+        fleet.tick()
+    ticks.append((time.perf_counter() - t0) / rates.ticks_per_step)
+    k += 1
+print(json.dumps({{"tick_ms": 1e3 * float(np.mean(ticks)), "control_dt_ms": 1e3 * rates.control_dt}}), flush=True)
+"""
+
+
+def _shard_ticks(shards: int, per_shard: int, seconds: float = 3.0) -> float:
+    """Mean control-tick time [ms] of the slowest of ``shards`` physics processes (one thread
+    each) stepping ``per_shard`` cars at once: a physics step and its controllers, SUMO
+    steps decoded as the daemon does (no transport)."""
+    procs = [subprocess.Popen([sys.executable, "-c", _SHARD_WORKER.format(n=per_shard, seconds=seconds)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True) for _ in range(shards)]
+    try:
+        for p in procs:
+            if p.stdout.readline().strip() != "ready":
+                raise RuntimeError(f"shard worker failed (exit {p.wait()})")
+        for p in procs:
+            p.stdin.write("go\n")
+            p.stdin.flush()
+        out = [json.loads(p.stdout.readline()) for p in procs]
+    finally:
+        for p in procs:
+            p.kill() if p.poll() is None and p.wait(30) is None else None
+    return max(o["tick_ms"] for o in out), out[0]["control_dt_ms"]
+
+
+def shard_rows(counts=(1, 2), probe=(150, 450)) -> list[dict]:
+    """``agents_realtime`` per shard count: the most full-physics cars that ``shards``
+    processes keep at real-time factor >= 1 (a control tick within its period), from the
+    tick time at two sizes per shard (linear in the cars)."""
+    rows = []
+    for k in counts:
+        (t_a, dt), (t_b, _) = (_shard_ticks(k, n) for n in probe)
+        slope = max((t_b - t_a) / (probe[1] - probe[0]), 1e-9)
+        per_shard = int(probe[0] + (dt - t_a) / slope)
+        rows.append({"shards": k, "agents_realtime": max(0, per_shard) * k, "tick_ms_at": {probe[0]: round(t_a, 3),
+                     probe[1]: round(t_b, 3)}, "control_dt_ms": dt, "threads_per_shard": 1,
+                     "load_avg_1min": round(os.getloadavg()[0], 2)})
+        log.info("bench scale: %s", rows[-1])
+    if len(rows) >= 2 and rows[0]["agents_realtime"]:
+        for r in rows[1:]:
+            r["vs_one_shard"] = round(r["agents_realtime"] / rows[0]["agents_realtime"], 2)
+    return rows
+
+
+def _paper_cfg():
+    from pathlib import Path
+
+    return Path(__file__).resolve().parents[2] / "configs" / "scenarios" / "paper" / "paper.sumocfg"
+
+
+class _Procs:
+    """``sumoco`` daemons as OS processes, output to log files, and a Zenoh probe of the run."""
+
+    def __init__(self, run: str, connect: list[str], log_dir):
+        import threading
+
+        import zenoh
+
+        from protocol.codec import decode
+        from protocol.keys import Keys
+        from sumoco.common.config import ZenohConfig
+        from sumoco.common.transport import free_tcp_port, open_session
+
+        self.keys = Keys("sumoco", run)
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.lock = threading.Lock()
+        self.steps: dict = {}
+        self.states: dict = {}
+        self.session = open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{free_tcp_port()}",),
+                                                connect=tuple(connect)), "viewer")
+
+        def on_step(s):
+            m = decode(s.payload.to_bytes())
+            with self.lock:
+                self.steps[m.step] = m
+                self.steps.pop(m.step - 200, None)  # bounded: only recent steps are looked up
+
+        def on_state(s):
+            m = decode(s.payload.to_bytes())
+            with self.lock:
+                self.states[Keys.instance_of(str(s.key_expr))] = m
+
+        self.subs = [self.session.declare_subscriber(self.keys.step, on_step),
+                     self.session.declare_subscriber(self.keys.physics_state_all, on_state)]
+        _ = zenoh
+
+    def start(self, name: str, args: list[str]) -> None:
+        f = (self.log_dir / f"{name}.log").open("wb")
+        self.procs[name] = subprocess.Popen([sys.executable, "-m", "sumoco.app.cli", *args], stdout=f,
+                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+    def wait(self, cond, timeout_s: float, what: str):
+        deadline = time.monotonic() + timeout_s
+        while True:
+            v = cond()
+            if v:
+                return v
+            for n, p in self.procs.items():
+                if p.poll() is not None and p.returncode not in (0, -9):
+                    raise RuntimeError(f"{n} exited with {p.returncode} while waiting for {what}")
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        import signal
+
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in self.procs.values():
+            try:
+                p.wait(15)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+def takeover_row(kill_at_s: float = 20.0) -> dict:
+    """Two physics shards in lockstep on the bundled scenario; one is killed (SIGKILL) once
+    SUMO time passes ``kill_at_s``: ``takeover_s`` is the wall time from the kill until the
+    survivor publishes a state with every agent of that step."""
+    import tempfile
+    from pathlib import Path
+
+    from protocol.messages import AgentFlag
+    from sumoco.common.transport import free_tcp_port
+
+    tmp = Path(tempfile.mkdtemp(prefix="sumoco-takeover-"))
+    cfg = tmp / "run.toml"
+    cfg.write_text(f"""
+[run]
+id = "takeover"
+timing = "lockstep"
+duration_s = {kill_at_s + 200.0}
+lockstep_timeout_s = 20.0
+[sumo]
+sumocfg = "{_paper_cfg()}"
+lockstep_instances = ["main.0of2", "main.1of2"]
+[physics]
+preset = "default"
+shards = 1
+shard_tile_m = 60.0
+shard_halo_m = 10.0
+""")
+    eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(3)]
+    run = _Procs("takeover", eps, tmp)
+    try:
+        for i in (0, 1):
+            run.start(f"physics{i}", ["physics", "--config", str(cfg), "--shard", f"{i}/2", "--listen", eps[1 + i],
+                                      "--connect", eps[0]])
+        run.start("sumo", ["sumo", "--config", str(cfg), "--listen", eps[0], "--quiet"])
+
+        def sizes(st, m):
+            a = m.agents
+            size = {a.ids[i]: (int(a.cls[i]), round(float(a.length[i]), 1), round(float(a.width[i]), 1))
+                    for i in range(a.n)}
+            return {size[i] for i in st.agents.ids if i in size}
+
+        def busy(new_size: bool):
+            with run.lock:
+                s0, s1 = run.states.get("main.0of2"), run.states.get("main.1of2")
+                m = run.steps.get(s1.sumo_step) if s1 is not None else None
+            if not (s0 is not None and m is not None and s0.time >= kill_at_s and len(s0.agents.ids) > 0
+                    and len(s1.agents.ids) > 0):
+                return False
+            # the killed shard has a vehicle size the survivor has not simulated (so far)
+            return not new_size or bool(sizes(s1, m) - seen0)
+
+        seen0: set = set()
+
+        def track():  # sizes the survivor has simulated
+            with run.lock:
+                s0 = run.states.get("main.0of2")
+                m = run.steps.get(s0.sumo_step) if s0 is not None else None
+            if m is not None:
+                seen0.update(sizes(s0, m))
+            return busy(True)
+        run.wait(lambda: busy(False), 300, "both shards simulating agents")
+        try:
+            run.wait(track, 20, "a vehicle size only the shard to kill has")
+            new_size = True
+        except RuntimeError:
+            new_size = False
+        with run.lock:
+            victim = len(run.states["main.1of2"].agents.ids)
+        run.procs["physics1"].kill()
+        t_kill = time.monotonic()
+
+        def taken_over():
+            with run.lock:
+                st = run.states.get("main.0of2")
+                m = run.steps.get(st.sumo_step) if st is not None else None
+            if m is None or st.counters.get("shards_alive") != 1:
+                return None
+            a = m.agents
+            want = {a.ids[i] for i in range(a.n) if not a.flags[i] & AgentFlag.INSIDE_VEHICLE}
+            return st if want and want <= set(st.agents.ids) else None
+        st = run.wait(taken_over, 60, "shard 0 simulating every agent")
+        took = time.monotonic() - t_kill
+    finally:
+        run.close()
+    c = st.counters
+    row = {"shards": 2, "takeover_s": round(took, 3), "agents_of_killed_shard": victim, "new_size": new_size,
+           "agents_after": len(st.agents.ids), "shard_takeovers": c.get("shard_takeovers"),
+           "pool_grows": c.get("pool_grows"), "growth_waits": c.get("growth_waits"), "goal_takeover_s": 1.0,
+           "load_avg_1min": round(os.getloadavg()[0], 2)}
+    log.info("bench scale: %s", row)
+    return row
