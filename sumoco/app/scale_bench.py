@@ -192,18 +192,6 @@ def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -
     return rows
 
 
-def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 4096), steps: int = 30,
-                    quick: bool = False) -> list[dict]:
-    """Pool rows, then co-simulation rows per size (quick: 1,024 slots and 1,000 agents)."""
-    if quick:
-        sizes, pool_sizes, steps = (1000,), (1024,), 10
-    rows = [pool_row(n) for n in pool_sizes]
-    for size in sizes:
-        rows.extend(cosim_rows(size, steps))
-    return rows
-
-
-__all__ = ["cosim_rows", "pool_row", "run_scale_bench"]
 
 
 # ---------------------------------------------------------------------- shard processes
@@ -453,3 +441,76 @@ shard_halo_m = 10.0
            "load_avg_1min": round(os.getloadavg()[0], 2)}
     log.info("bench scale: %s", row)
     return row
+
+
+def realtime_row(agents: int = 5000, seconds: float = 20.0, full: int = FULL_AGENTS) -> dict:
+    """SUMO side in realtime at its 10 Hz with ``agents`` vehicles and a physics process
+    (LOD: a region of about ``full`` agents in full physics), as separate OS processes:
+    ``lag_resets`` counts the times SUMO fell more than ``max_lag_s`` behind the wall clock."""
+    import math
+    import re
+    import tempfile
+    from pathlib import Path
+
+    from sumo_side.bench import _cache_dir
+    from sumo_side.scenarios import grid_size_for, make_grid_scenario
+    from sumoco.common.transport import free_tcp_port
+
+    sumocfg = make_grid_scenario(_cache_dir(), agents, seed=42)
+    side = (grid_size_for(agents) - 1) * 200.0
+    radius = side * math.sqrt(full / agents / math.pi)  # ~``full`` agents at uniform density
+    tmp = Path(tempfile.mkdtemp(prefix="sumoco-realtime-"))
+    cfg = tmp / "run.toml"
+    cfg.write_text(f"""
+[run]
+id = "realtime"
+timing = "realtime"
+duration_s = {seconds}
+[sumo]
+sumocfg = "{sumocfg}"
+[physics]
+preset = "default"
+expect = {{passenger = {int(full * 1.3)}}}
+lod_regions = [[{side / 2}, {side / 2}, {radius:.1f}]]
+""")
+    eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2)]
+    run = _Procs("realtime", eps, tmp)
+    try:
+        run.start("physics", ["physics", "--config", str(cfg), "--listen", eps[1], "--connect", eps[0]])
+        run.start("sumo", ["sumo", "--config", str(cfg), "--listen", eps[0], "--quiet"])
+        run.wait(lambda: run.procs["sumo"].poll() is not None, 180 + 3 * seconds, "the realtime run's end")
+        with run.lock:
+            st = run.states.get("main")
+    finally:
+        run.close()
+    text = (tmp / "sumo.log").read_text(errors="replace")
+    m = re.search(r"SUMO side done: (.*)", text)
+    if m is None:
+        raise RuntimeError(f"realtime run: no summary in the SUMO log:\n{text[-2000:]}")
+    stats = dict(kv.split("=", 1) for kv in m[1].split(", "))
+    row = {"timing": "realtime", "agents": int(stats["max_agents"]), "lag_resets": int(stats["lag_resets"]),
+           "steps": int(stats["steps"]), "seconds": seconds, "sumo_step_s": 0.1,
+           "full_physics_agents": int(st.counters.get("physical", 0)) if st is not None else None,
+           "goal_lag_resets": 0, "load_avg_1min": round(os.getloadavg()[0], 2)}
+    log.info("bench scale: %s", row)
+    return row
+
+
+def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 4096), steps: int = 30,
+                    quick: bool = False, lod_off_max: int = 2500) -> list[dict]:
+    """Pool rows, co-simulation rows per size (LOD off only up to ``lod_off_max`` agents: every
+    agent in full physics beyond that is minutes per row), shard rows, the take-over of a
+    killed shard and the realtime row (quick: 1,024 slots and 1,000 agents only)."""
+    if quick:
+        sizes, pool_sizes, steps = (1000,), (1024,), 10
+    rows = [pool_row(n) for n in pool_sizes]
+    for size in sizes:
+        rows.extend(cosim_rows(size, steps, lod_modes=(False, True) if size <= lod_off_max else (True,)))
+    if not quick:
+        rows.extend(shard_rows())
+        rows.append(takeover_row())
+        rows.append(realtime_row())
+    return rows
+
+
+__all__ = ["cosim_rows", "pool_row", "realtime_row", "run_scale_bench", "shard_rows", "takeover_row"]
