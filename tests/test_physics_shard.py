@@ -52,3 +52,25 @@ def test_an_agent_keeps_its_shard_inside_the_halo_and_a_lost_shard_is_taken_over
     assert len(f.rows(later)) == later.n
     assert f.takeovers == int((before == 1).sum()) > 0
     assert f.set_alive(1, True)
+
+
+def test_every_size_of_a_step_is_reserved_once_without_a_compile_on_the_stepping_thread():
+    from dataclasses import replace
+
+    from physics_side.config import PhysicsSettings
+    from physics_side.daemon import build_fleet
+
+    fleet = build_fleet(PhysicsSettings())
+    try:
+        m = circle_traffic(6, 0)
+        a = m.agents
+        # two agents of another shard are 12 m long: a size this shard has no pool for
+        length = a.length.copy()
+        length[[1, 4]] = 12.0
+        a = replace(a, length=length)
+        gen = fleet.world.generation
+        assert fleet.reserve(a, m.vtypes) == 1
+        assert fleet.world.growing and fleet.world.generation == gen
+        assert fleet.reserve(a, m.vtypes) == 0  # known sizes cost one np.unique per step
+    finally:
+        fleet.world.close()
