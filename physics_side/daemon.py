@@ -354,7 +354,7 @@ class PhysicsDaemon:
             if t_end is not None and time.monotonic() > t_end:
                 break
             self._handle_alive()
-            self._status.maybe_log(self.fleet, self.all_counters())
+            self._status.maybe_log(self.fleet, self.all_counters)  # counted only when it logs: a step waits behind this
             if not self.sumo_present and self.fleet.stopping and self.fleet.n and not self._at_rest():
                 # SUMO gone: keep simulating at the control rate until every agent is at rest
                 next_tick = self._pace(next_tick)
@@ -429,11 +429,14 @@ class _Status:
         self.tick_s += dt
         self.mujoco_s += mj
 
-    def maybe_log(self, fleet: Fleet, counters: dict, force: bool = False, period: float = 1.0) -> None:
+    def maybe_log(self, fleet: Fleet, counters, force: bool = False, period: float = 1.0) -> None:
+        """``counters``: a dict, or a function returning one (called only when logging)."""
         now = time.monotonic()
         el = now - self.t0
         if el < period and not force:
             return
+        if callable(counters):
+            counters = counters()
         if self.ticks or force:
             n = max(self.ticks, 1)
             log.info(

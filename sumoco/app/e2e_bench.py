@@ -52,11 +52,17 @@ def _percentiles(a: np.ndarray) -> tuple[float | None, float | None, float | Non
             round(float(a.max()), 4))
 
 
+def _median_ms(ns: list[int], skip: int) -> float | None:
+    a = np.asarray(ns, float)[skip:]
+    return round(float(np.median(a)) / 1e6, 4) if len(a) else None
+
+
 def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agents: int) -> None:
     cfg = ZenohConfig(listen=(f"tcp/127.0.0.1:{free_tcp_port()}",), connect=(connect,), shared_memory=shm)
     raw_at: list[int] = []
     e2e_at: dict[int, int] = {}
     decode_ns: list[int] = []
+    decode_cpu_ns: list[int] = []
     handoff_ns: list[int] = []
     steps: DropOldest[tuple[bytes, int]] = DropOldest(64, 256 << 20, size=lambda item: len(item[0]))
     wake = threading.Event()
@@ -81,10 +87,12 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
             data, landed = steps.get()
             t0 = time.monotonic_ns()
             handoff_ns.append(t0 - landed)
+            c0 = time.thread_time_ns()
             msg = decode_as(data, StepMessage, limits)
             t1 = time.monotonic_ns()
             e2e_at[msg.step] = t1
             decode_ns.append(t1 - t0)
+            decode_cpu_ns.append(time.thread_time_ns() - c0)
 
     tune_allocator()
     freeze_startup_objects()
@@ -101,7 +109,8 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
         tok.undeclare()
         for sub in subs:
             sub.undeclare()
-    json.dump({"raw": raw_at, "e2e": e2e_at, "decode_ns": decode_ns, "handoff_ns": handoff_ns}, sys.stdout)
+    json.dump({"raw": raw_at, "e2e": e2e_at, "decode_ns": decode_ns, "decode_cpu_ns": decode_cpu_ns,
+               "handoff_ns": handoff_ns}, sys.stdout)
 
 
 def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
@@ -116,6 +125,7 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
     raw_sent: list[int] = []
     e2e_sent: list[int] = []
     encode_ns: list[int] = []
+    encode_cpu_ns: list[int] = []
     tune_allocator()
     freeze_startup_objects()
     with open_session(cfg) as s:
@@ -145,7 +155,9 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
                 nxt += half
                 t0 = time.monotonic_ns()
                 e2e_sent.append(t0)
+                c0 = time.thread_time_ns()
                 data = encode(msgs[i])
+                encode_cpu_ns.append(time.thread_time_ns() - c0)
                 encode_ns.append(time.monotonic_ns() - t0)
                 pub.put(data)
                 time.sleep(max(0.0, nxt - time.monotonic()))
@@ -179,12 +191,17 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
         "encode_ms_p50": round(float(np.median(enc)), 4) if len(enc) else None,
         "decode_ms_p50": round(float(np.median(dec)), 4) if len(dec) else None,
         "handoff_ms_p50": round(float(np.median(hand)), 4) if len(hand) else None,
+        # CPU time of the same calls: wall minus CPU is time spent waiting for a core
+        "encode_cpu_ms_p50": _median_ms(encode_cpu_ns, warmup),
+        "decode_cpu_ms_p50": _median_ms(got.get("decode_cpu_ns", []), warmup),
     }
 
 
 def run_e2e_bench(sizes=(100, 1000), quick: bool = False) -> list[dict]:
+    """Rows for steps without paths and with the SUMO side's 12 path points per agent,
+    over TCP and shared memory."""
     steps = 60 if quick else 300
-    return [measure(n, shm, steps=steps) for n in sizes for shm in (False, True)]
+    return [measure(n, shm, steps=steps, path_points=pts) for n in sizes for pts in (0, 12) for shm in (False, True)]
 
 
 if __name__ == "__main__":
