@@ -7,7 +7,11 @@ straight line between samples would cut curves at long SUMO steps). Only agents 
 external (ego) agents are reported apart. Samples next to a SUMO step that flags the
 agent as jumped (teleport) or riding are left out: there SUMO moves the agent by fiat.
 
-``report`` (summary.json, report.md) and ``figures`` both read from here.
+``report`` (summary.json, report.md) and ``figures`` both read from here. A recording is
+summarised as a stream (``analyse_recording``): errors are computed window by window of
+simulated time and go into fixed-size accumulators (counts, sums, maxima, log-spaced
+histograms for the percentiles, within 0.1 %), so memory does not grow with the run's
+length; only the reference car's own samples are kept whole, for the figures.
 """
 
 from __future__ import annotations
@@ -229,14 +233,16 @@ def tracking_errors(ref: RefTable, ph: PhysTable) -> Errors:
     return out
 
 
-def sample_errors(ref: RefTable, ph: PhysTable) -> tuple[np.ndarray, np.ndarray]:
+def sample_errors(ref: RefTable, ph: PhysTable, t_range: tuple[float, float] = (-np.inf, np.inf)
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Front-bumper error [m] at SUMO's own sample times only, and the class of each sample.
 
     Between samples SUMO's position is not defined (``tracking_errors`` assumes a constant
     speed along a Hermite curve, which at 1 s steps differs from any drivable motion by up
     to a * step^2 / 8); at a sample it is exact. The physics pose is interpolated between
     the two published states around the sample time (at most 0.11 s apart). Same validity
-    rules as ``tracking_errors`` (PHYSICAL on both sides, no jump or ride next to it)."""
+    rules as ``tracking_errors`` (PHYSICAL on both sides, no jump or ride next to it).
+    ``t_range``: only SUMO samples at lo <= t < hi count (a window of a streamed run)."""
     errs, classes = [], []
     if len(ph.t) == 0 or len(ref.t) == 0:
         return np.zeros(0), np.zeros(0, np.int64)
@@ -249,7 +255,7 @@ def sample_errors(ref: RefTable, ph: PhysTable) -> tuple[np.ndarray, np.ndarray]
         if len(rs) < 2 or len(ps) < 2:
             continue
         rt, pt = ref.t[rs], ph.t[ps]
-        idx = np.flatnonzero((rt >= pt[0]) & (rt <= pt[-1]))
+        idx = np.flatnonzero((rt >= pt[0]) & (rt <= pt[-1]) & (rt >= t_range[0]) & (rt < t_range[1]))
         if not len(idx):
             continue
         j = np.clip(np.searchsorted(pt, rt[idx]), 1, len(pt) - 1)
@@ -299,6 +305,49 @@ def _stats(e: np.ndarray) -> dict:
             "max": round(float(e.max()), 4), "samples": int(len(e))}
 
 
+class ErrorHistogram:
+    """Streaming statistics of non-negative errors [m]: exact count, mean and max; p50/p95
+    from log-spaced bins (``RATIO`` apart, so within 0.1 % of the exact percentile above
+    ``LO``; below it, within ``LO``). Memory is fixed (~74 kB) whatever the sample count."""
+
+    LO, HI, RATIO = 1e-5, 1e3, 1.002
+    _LOG_R = float(np.log(RATIO))
+    BINS = int(np.ceil(np.log(HI / LO) / np.log(RATIO))) + 2  # + underflow and overflow
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.BINS, np.int64)
+        self.n = 0
+        self.total = 0.0
+        self.max = -np.inf
+
+    def add(self, e: np.ndarray) -> None:
+        e = np.asarray(e, np.float64)
+        e = e[np.isfinite(e)]
+        if not len(e):
+            return
+        k = np.where(e < self.LO, 0, np.clip(np.floor(np.log(np.maximum(e, self.LO) / self.LO) / self._LOG_R) + 1,
+                                             1, self.BINS - 1)).astype(np.int64)
+        self.counts += np.bincount(k, minlength=self.BINS)
+        self.n += len(e)
+        self.total += float(e.sum())
+        self.max = max(self.max, float(e.max()))
+
+    def percentile(self, q: float) -> float:
+        """As np.percentile (linear between the samples around rank q/100 * (n - 1)), each
+        sample resolved to its bin's geometric centre."""
+        rank = q / 100.0 * (self.n - 1)
+        lo = int(np.floor(rank))
+        k = np.searchsorted(np.cumsum(self.counts), [lo, min(lo + 1, self.n - 1)], side="right")
+        v = np.where(k == 0, self.LO / 2, self.LO * self.RATIO ** (k - 0.5))
+        return float(min(v[0] + (rank - lo) * (v[1] - v[0]), self.max))
+
+    def stats(self) -> dict:
+        if not self.n:
+            return {"mean": None, "p50": None, "p95": None, "max": None, "samples": 0}
+        return {"mean": round(self.total / self.n, 4), "p50": round(self.percentile(50), 4),
+                "p95": round(self.percentile(95), 4), "max": round(self.max, 4), "samples": int(self.n)}
+
+
 def reference_car(data: RunData, prefer: str = "ref") -> str | None:
     """``ref`` if present, else the first passenger car SUMO reported."""
     if prefer in data.ids:
@@ -317,83 +366,327 @@ def internal_lane_mask(static: StaticData | None, lane_idx: np.ndarray) -> np.nd
     return internal[np.where(lane_idx >= 0, lane_idx, len(internal) - 1)]
 
 
+_SERIES = ("t", "x", "y", "speed", "steer", "drive", "brake")
+_ERR_SERIES = ("err", "lon", "lat", "ref_x", "ref_y", "ref_speed", "ref_lane")
+_TRACK = ("t", "x", "y", "angle", "speed", "lane")
+
+
+class _Instance:
+    """What the summary keeps of one physics instance: fixed-size histograms, sets of agents,
+    and the samples of the reference-car candidates only."""
+
+    def __init__(self) -> None:
+        self.overall, self.at_samples = ErrorHistogram(), ErrorHistogram()
+        self.per_type: dict[int, ErrorHistogram] = {}
+        self.at_type: dict[int, ErrorHistogram] = {}
+        self.modes: dict[int, set] = {}
+        self.seen: dict[int, set] = {}
+        self.counters: dict = {}
+        self.cand: dict[int, dict[str, list]] = {}  # aid -> series parts
+
+
+class Analysis:
+    """The run summary built window by window, so that memory stays flat in the run's length.
+
+    ``feed`` takes (physics instance, log time [ns], message) in recording order; SUMO steps
+    and physics states are buffered until the run is ``WINDOW_S`` past a window's end, then
+    the window's errors go into the accumulators and the buffers keep only what brackets
+    the next window. ``summary`` and ``figure_data`` finish it."""
+
+    WINDOW_S = 5.0  # [s of simulated time] buffers hold about two windows
+
+    def __init__(self, ref_id: str | None = None, window_s: float = WINDOW_S) -> None:
+        self.window_s = float(window_s)
+        self.index: dict[str, int] = {}
+        self.ids: list[str] = []
+        self.static: StaticData | None = None
+        self.steps = 0
+        self.t_first = self.t_last = None
+        self.w_first = self.w_last = None
+        self.sumo_seen: dict[int, set] = {}
+        self.inst: dict[str, _Instance] = {}
+        self.track: dict[int, dict[str, list]] = {}
+        # reference-car candidates: an explicit id, "ref", the first passenger car SUMO reported
+        self.wanted: set[str] = {ref_id or "ref", "ref"}
+        self.first_passenger: str | None = None
+        self._ref_buf: list[tuple[float, dict]] = []
+        self._phys_buf: dict[str, list[tuple[float, dict]]] = {}
+        self._w_lo: float | None = None
+        self._t_max = -np.inf
+        self.late = 0  # samples older than the window already summarised (left out)
+
+    # ---------------------------------------------------------------- input
+    def _aids(self, names: list[str]) -> np.ndarray:
+        out = np.empty(len(names), np.int64)
+        index, ids = self.index, self.ids
+        for i, n in enumerate(names):
+            j = index.get(n)
+            if j is None:
+                j = index[n] = len(ids)
+                ids.append(n)
+            out[i] = j
+        return out
+
+    def feed(self, inst: str, log_time_ns: int, msg) -> None:
+        if isinstance(msg, StaticData):
+            self.static = self.static or msg
+            return
+        if not isinstance(msg, (StepMessage, PhysicsState)):
+            return
+        t = float(msg.time)
+        if self._w_lo is None:
+            self._w_lo = float(np.floor(t / self.window_s) * self.window_s)
+        elif t < self._w_lo - 1.0:  # the run restarted: finish what came before
+            self.flush()
+            self._w_lo = float(np.floor(t / self.window_s) * self.window_s)
+        if t < self._w_lo:
+            self.late += 1
+            return
+        a = msg.agents
+        aid = self._aids(a.ids)
+        if isinstance(msg, StepMessage):
+            self.steps += 1
+            self.t_first = t if self.t_first is None else self.t_first
+            self.t_last = t
+            self.w_first = log_time_ns if self.w_first is None else self.w_first
+            self.w_last = log_time_ns
+            cls = np.asarray(a.cls, np.int64)
+            if self.first_passenger is None:
+                cars = np.flatnonzero(cls == AgentClass.PASSENGER)
+                if len(cars):  # first in time, then in SUMO's order
+                    self.first_passenger = a.ids[cars[0]]
+                    self.wanted.add(self.first_passenger)
+            for c in np.unique(cls).tolist():
+                self.sumo_seen.setdefault(c, set()).update(aid[cls == c].tolist())
+            cols = {"t": np.full(a.n, t), "aid": aid, "x": np.asarray(a.x, np.float64),
+                    "y": np.asarray(a.y, np.float64), "angle": np.asarray(a.angle, np.float64),
+                    "speed": np.asarray(a.speed, np.float64), "lane": np.asarray(a.lane, np.int64),
+                    "cls": cls, "flags": np.asarray(a.flags, np.int64)}
+            for name in self.wanted:
+                j = self.index.get(name)
+                sel = aid == j if j is not None else None
+                if sel is not None and sel.any():
+                    part = self.track.setdefault(j, {k: [] for k in _TRACK})
+                    for k in _TRACK:
+                        part[k].append(cols[k][sel])
+            self._ref_buf.append((t, cols))
+        else:
+            cols = {"t": np.full(a.n, t), "aid": aid, "cls": np.asarray(a.cls, np.int64),
+                    "mode": np.asarray(a.mode, np.int64),
+                    **{k: np.asarray(getattr(a, k), np.float64)
+                       for k in ("x", "y", "heading", "speed", "steer", "drive", "brake")}}
+            self.inst.setdefault(inst, _Instance()).counters = dict(msg.counters)
+            self._phys_buf.setdefault(inst, []).append((t, cols))
+        self._t_max = max(self._t_max, t)
+        while self._t_max >= self._w_lo + 2 * self.window_s:
+            self._window(self._w_lo, self._w_lo + self.window_s)
+            self._w_lo += self.window_s
+
+    def flush(self) -> None:
+        """Summarise everything buffered (the end of the run, or before a restart)."""
+        if self._w_lo is not None:
+            self._window(self._w_lo, np.inf)
+        self._ref_buf.clear()
+        self._phys_buf.clear()
+
+    # ---------------------------------------------------------------- windows
+    @staticmethod
+    def _ref_table(buf) -> RefTable:
+        keys = ("t", "aid", "x", "y", "angle", "speed", "lane", "cls", "flags")
+        return RefTable(**{k: np.concatenate([c[k] for _, c in buf]) if buf else np.zeros(0) for k in keys})
+
+    @staticmethod
+    def _phys_table(buf, counters) -> PhysTable:
+        keys = ("t", "aid", "cls", "mode", "x", "y", "heading", "speed", "steer", "drive", "brake")
+        return PhysTable(**{k: np.concatenate([c[k] for _, c in buf]) if buf else np.zeros(0) for k in keys},
+                         counters=counters)
+
+    def _window(self, lo: float, hi: float) -> None:
+        """Errors of physics samples at lo <= t < hi (and of SUMO samples in the same range)."""
+        ref = self._ref_table(self._ref_buf)
+        want = np.array([self.index[n] for n in self.wanted if n in self.index], np.int64)
+        for inst, buf in self._phys_buf.items():
+            acc = self.inst[inst]
+            ph_all = self._phys_table(buf, acc.counters)
+            rows = np.flatnonzero((ph_all.t >= lo) & (ph_all.t < hi))
+            ph = PhysTable(**{k: getattr(ph_all, k)[rows] for k in (
+                "t", "aid", "cls", "mode", "x", "y", "heading", "speed", "steer", "drive", "brake")})
+            e = tracking_errors(ref, ph)
+            v = e.valid
+            acc.overall.add(e.err[v])
+            for c in np.unique(ph.cls[v]).tolist():
+                acc.per_type.setdefault(c, ErrorHistogram()).add(e.err[v & (ph.cls == c)])
+            for m in np.unique(ph.mode).tolist():
+                acc.modes.setdefault(m, set()).update(np.unique(ph.aid[ph.mode == m]).tolist())
+            for c in np.unique(ph.cls).tolist():
+                acc.seen.setdefault(c, set()).update(np.unique(ph.aid[ph.cls == c]).tolist())
+            es, ec = sample_errors(ref, ph_all, (lo, hi))
+            acc.at_samples.add(es)
+            for c in np.unique(ec).tolist():
+                acc.at_type.setdefault(c, ErrorHistogram()).add(es[ec == c])
+            for j in want.tolist():
+                sel = ph.aid == j
+                if not sel.any():
+                    continue
+                part = acc.cand.setdefault(j, {k: [] for k in (*_SERIES, *_ERR_SERIES, "valid")})
+                for k in _SERIES:
+                    part[k].append(getattr(ph, k)[sel])
+                for k in _ERR_SERIES:
+                    part[k].append(getattr(e, k)[sel])
+                part["valid"].append(v[sel])
+        if not np.isfinite(hi):
+            return
+        # keep what brackets the next window: the last SUMO step and physics state before hi
+        self._ref_buf = self._keep(self._ref_buf, hi)
+        self._phys_buf = {inst: self._keep(buf, hi) for inst, buf in self._phys_buf.items()}
+
+    @staticmethod
+    def _keep(buf, hi: float):
+        before = [t for t, _ in buf if t < hi]
+        if not before:
+            return buf
+        t0 = max(before)
+        return [(t, c) for t, c in buf if t >= t0]
+
+    # ---------------------------------------------------------------- output
+    def reference_car(self) -> str | None:
+        for name in sorted(self.wanted - {"ref", self.first_passenger}):
+            if name in self.index:
+                return name
+        if "ref" in self.index:
+            return "ref"
+        return self.first_passenger
+
+    def _cand(self, inst: str, rid: int) -> dict[str, np.ndarray]:
+        part = self.inst[inst].cand.get(rid)
+        if not part:
+            return {k: np.zeros(0) for k in (*_SERIES, *_ERR_SERIES, "valid")}
+        return {k: np.concatenate(v) for k, v in part.items()}
+
+    def summary(self) -> dict:
+        self.flush()
+        ref_id = self.reference_car()
+        sim_span = float((self.t_last or 0.0) - (self.t_first or 0.0))
+        wall_span = float(((self.w_last or 0) - (self.w_first or 0)) / 1e9)
+        out: dict = {
+            "steps": self.steps,
+            "sim_time_s": round(sim_span, 3),
+            "reference_car": ref_id,
+            "agents_seen_sumo": self._seen(self.sumo_seen),
+            "presets": {},
+            "wall": {"wall_s": round(wall_span, 3), "rtf": round(sim_span / wall_span, 3) if wall_span > 0 else None},
+        }
+        rid = self.index.get(ref_id, -1) if ref_id else -1
+        for inst, acc in sorted(self.inst.items()):
+            c = acc.counters
+            entry = {
+                "error_m": {"overall": acc.overall.stats(),
+                            "per_type": {CLASS_NAMES[k]: h.stats() for k, h in sorted(acc.per_type.items())},
+                            "at_samples": {"overall": acc.at_samples.stats(), "per_type": {
+                                CLASS_NAMES[k]: h.stats() for k, h in sorted(acc.at_type.items())}}},
+                "collisions": int(c.get("collisions", 0)),
+                # a physics contact where SUMO had its own collision / teleport, or physics only
+                "collisions_sumo_reported": int(c.get("collisions_sumo_reported", 0)),
+                "collisions_physics_only": int(c.get("collisions_physics_only", 0)),
+                "placements": int(c.get("placements", 0)),
+                "placements_by_cause": {k: int(c.get(f"placements_{k}", 0))
+                                        for k in ("spawn", "jump", "divergence", "flip")},
+                "ghost_spawns": int(c.get("ghost_spawns", 0)),
+                "rejected": int(c.get("rejected", 0)),
+                "agents_seen": self._seen(acc.seen),
+                "agents_by_mode": {m.name.lower(): len(acc.modes.get(int(m), ())) for m in AgentMode},
+                "counters": {k: int(x) for k, x in sorted(c.items())},
+            }
+            if rid >= 0:
+                s = self._cand(inst, rid)
+                r = s["valid"].astype(bool)
+                turn = internal_lane_mask(self.static, s["ref_lane"].astype(np.int64))
+                entry["reference_car"] = {
+                    "overall": _stats(s["err"][r]),
+                    "straight": _stats(s["err"][r & ~turn]),
+                    "turn": _stats(s["err"][r & turn]),
+                    "lateral_abs_max": _stats(np.abs(s["lat"][r]))["max"],
+                }
+            out["presets"][inst] = entry
+        return out
+
+    @staticmethod
+    def _seen(sets: dict[int, set]) -> dict:
+        return {CLASS_NAMES.get(c, str(c)): len(v) for c, v in sorted(sets.items())}
+
+    def figure_data(self, ref_id: str) -> "FigureData":
+        """The reference car's series per instance (physics samples with a reference) and its
+        SUMO samples, each in time order."""
+        rid = self.index[ref_id]
+        series = {}
+        for inst in sorted(self.inst):
+            s = self._cand(inst, rid)
+            sel = np.isfinite(s["err"])
+            order = np.argsort(s["t"][sel], kind="stable")
+            d = {k: s[k][sel][order] for k in (*_SERIES, *_ERR_SERIES) if k != "ref_lane"}
+            d["dist"] = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(d["ref_x"]), np.diff(d["ref_y"])))]) \
+                if len(d["t"]) else np.zeros(0)
+            series[inst] = d
+        part = self.track.get(rid)
+        track = {k: np.concatenate(part[k]) if part else np.zeros(0) for k in _TRACK}
+        order = np.argsort(track["t"], kind="stable")
+        track = {k: v[order] for k, v in track.items()}
+        return FigureData(self.static, series, track)
+
+
+@dataclass
+class FigureData:
+    """What the figures draw: the reference car only."""
+
+    static: StaticData | None
+    series: dict[str, dict[str, np.ndarray]]  # per instance: physics samples with their reference
+    track: dict[str, np.ndarray]  # SUMO samples: t, x, y, angle, speed, lane
+
+
+def analyse_recording(res: ReadResult | Recording, ref_id: str | None = None,
+                      window_s: float = Analysis.WINDOW_S) -> tuple[dict, FigureData | None]:
+    """Summary and figure data of a recording, read as a stream (memory flat in its length)."""
+    an = Analysis(ref_id, window_s)
+    for m, msg in iter_decoded(res):
+        an.feed(Keys.instance_of(m.topic) or "main", m.log_time_ns, msg)
+    summary = an.summary()
+    if res.truncated:  # known only once a stream has been read to its end
+        summary["truncated_recording"] = True
+    rid = summary["reference_car"]
+    return summary, (an.figure_data(rid) if rid and an.inst else None)
+
+
+def _feed_tables(an: Analysis, data: RunData) -> None:
+    """Run data already in memory, summarised as one window."""
+    an.static = data.static
+    an.ids, an.index = list(data.ids), {n: i for i, n in enumerate(data.ids)}
+    an.steps = data.steps
+    an.t_first, an.t_last = 0.0, data.sim_span_s
+    an.w_first, an.w_last = 0, int(round(data.wall_span_s * 1e9))
+    for c in np.unique(data.ref.cls).tolist():
+        an.sumo_seen[c] = set(np.unique(data.ref.aid[data.ref.cls == c]).tolist())
+    rows = np.argsort(data.ref.t, kind="stable")
+    an._ref_buf = [(float(data.ref.t[rows[-1]]) if len(rows) else 0.0,
+                    {k: getattr(data.ref, k)[rows] for k in ("t", "aid", "x", "y", "angle", "speed", "lane", "cls",
+                                                             "flags")})]
+    for inst, ph in data.phys.items():
+        an.inst[inst] = _Instance()
+        an.inst[inst].counters = dict(ph.counters)
+        an._phys_buf[inst] = [(0.0, {k: getattr(ph, k) for k in (
+            "t", "aid", "cls", "mode", "x", "y", "heading", "speed", "steer", "drive", "brake")})]
+    rid = an.index.get(an.reference_car())
+    if rid is not None:
+        sel = data.ref.aid[rows] == rid
+        an.track[rid] = {k: [getattr(data.ref, k)[rows][sel]] for k in _TRACK}
+    an._w_lo = -np.inf
+
+
 def summarise(data: RunData, ref_id: str | None = None) -> dict:
-    ref_id = ref_id or reference_car(data)
-    summary: dict = {
-        "steps": data.steps,
-        "sim_time_s": round(data.sim_span_s, 3),
-        "reference_car": ref_id,
-        "agents_seen_sumo": _seen(data.ref.aid, data.ref.cls),
-        "presets": {},
-        "wall": {
-            "wall_s": round(data.wall_span_s, 3),
-            "rtf": round(data.sim_span_s / data.wall_span_s, 3) if data.wall_span_s > 0 else None,
-        },
-    }
+    """Summary of run data held in memory (the same numbers as ``analyse_recording``)."""
+    an = Analysis(ref_id or reference_car(data))
+    an.first_passenger = reference_car(data, prefer="\0")
+    _feed_tables(an, data)
+    summary = an.summary()
     if data.truncated:
         summary["truncated_recording"] = True
-    rid = data.ids.index(ref_id) if ref_id in data.ids else -1
-    for inst, ph in sorted(data.phys.items()):
-        e = tracking_errors(data.ref, ph)
-        v = e.valid
-        per_type = {CLASS_NAMES[int(c)]: _stats(e.err[v & (ph.cls == c)]) for c in np.unique(ph.cls[v])}
-        modes = {m.name.lower(): int(len(np.unique(ph.aid[ph.mode == m]))) for m in AgentMode}
-        es, ec = sample_errors(data.ref, ph)
-        entry = {
-            "error_m": {"overall": _stats(e.err[v]), "per_type": per_type,
-                        "at_samples": {"overall": _stats(es), "per_type": {
-                            CLASS_NAMES[int(c)]: _stats(es[ec == c]) for c in np.unique(ec)}}},
-            "collisions": int(ph.counters.get("collisions", 0)),
-            # a physics contact where SUMO had its own collision / teleport, or physics only
-            "collisions_sumo_reported": int(ph.counters.get("collisions_sumo_reported", 0)),
-            "collisions_physics_only": int(ph.counters.get("collisions_physics_only", 0)),
-            "placements": int(ph.counters.get("placements", 0)),
-            "placements_by_cause": {c: int(ph.counters.get(f"placements_{c}", 0))
-                                    for c in ("spawn", "jump", "divergence", "flip")},
-            "ghost_spawns": int(ph.counters.get("ghost_spawns", 0)),
-            "rejected": int(ph.counters.get("rejected", 0)),
-            "agents_seen": _seen(ph.aid, ph.cls),
-            "agents_by_mode": modes,
-            "counters": {k: int(x) for k, x in sorted(ph.counters.items())},
-        }
-        if rid >= 0:
-            r = v & (ph.aid == rid)
-            turn = internal_lane_mask(data.static, e.ref_lane)
-            entry["reference_car"] = {
-                "overall": _stats(e.err[r]),
-                "straight": _stats(e.err[r & ~turn]),
-                "turn": _stats(e.err[r & turn]),
-                "lateral_abs_max": _stats(np.abs(e.lat[r]))["max"],
-            }
-        summary["presets"][inst] = entry
     return summary
-
-
-def _seen(aid: np.ndarray, cls: np.ndarray) -> dict:
-    out = {}
-    for c in np.unique(cls):
-        out[CLASS_NAMES.get(int(c), str(int(c)))] = int(len(np.unique(aid[cls == c])))
-    return out
-
-
-def ref_series(data: RunData, inst: str, ref_id: str) -> dict[str, np.ndarray]:
-    """Time series of the reference car in one instance (for the figures)."""
-    ph = data.phys[inst]
-    rid = data.ids.index(ref_id)
-    e = tracking_errors(data.ref, ph)
-    sel = (ph.aid == rid) & np.isfinite(e.err)
-    order = np.argsort(ph.t[sel])
-    s = {k: getattr(ph, k)[sel][order] for k in ("t", "x", "y", "speed", "steer", "drive", "brake")}
-    s.update({k: getattr(e, k)[sel][order] for k in ("err", "lon", "lat", "ref_x", "ref_y", "ref_speed")})
-    s["dist"] = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(s["ref_x"]), np.diff(s["ref_y"])))])
-    return s
-
-
-def ref_track(data: RunData, ref_id: str) -> dict[str, np.ndarray]:
-    """The reference car's SUMO samples (10 Hz): t, x, y, angle, speed."""
-    rid = data.ids.index(ref_id)
-    sel = data.ref.aid == rid
-    order = np.argsort(data.ref.t[sel])
-    return {k: getattr(data.ref, k)[sel][order] for k in ("t", "x", "y", "angle", "speed", "lane")}
-
-

@@ -105,8 +105,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--physics-hz", dest="physics_hz", type=float,
                    help="physics states kept per instance [Hz of simulated time], 0 = all (default 10)")
     p.add_argument("--scene-hz", dest="scene_hz", type=float,
-                   help="Foxglove scene updates per key [Hz of simulated time], 0 = all (default 2)")
+                   help="Foxglove scene updates per key [Hz of simulated time], 0 = all (default 0.5)")
     p.add_argument("--no-scene", dest="no_scene", action="store_true", help="no Foxglove /scene channel")
+    p.add_argument("--raw", action="store_true",
+                   help="keep step and physics payloads as they came (byte-exact replay, ~5x larger); "
+                        "default: compact, quantised (protocol/SPEC.md 11)")
 
     p = sub.add_parser("report", help="rebuild summary.json, figures and report.md from a recording")
     p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")

@@ -11,7 +11,7 @@ matplotlib.use("Agg")  # files only, no display needed
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from sumoco.app.analysis import internal_lane_mask, ref_series, ref_track  # noqa: E402
+from sumoco.app.analysis import FigureData, internal_lane_mask  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -29,10 +29,10 @@ def _save(fig, out: Path, name: str) -> str:
     return name
 
 
-def make_figures(data, ref_id: str, out: Path, lad_sweep: bool = True, summary: dict | None = None) -> list[str]:
-    series = {inst: ref_series(data, inst, ref_id) for inst in sorted(data.phys)}
-    series = {k: v for k, v in series.items() if len(v["t"])}
-    track = ref_track(data, ref_id)
+def make_figures(data: FigureData, ref_id: str, out: Path, lad_sweep: bool = True,
+                 summary: dict | None = None) -> list[str]:
+    series = {k: v for k, v in data.series.items() if len(v["t"])}
+    track = dict(data.track)
     track["internal"] = internal_lane_mask(data.static, track["lane"])
     names: list[str] = []
     if not series:

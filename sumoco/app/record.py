@@ -30,9 +30,10 @@ import zenoh
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
-from protocol.codec import decode
+from protocol.codec import decode, encode
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
+from sumoco.app import record_codec as rc
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,10 @@ CHUNK_BYTES = 1024 * 1024  # [B] uncompressed chunk: what a crash can lose at mo
 RESERVE_BYTES = 4 * CHUNK_BYTES
 SPACE_CHECK_S = 0.25  # [s] between free-space checks
 _RESTART_S = 1.0  # [s] simulated time going back this far means the run restarted
+
+
+#: compact record schema -> the protocol message kind it decodes to
+COMPACT_SCHEMAS = {rc.STEP_SCHEMA: "step", rc.PHYSICS_SCHEMA: "physics"}
 
 
 class RecordingError(SumocoError):
@@ -72,16 +77,21 @@ class RecordConfig:
 
     physics_hz: float = 10.0  # [Hz] physics states kept per instance, by simulated time; 0 = every one
     scene: bool = True  # also write the Foxglove /scene channel (needs foxglove-sdk)
-    scene_hz: float = 2.0  # [Hz] scene updates per key, by simulated time; 0 = every message
+    scene_hz: float = 0.5  # [Hz] scene updates per key, by simulated time; 0 = every message (2,500 agents: ~0.5 GB/h per Hz)
     queue: int = 4096  # [messages] bound of the transport -> writer queue (full: drop + count)
     queue_mb: float = 256.0  # [MB] the same queue's bound in payload bytes (full: drop + count)
     scene_queue: int = 8  # [messages] bound of the scene worker's queue (full: drop oldest)
     flush_s: float = 2.0  # [s] wall clock between forced chunk ends: what a crash can lose at most
+    #: ``compact``: steps and physics states quantised and delta-coded (SPEC 11, replay gives back
+    #: equal messages up to the stated units); ``raw``: every payload as it came (byte-exact replay)
+    encoding: str = "compact"
 
     def __post_init__(self) -> None:
         for name in ("physics_hz", "scene_hz", "flush_s", "queue_mb"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"[record] {name} must be >= 0 (0 keeps every message), got {getattr(self, name)}")
+        if self.encoding not in ("compact", "raw"):
+            raise ConfigError(f"[record] encoding must be 'compact' or 'raw', got {self.encoding!r}")
         for name in ("queue", "scene_queue"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"[record] {name} must be >= 1, got {getattr(self, name)}")
@@ -113,13 +123,18 @@ class McapRecorder:
         self.closed = False
 
     def _channel(self, topic: str, schema: str):
-        ch = self._channels.get(topic)
+        # one channel per (key, schema): a key may switch to raw when a message cannot be compacted
+        ch = self._channels.get((topic, schema))
         if ch is None:
             fg = self._foxglove
-            ch = fg.Channel(topic, message_encoding=MESSAGE_ENCODING, context=self.context,
+            compact = schema in COMPACT_SCHEMAS
+            ch = fg.Channel(topic, message_encoding=rc.ENCODING if compact else MESSAGE_ENCODING,
+                            context=self.context,
                             schema=fg.Schema(name=schema, encoding="",
-                                             data=f"sumoco {schema} message, see {SPEC_URL}".encode()))
-            self._channels[topic] = ch
+                                             data=(f"sumoco compact recording record ({COMPACT_SCHEMAS[schema]}), "
+                                                   f"see {SPEC_URL} section 11" if compact else
+                                                   f"sumoco {schema} message, see {SPEC_URL}").encode()))
+            self._channels[(topic, schema)] = ch
         return ch
 
     def write(self, topic: str, payload: bytes, stamp_ns: int | None = None,
@@ -207,6 +222,8 @@ class LiveRecorder:
         self._period = 1.0 / self.config.physics_hz if self.config.physics_hz > 0 else 0.0
         self._last_t: dict[str, float] = {}
         self.received = self.dropped = self.thinned = self.written = self.write_errors = 0
+        self.compact_errors = 0
+        self._encoder = rc.CompactEncoder() if self.config.encoding == "compact" else None
         self._stopped = threading.Event()
         self._static_sv: int | None = None
         self._refetching = threading.Event()
@@ -284,7 +301,13 @@ class LiveRecorder:
                     self._queued_bytes -= len(payload)
                 if self.failed or not self._keep(topic, payload):
                     continue
-                self.rec.write(topic, payload, stamp, schema=schema)
+                data, out_schema = self._compact(topic, payload, schema)
+                try:
+                    self.rec.write(topic, data, stamp, schema=out_schema)
+                except Exception:
+                    if self._encoder is not None:
+                        self._encoder.reset(topic)  # the next record on this key must not refer to a lost one
+                    raise
                 self.written += 1
                 self._track_static_version(topic, payload)
                 if self._scene_worker is not None:
@@ -294,6 +317,20 @@ class LiveRecorder:
                 log.exception("recording %s failed", item[0] if item else "?")
             finally:
                 self._q.task_done()
+
+    def _compact(self, topic: str, payload: bytes, schema: str | None) -> tuple[bytes, str | None]:
+        """A step or physics payload as a compact record; anything else (or a payload that does
+        not decode) as it came."""
+        if self._encoder is None or (schema or kind_of_topic(topic)) not in ("step", "physics"):
+            return payload, schema
+        try:
+            out_schema, data = self._encoder.encode(topic, decode(payload))
+            return data, out_schema
+        except (ProtocolError, TypeError, ValueError) as e:
+            self.compact_errors += 1
+            self._encoder.reset(topic)
+            log.debug("recording %s as it came (%s)", topic, e)
+            return payload, schema
 
     def _track_static_version(self, topic: str, payload: bytes) -> None:
         """Record every static-data version the steps refer to (SPEC 3.2: tables change in a run)."""
@@ -378,7 +415,7 @@ class LiveRecorder:
     def stats(self) -> dict[str, int]:
         return {"received": self.received, "written": self.written, "dropped": self.dropped,
                 "write_errors": self.write_errors, "static_versions": self.static_versions,
-                "thinned": self.thinned, "scene_errors": self.scene_errors, "scene_dropped": self.scene_dropped}
+                "thinned": self.thinned, "compact_errors": self.compact_errors, "scene_errors": self.scene_errors, "scene_dropped": self.scene_dropped}
 
 
 def record_cli(args) -> int:
@@ -406,6 +443,8 @@ def record_cli(args) -> int:
                                  ("scene_hz", getattr(args, "scene_hz", None))) if v is not None}
     if getattr(args, "no_scene", False):
         changes["scene"] = False
+    if getattr(args, "raw", False):
+        changes["encoding"] = "raw"
     if changes:
         cfg = replace(cfg, **changes)
     keys = Keys(common.zenoh.root, common.run.id)
@@ -455,9 +494,29 @@ class Recording:
             raise RecordingError(f"{self.path}: recording not found")
         self.truncated = False
         self.error = ""
+        self.skipped = 0  # compact records left out (their predecessor was missing)
+        self._decoder = rc.CompactDecoder()
 
     @property
     def messages(self) -> Iterator[RecordedMessage]:
+        """Messages in file order; compact records come back as protocol payloads (``encode``
+        of the decoded message) under their message kind, so readers see one format."""
+        for m in self._records():
+            kind = COMPACT_SCHEMAS.get(m.schema)
+            if kind is None:
+                yield m
+                continue
+            try:
+                msg = self._decoder.decode(m.topic, m.schema, m.data)
+            except rc.CompactError as e:
+                self.skipped += 1
+                log.warning("%s: %s", self.path, e)
+                continue
+            yield RecordedMessage(m.topic, kind, m.log_time_ns, encode(msg))
+
+    def _records(self) -> Iterator[RecordedMessage]:
+        self._decoder = rc.CompactDecoder()
+        self.skipped = 0
         schemas: dict[int, str] = {}
         channels: dict[int, tuple[str, int]] = {}
         n = 0

@@ -4,8 +4,9 @@ Renderer and game-engine authors can develop against a recorded run without SUMO
 MuJoCo (this needs only the bare ``pip install sumoco``). What a client sees is what the
 daemons offered live:
 
-- every recorded step, physics state and ack on its own key (the recorded key), as the
-  recorded msgpack bytes, paced by the recorded receive times divided by ``speed``;
+- every recorded step, physics state and ack on its own key (the recorded key), paced by the
+  recorded receive times divided by ``speed``: as the recorded msgpack bytes from a raw
+  recording, re-encoded protocol messages (equal within SPEC 11's units) from a compact one;
 - the static data answered by a queryable on ``<root>/<run>/sumo/static`` (each recorded
   version from the point it was recorded on, SPEC 3.2), and the glTF
   map on ``<root>/<run>/sumo/map`` when the recording holds it (SPEC 9);

@@ -11,7 +11,7 @@ import logging
 from pathlib import Path
 
 from sumoco.app import figures as figs
-from sumoco.app.analysis import load_run, summarise
+from sumoco.app.analysis import analyse_recording
 from sumoco.app.record import open_recording
 
 log = logging.getLogger(__name__)
@@ -22,12 +22,11 @@ def write_report(recording: str | Path, out_dir: str | Path, lad_sweep: bool = T
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     res = open_recording(recording)  # streamed: memory does not grow with the file
-    data = load_run(res)
-    summary = summarise(data)
+    summary, fig_data = analyse_recording(res)
     figures: list[str] = []
     ref_id = summary["reference_car"]
-    if ref_id and data.phys:
-        figures = figs.make_figures(data, ref_id, out, lad_sweep=lad_sweep, summary=summary)
+    if ref_id and fig_data is not None:
+        figures = figs.make_figures(fig_data, ref_id, out, lad_sweep=lad_sweep, summary=summary)
     summary["figures"] = figures
     (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
     (out / "report.md").write_text(render_markdown(summary, recording))
