@@ -8,7 +8,7 @@ keys with the SUMO daemon's publisher settings (``STEP_PUT``):
   in the subscriber callback once the payload is Python bytes (``to_bytes``, which any
   Python receiver needs). This is the limit: Zenoh alone.
 - ``e2e``: the same step as the SUMO side sends it. Sent stamp just before ``encode``
-  (the message built from numpy columns); received stamp once the physics side's receive
+  (the message built from numpy columns just before, as the bridge does); received stamp once the physics side's receive
   path has decoded it: callback -> ``to_bytes`` -> bounded ``DropOldest`` queue -> wake the
   main loop -> ``decode_as`` with the daemon's limits (``physics_side.daemon``).
 
@@ -119,9 +119,12 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
     cfg = ZenohConfig(listen=(ep,), shared_memory=shm)
-    # Distinct steps (a few seeds) so that no cache makes a repeat cheaper than a new step.
-    msgs = [synthetic_step(agents, seed=i % 4, step=i, path_points=path_points) for i in range(steps)]
-    wire = [encode(m) for m in msgs]
+    def build(i: int):
+        # Built just before it is sent, as the SUMO side's bridge builds each step: the
+        # arrays are fresh in cache for both streams (a few seeds: no repeat is cheaper).
+        return synthetic_step(agents, seed=i % 4, step=i, path_points=path_points)
+
+    nbytes = len(encode(build(0)))
     raw_sent: list[int] = []
     e2e_sent: list[int] = []
     encode_ns: list[int] = []
@@ -149,14 +152,16 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
             nxt = time.monotonic()
             for i in range(steps):
                 nxt += half
+                wire = encode(build(i))
                 raw_sent.append(time.monotonic_ns())
-                pub_raw.put(wire[i])
+                pub_raw.put(wire)
                 time.sleep(max(0.0, nxt - time.monotonic()))
                 nxt += half
+                msg = build(i)
                 t0 = time.monotonic_ns()
                 e2e_sent.append(t0)
                 c0 = time.thread_time_ns()
-                data = encode(msgs[i])
+                data = encode(msg)
                 encode_cpu_ns.append(time.thread_time_ns() - c0)
                 encode_ns.append(time.monotonic_ns() - t0)
                 pub.put(data)
@@ -180,7 +185,7 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
         "agents": agents,
         "path_points_per_agent": path_points,
         "shm": shm,
-        "bytes": len(wire[0]),
+        "bytes": nbytes,
         "sent": steps,
         "received_raw": len(raw_at),
         "received_e2e": len(e2e_at),
