@@ -208,15 +208,17 @@ class Fleet:
         interpolating (the interval between the previous and the newest sample), else 0."""
         return self.step_length if self.interpolating else 0.0
 
-    def _interpolation(self, msg: StepMessage, rows, ids, flags, cur: Reference, yaw_rate, have_prev: bool):
+    def _interpolation(self, msg: StepMessage, rows, ids, flags, cur: Reference, yaw_rate, have_prev: bool,
+                       hop: np.ndarray):
         """The reference over (previous step, this step]: each known agent's previous sample and
-        path, reaching this step's sample at its end (SUMO's own motion, no guess); new or
-        teleported agents follow their own sample shifted one step back."""
+        path, reaching this step's sample at its end (SUMO's own motion, no guess); new,
+        teleported or sideways-hopping (``hop``) agents follow their own sample shifted one
+        step back."""
         L = float(msg.step_length)
         pb = self._prev_batch if have_prev else None
         src = np.fromiter((self._prev_rows.get(i, -1) for i in ids), np.int64, len(ids)) if pb is not None \
             else np.full(len(ids), -1, np.int64)
-        known = (src >= 0) & ((flags & AgentFlag.JUMPED) == 0)
+        known = (src >= 0) & ((flags & AgentFlag.JUMPED) == 0) & ~hop
         n_prev = pb.n if pb is not None else 0
         merged = _stack_batches(pb, msg.agents)
         sel = np.where(known, src, n_prev + np.asarray(rows, np.int64))
@@ -338,8 +340,20 @@ class Fleet:
             side = (ref.side_offset - old_ref.side_offset[p0]) / gap
             side_rate = np.where(had & (np.abs(side) < self.cfg.max_side_speed), side, 0.0)
             ref.set_side_rate(side_rate)
+        # SUMO moves a slow vehicle sideways at once when it changes lanes without a
+        # lane-change duration (queues at junctions) or parks off the lane (a bus bay): no
+        # vehicle can drive that without hitting its neighbours, so it is placed like a
+        # teleport (counted as a jump), at its new pose also when interpolating
+        slow = hop = np.zeros(len(ids), bool)
+        if self.cfg.sideways_jump_m > 0 and old_ref is not None and old_ref.n and len(ids):
+            p0 = np.maximum(prev, 0)
+            vmax = self.cfg.sideways_jump_speed
+            slow = (prev >= 0) & (old_ref.speed[p0] < vmax) & (a.speed[rows] < vmax)
+            if slow.any():
+                _, side = tracking_error(x, y, _Pose(old_ref.x[p0], old_ref.y[p0], old_ref.yaw[p0]))
+                hop = slow & (np.abs(side) > self.cfg.sideways_jump_m)
         if self.interpolating:
-            ref = self._interpolation(msg, rows, ids, flags, cur, yaw_rate, old_ref is not None)
+            ref = self._interpolation(msg, rows, ids, flags, cur, yaw_rate, old_ref is not None, hop)
         self._sample_ref = cur
         self._prev_batch, self._prev_time = a, msg.time
         self._prev_rows = {aid: int(r) for aid, r in zip(ids, rows)}
@@ -382,24 +396,13 @@ class Fleet:
         is_new = np.zeros(len(ids), bool)
         is_new[new] = True
         jumped = ((flags & AgentFlag.JUMPED) != 0) & ~is_new & physical
-        # SUMO moves a slow vehicle sideways at once when it changes lanes without a
-        # lane-change duration (queues at junctions): no vehicle can drive that without
-        # hitting its neighbours, so it is placed like a teleport (counted as a jump).
-        # Faster lane changes are driven (the paper's error peaks at lane changes).
-        if self.cfg.sideways_jump_m > 0 and len(ids):
-            had = prev >= 0
-            slow = np.zeros(len(ids), bool)
-            if old_ref is not None and old_ref.n:
-                p0 = np.maximum(prev, 0)
-                vmax = self.cfg.sideways_jump_speed
-                slow = had & (old_ref.speed[p0] < vmax) & (a.speed[rows] < vmax)
-            if slow.any():
-                _, side = tracking_error(x, y, _Pose(old_ref.x[p0], old_ref.y[p0], old_ref.yaw[p0]))
-                jumped |= slow & (np.abs(side) > self.cfg.sideways_jump_m) & ~is_new & physical
-                # ... or slides sideways while (nearly) standing (a continuous lane change in a
-                # queue): once it is further off than a car can make up by driving, placed too
-                sliding = slow & (np.abs(side_rate) > 0.05) & (np.abs(e_lat) > self.cfg.sideways_slide_m)
-                jumped |= sliding & ~is_new & physical
+        # A slow vehicle's sideways hop (above) is placed like a teleport (counted as a jump);
+        # faster lane changes are driven (the paper's error peaks at lane changes) ...
+        if slow.any():
+            # ... or slides sideways while (nearly) standing (a continuous lane change in a
+            # queue): once it is further off than a car can make up by driving, placed too
+            sliding = slow & (np.abs(side_rate) > 0.05) & (np.abs(e_lat) > self.cfg.sideways_slide_m)
+            jumped |= (hop | sliding) & ~is_new & physical
         flip = math.radians(self.cfg.flip_deg)
         flipped = ~is_new & ~jumped & physical & ((np.abs(obs.roll) > flip) | (np.abs(obs.pitch) > flip))
         diverged = ~is_new & ~jumped & ~flipped & physical & (dist > self.cfg.divergence_m)
