@@ -20,7 +20,8 @@ Rows (one JSON object each; field names stable across versions):
   ``PHASES`` (SUMO's step; SUMO read + bridge + encode; decode; LOD split; fleet sync;
   MuJoCo; the rest of the control ticks; snapshot + state encode).
 - shard rows: ``shards``, ``agents_realtime`` (most full-physics cars that many physics
-  processes, one thread each, keep at real-time factor >= 1), ``vs_one_shard``.
+  processes, one thread each, keep at real-time factor >= 1), ``vs_one_shard``; the same
+  from CPU time per tick (``agents_realtime_cpu``, ``vs_one_shard_cpu``).
 - take-over row: ``takeover_s`` from a SIGKILL of one of two lockstep shards until the
   survivor publishes every agent (``new_size``: the killed shard had a vehicle size the
   survivor had not simulated).
@@ -230,17 +231,19 @@ for k in range(3):  # spawn and settle before the clock starts
         fleet.tick()
 print("ready", flush=True)
 sys.stdin.readline()  # every shard process starts measuring at once
-ticks = []
+ticks, cpu = [], []
 k = 3
 t_end = time.perf_counter() + seconds
 while time.perf_counter() < t_end:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     fleet.apply_step(decode_as(encode(circle_traffic(n, k, cfg.sumo_step_s)), StepMessage))
     for _ in range(rates.ticks_per_step):
         fleet.tick()
     ticks.append((time.perf_counter() - t0) / rates.ticks_per_step)
+    cpu.append((time.process_time() - c0) / rates.ticks_per_step)
     k += 1
-print(json.dumps({{"tick_ms": 1e3 * float(np.mean(ticks)), "control_dt_ms": 1e3 * rates.control_dt}}), flush=True)
+print(json.dumps({{"tick_ms": 1e3 * float(np.mean(ticks)), "tick_cpu_ms": 1e3 * float(np.mean(cpu)),
+                  "control_dt_ms": 1e3 * rates.control_dt}}), flush=True)
 """
 
 
@@ -261,7 +264,7 @@ def _shard_ticks(shards: int, per_shard: int, seconds: float = 3.0) -> float:
     finally:
         for p in procs:
             p.kill() if p.poll() is None and p.wait(30) is None else None
-    return max(o["tick_ms"] for o in out), out[0]["control_dt_ms"]
+    return max(o["tick_ms"] for o in out), max(o["tick_cpu_ms"] for o in out), out[0]["control_dt_ms"]
 
 
 def shard_rows(counts=(1, 2), probe=(150, 450)) -> list[dict]:
@@ -269,17 +272,25 @@ def shard_rows(counts=(1, 2), probe=(150, 450)) -> list[dict]:
     processes keep at real-time factor >= 1 (a control tick within its period), from the
     tick time at two sizes per shard (linear in the cars)."""
     rows = []
-    for k in counts:
-        (t_a, dt), (t_b, _) = (_shard_ticks(k, n) for n in probe)
+
+    def most(t_a: float, t_b: float, dt: float) -> int:
         slope = max((t_b - t_a) / (probe[1] - probe[0]), 1e-9)
-        per_shard = int(probe[0] + (dt - t_a) / slope)
-        rows.append({"shards": k, "agents_realtime": max(0, per_shard) * k, "tick_ms_at": {probe[0]: round(t_a, 3),
-                     probe[1]: round(t_b, 3)}, "control_dt_ms": dt, "threads_per_shard": 1,
-                     "load_avg_1min": round(os.getloadavg()[0], 2)})
+        return max(0, int(probe[0] + (dt - t_a) / slope))
+
+    for k in counts:
+        (t_a, c_a, dt), (t_b, c_b, _) = (_shard_ticks(k, n) for n in probe)
+        rows.append({"shards": k, "agents_realtime": most(t_a, t_b, dt) * k,
+                     # the same from CPU time per tick: what each process needs of one core
+                     # (independent of other load; equal to the wall figure on an idle host)
+                     "agents_realtime_cpu": most(c_a, c_b, dt) * k,
+                     "tick_ms_at": {probe[0]: round(t_a, 3), probe[1]: round(t_b, 3)},
+                     "tick_cpu_ms_at": {probe[0]: round(c_a, 3), probe[1]: round(c_b, 3)},
+                     "control_dt_ms": dt, "threads_per_shard": 1, "load_avg_1min": round(os.getloadavg()[0], 2)})
         log.info("bench scale: %s", rows[-1])
     if len(rows) >= 2 and rows[0]["agents_realtime"]:
         for r in rows[1:]:
             r["vs_one_shard"] = round(r["agents_realtime"] / rows[0]["agents_realtime"], 2)
+            r["vs_one_shard_cpu"] = round(r["agents_realtime_cpu"] / max(rows[0]["agents_realtime_cpu"], 1), 2)
     return rows
 
 
