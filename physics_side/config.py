@@ -153,7 +153,7 @@ class DefaultControl:
     k_cross: float = 4.0  # [1/s] Stanley cross-track gain: bumper heading correction atan(k e / v)
     v_soft: float = 1.0  # [m/s] Stanley low-speed softening
     max_correction_deg: float = 15.0  # [deg] cross-track correction limit (angle of approach to the path)
-    preview_s: float = 0.0  # [s] path heading/curvature taken this far ahead (steering servo lag)
+    preview_s: float = 0.05  # [s] path heading/curvature taken this far ahead (steering servo lag)
     k_yaw: float = 0.05  # [s] yaw-rate damping: steer -= k_yaw * (r - r_ref) (rad per rad/s)
     lad_min: float = 4.0  # [m] pure pursuit: minimum look-ahead distance (lateral = "pursuit")
     lad_max: float = 10.0  # [m] pure pursuit: maximum look-ahead distance

@@ -279,6 +279,9 @@ def track_reference(
     out["err_true_lat"] = -dx * s + dy * c
     out["dist"] = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(out["x"]), np.diff(out["y"])))))
     out["placements"] = np.array([world.counters["placements"]])
+    # by cause, as the daemon's summary counts them (a replay's placements are no spawn of the run's)
+    for cause in ("spawn", "jump", "divergence", "flip"):
+        out[f"placements_{cause}"] = np.array([fleet.counters[f"placements_{cause}"]])
     out["collisions"] = np.array([world.counters["collisions"]])
     return out
 

@@ -39,13 +39,14 @@ _TYPE_NAME = {
     AgentClass.PASSENGER: "passenger", AgentClass.TAXI: "taxi", AgentClass.BUS: "bus",
     AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian", AgentClass.OTHER: "other",
 }
-A_LAT_MAX = 9.0  # [m/s^2] lateral acceleration the steering limit allows (0.92 g, tyre mu = 1)
+A_LAT_SHARE = 0.92  # [1] share of the tyres' grip (mu g) the steering limit allows in lateral acceleration
 G = 9.81  # [m/s^2]
 GRIP_LATERAL = 1.0
 CURVE_PREVIEW_S = np.array([0.0, 0.5, 1.0])  # [s] path curvature taken this far ahead at the current speed
 DRIVE_GRIP_USE = 0.9  # [1] share of the driven wheels' grip the drive may use (traction control)
 GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
+CARRY_SPEED = 0.5  # [m/s] below this SUMO speed a sideways slide is carried, not driven
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
 PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
 PED_YAW_KD = 15.0  # [N*m*s/rad]
@@ -170,6 +171,7 @@ class Fleet:
         self.sumo_len = np.zeros(0)
         self.sumo_wid = np.zeros(0)
         self.jump_t = np.zeros(0)
+        self.carry = np.zeros(0, bool)
         self.tau = 0.0
         self.state = C.ControlState.zeros(0)
         self.s_act = np.zeros(0)
@@ -398,14 +400,27 @@ class Fleet:
         jumped = ((flags & AgentFlag.JUMPED) != 0) & ~is_new & physical
         # A slow vehicle's sideways hop (above) is placed like a teleport (counted as a jump);
         # faster lane changes are driven (the paper's error peaks at lane changes) ...
+        carry = np.zeros(len(ids), bool)
         if slow.any():
             # ... or slides sideways while (nearly) standing (a continuous lane change in a
             # queue): once it is further off than a car can make up by driving, placed too
             sliding = slow & (np.abs(side_rate) > 0.05) & (np.abs(e_lat) > self.cfg.sideways_slide_m)
             jumped |= (hop | sliding) & ~is_new & physical
+            # a standing vehicle that SUMO slides sideways cannot drive it at all: it is carried
+            # along SUMO's slide every tick (one placement per slide, counted as a jump) instead
+            # of lagging up to sideways_slide_m behind and being placed then
+            _, shift = tracking_error(x, y, _Pose(old_ref.x[p0], old_ref.y[p0], old_ref.yaw[p0]))
+            gap = max(msg.time - old_ref.t_k, 1e-9)
+            carry = (slow & (old_ref.speed[p0] < CARRY_SPEED) & (a.speed[rows] < CARRY_SPEED)
+                     & (np.abs(shift) > 0.05 * gap) & ~jumped & ~is_new & physical & (self.kind != M.KIND_PED))
+        was_carried = np.zeros(len(ids), bool)
+        if len(self.carry) and (prev >= 0).any():
+            was_carried = (prev >= 0) & self.carry[np.maximum(prev, 0)]
+        jumped |= carry & ~was_carried
+        self.carry = carry
         flip = math.radians(self.cfg.flip_deg)
-        flipped = ~is_new & ~jumped & physical & ((np.abs(obs.roll) > flip) | (np.abs(obs.pitch) > flip))
-        diverged = ~is_new & ~jumped & ~flipped & physical & (dist > self.cfg.divergence_m)
+        flipped = ~is_new & ~jumped & ~carry & physical & ((np.abs(obs.roll) > flip) | (np.abs(obs.pitch) > flip))
+        diverged = ~is_new & ~jumped & ~carry & ~flipped & physical & (dist > self.cfg.divergence_m)
         place = is_new | jumped | flipped | diverged
         if place.any():
             idx = np.flatnonzero(place)
@@ -520,7 +535,8 @@ class Fleet:
         )
         self.mass = t.mass[s]
         self.stab_max = t.stab_max[s]
-        self._steer_lim_num = wb * A_LAT_MAX  # numerator of the friction-circle steering limit
+        self._a_lat = A_LAT_SHARE * G * t.tyre_mu[s]  # [m/s^2] lateral acceleration the tyres carry
+        self._steer_lim_num = wb * self._a_lat  # numerator of the friction-circle steering limit
         # drive torque the driven wheels carry (four-wheeled vehicles; inf for the others)
         grip = t.drive_grip[s]
         self._grip_torque = np.where(np.isfinite(grip), DRIVE_GRIP_USE * np.where(np.isfinite(grip), grip, 0.0)
@@ -618,6 +634,10 @@ class Fleet:
             r = ref.at(tau)
             self._place(idx, r, count=False, steady_turn=False)
             steer[idx] = np.arctan(p.wheelbase[idx] * r.curvature[idx])
+        if not self.stopping and self.carry.any():  # standing, slid sideways by SUMO: follow the slide
+            idx = np.flatnonzero(self.carry)
+            self._place(idx, ref.at(tau), count=False)
+            drive[idx] = 0.0
         # vehicle property (as the paper's Unity car controller's speed-dependent steering
         # limit): never steer beyond the friction circle at the current speed
         lim = np.minimum(p.max_steer, np.arctan(self._steer_lim_num / np.maximum(obs.speed, 0.1) ** 2))
@@ -633,7 +653,7 @@ class Fleet:
             # behind SUMO speeding into a tight junction turn ran metres wide and was placed
             v = np.maximum(obs.speed, 0.0)
             kap = np.abs(ref.path.at(self.s_act + v * CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
-            v_curve = np.sqrt(A_LAT_MAX / np.maximum(kap, 1e-6))
+            v_curve = np.sqrt(self._a_lat / np.maximum(kap, 1e-6))
             over = g.use_default & (obs.speed > np.maximum(v_curve, ref.at(tau).speed))
             drive = np.where(over, 0.0, drive)
         vi = g.veh_idx

@@ -224,6 +224,8 @@ class SlotTables:
     max_brake: np.ndarray
     drive_grip: np.ndarray
     """Force the driven wheels carry [N] (``AgentSpec.drive_grip``)."""
+    tyre_mu: np.ndarray
+    """Tyre-road friction [1] (``AgentSpec.tyre_mu``)."""
     stab_max: np.ndarray
     rest_z: np.ndarray
     """Settled body height on flat ground [m]."""
@@ -393,7 +395,7 @@ def _build_tables(
             m_eff=full(spec.effective_mass), mass=full(spec.total_mass),
             max_steer=full(math.radians(spec.max_steer_deg)),
             max_drive=full(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force),
-            max_brake=full(spec.max_brake), drive_grip=full(spec.drive_grip), stab_max=full(spec.stab_max), rest_z=full(rest.z),
+            max_brake=full(spec.max_brake), drive_grip=full(spec.drive_grip), tyre_mu=full(spec.tyre_mu), stab_max=full(spec.stab_max), rest_z=full(rest.z),
             rest_pitch=full(rest.pitch),
         )
         for k, v in part.items():
@@ -405,7 +407,7 @@ def _build_tables(
 _WIDTH = {"steer_q": 2, "steer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4}
 _FLOAT = {
     "brake_share", "park_x", "park_y", "length", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
-    "mass", "max_steer", "max_drive", "max_brake", "drive_grip", "stab_max", "rest_z", "rest_pitch",
+    "mass", "max_steer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "rest_z", "rest_pitch",
 }
 
 

@@ -59,6 +59,7 @@ TYPE_NAMES: dict[str, AgentClass] = {
 }
 
 GROUND_FRICTION = (1.0, 0.005, 0.0001)  # sliding, torsional, rolling
+CAR_TYRE_MU = 1.3  # [1] tyre-road friction of cars, taxis, vans and bicycles
 # Agent bodies (chassis, frames, pedestrians) touch softly: a time constant of 0.1 s
 # instead of 0.02 s, so an overlap (a placement next to a lagging neighbour, a crash)
 # pushes the agents apart at a few m/s^2 instead of exploding; wheels keep the stiff
@@ -163,6 +164,9 @@ class AgentSpec:
 
 def _car(cls: AgentClass, length: float, width: float, name: str = "", **kw) -> AgentSpec:
     # Wheelbase ~0.6 of the length, front overhang = rear overhang (symmetric body).
+    # Tyres mu 1.3 (good tyres on dry asphalt, the upper end): SUMO drives junction turns at
+    # up to ~10 m/s^2 of lateral acceleration; with mu 1.0 cars ran 1-1.5 m wide there.
+    kw.setdefault("tyre_mu", CAR_TYRE_MU)
     return AgentSpec(
         name=name or f"{cls.name.lower()}_{length:g}", kind=KIND_CAR, cls=cls, length=length, width=width,
         height=kw.pop("height", 1.5), mass=kw.pop("mass", 1300.0 * length * width / 9.0),
@@ -175,7 +179,7 @@ def _heavy(cls: AgentClass, length: float, width: float, name: str, mass: float,
            wheelbase: float) -> AgentSpec:
     """Bus, coach, truck, tram: 0.5 m wheels, high COM, ~3.5 m/s^2 drive, ~9 m/s^2 brakes."""
     return _car(
-        cls, length, width, name=name, height=height, mass=mass, com_height=1.0, wheelbase=wheelbase,
+        cls, length, width, name=name, height=height, mass=mass, com_height=1.0, wheelbase=wheelbase, tyre_mu=1.0,
         track=max(width - 0.4, 1.2), wheel_radius=0.5, wheel_mass=120.0, clearance=0.35, max_steer_deg=40.0,
         # SUMO's coach accelerates at 2.0 m/s^2 (bus 1.2, truck 1.3): ~2 m/s^2 of drive left a
         # coach ~6 m behind after every start, so the drive keeps a margin over the fastest
@@ -197,7 +201,7 @@ def _bike(length: float, width: float = 0.65, name: str = "") -> AgentSpec:
         # COM 1 m high over a 1 m wheelbase: beyond ~4.9 m/s^2 a bicycle lifts a wheel,
         # so drive (~3 m/s^2) and brakes (~4 m/s^2, half on each wheel) stay below that.
         max_drive=100.0, max_brake=130.0, brake_front=0.5, steer_kp=300.0, steer_kv=15.0,
-        stab_max=1500.0,
+        stab_max=1500.0, tyre_mu=CAR_TYRE_MU,  # SUMO's bicycles take junction turns like cars
     )
 
 

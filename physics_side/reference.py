@@ -30,7 +30,8 @@ from protocol.frames import sumo_angle_to_yaw, wrap_pi
 _BIG = 1.0e6  # [m] arc-length gap between agents in the global search key (> any path)
 SYNTH_LENGTH = 60.0  # [m] length of a synthesised path
 SYNTH_STEP = 2.0  # [m] vertex spacing of a synthesised path
-BLEND_M = 2.0  # [m] half-length over which the heading turns at a polyline vertex
+BLEND_M = 3.5  # [m] half-length over which the heading turns at a polyline vertex
+FINE_SEG_M = 4.0  # [m] segments up to this long sample a curve (SUMO's internal junction lanes)
 LANE_WIDTH_M = 3.5  # [m] a sideways drift away from the path's centre line ends after this
 
 
@@ -115,7 +116,7 @@ class PathSet:
         turn_end[self.last_seg] = 0.0
         b_end[self.last_seg] = 0.0
         # sampled curves: the first / last segment continues its neighbour's turn
-        fine = seglen <= 2.0 * BLEND_M
+        fine = seglen <= FINE_SEG_M
         if m > 1:
             nxt_ok = first_seg & ~last_seg & fine & np.concatenate((fine[1:], [False]))
             idx = np.flatnonzero(nxt_ok)

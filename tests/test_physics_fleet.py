@@ -255,6 +255,23 @@ def test_continuous_lane_change_is_driven_within_bounds(v):
     assert worst < (0.3 if v > 10 else 0.5), worst
 
 
+def test_a_standing_vehicle_slid_sideways_is_carried_along_the_slide():
+    """SUMO's continuous lane change while standing in a queue: no vehicle drives that, so it
+    follows SUMO's slide every tick (one placement for the slide), not lagging 0.5 m behind."""
+    f = _fleet()
+    worst = 0.0
+    for k in range(80):
+        msg, off = _lane_change_step(k, 0.1, 0.0, 3.2 / 3.0, t0=2.0)
+        f.apply_step(msg)
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+            worst = max(worst, float(np.hypot(f.err_lon, f.err_lat).max()))
+    snap = f.snapshot()
+    assert f.counters["placements_jump"] == 1 and f.counters["placements_divergence"] == 0, f.counters
+    assert abs(snap.y[0] - 103.2) < 0.1 and abs(snap.roll[0]) < 3.0
+    assert worst < 0.1, worst
+
+
 def _line_step(k: int, xs, speeds, ids=None, flags=None, step_s: float = 0.1):
     """Cars heading east on y = 100 at bumper positions ``xs`` [m] with ``speeds`` [m/s]."""
     n = len(xs)

@@ -85,6 +85,21 @@ def test_paper_preset_cuts_corners_more_with_a_longer_lad_min():
     assert track_reference("default", AgentClass.PASSENGER, turn90(radius=10.0, v=4.0))["err"].max() < 0.1
 
 
+def test_a_replay_counts_its_placements_by_cause():
+    """The LAD_min sweep replays a car alone; its re-placements are reported with the sweep
+    (the daemons' summary does not hold them), so a replay must count them by cause."""
+    from dataclasses import replace
+
+    from physics_side.config import PhysicsSettings
+
+    tight = PhysicsSettings(replace(PhysicsSettings().physics, divergence_m=0.3))
+    r = track_reference("paper", AgentClass.PASSENGER, turn90(radius=10.0, v=6.0), settings=tight)
+    assert r["placements_spawn"][0] == 1
+    assert r["placements_divergence"][0] >= 1  # the paper preset cuts this corner by > 0.3 m
+    assert r["placements"][0] == r["placements_spawn"][0] + r["placements_divergence"][0] + r["placements_flip"][0] \
+        + r["placements_jump"][0]
+
+
 @pytest.mark.parametrize("cls", VEHICLES)
 def test_nothing_flips_or_explodes_on_the_paper_route(cls):
     """Start from rest, two lane changes, a right turn (paper Figure 7) under both presets."""

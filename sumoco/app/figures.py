@@ -136,8 +136,19 @@ def lad_min_sweep(track: dict, lad_mins=(5.0, 6.0, 7.0, 8.0)) -> list[dict]:
     t0 = float(track["t"][0])
     inside = track["t"][np.asarray(track.get("internal", np.zeros(len(track["t"]), bool)))]
     rows = []
+    fleet_log = logging.getLogger("physics_side.fleet")
     for lad in lad_mins:
-        r = track_reference("paper", AgentClass.PASSENGER, traj, lad_min=lad)
+        # the replay's fleet would log its placements like a daemon's; they are the sweep's
+        # (counted in its rows below), not the run's, so they are reported here as such
+        level = fleet_log.level
+        fleet_log.setLevel(logging.ERROR)
+        try:
+            r = track_reference("paper", AgentClass.PASSENGER, traj, lad_min=lad)
+        finally:
+            fleet_log.setLevel(level)
+        if r["placements_divergence"][0] or r["placements_flip"][0]:
+            log.info("LAD_min sweep, LAD_min %g m: the replayed car was placed %d times for divergence, %d for a flip",
+                     lad, int(r["placements_divergence"][0]), int(r["placements_flip"][0]))
         t = r["t"] + t0
         turn = (t >= inside.min() - 1.0) & (t <= inside.max() + 1.0) if len(inside) else np.ones(len(t), bool)
         rows.append({
@@ -145,5 +156,9 @@ def lad_min_sweep(track: dict, lad_mins=(5.0, 6.0, 7.0, 8.0)) -> list[dict]:
             "x": r["x"], "y": r["y"], "ref_x": r["ref_x"], "ref_y": r["ref_y"],
             "turn_lat_max_m": round(float(np.max(np.abs(r["err_true_lat"][turn]))), 4),
             "err_max_m": round(float(np.max(r["err"])), 4),
+            # the replay's own placements: its fleet logs "placed diverged" for the replayed car,
+            # which is not one of the run's (their counters are the daemons')
+            "placements_divergence": int(r["placements_divergence"][0]),
+            "placements_flip": int(r["placements_flip"][0]),
         })
     return rows

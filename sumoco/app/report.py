@@ -86,9 +86,11 @@ def render_markdown(summary: dict, recording) -> str:
             lines.append("")
     if summary.get("lad_sweep"):
         lines += ["", "LAD_min sweep through the right turn (paper preset, reference car replayed alone):", "",
-                  "| LAD_min [m] | max lateral error in turn [m] | max error [m] |", "|---|---|---|"]
+                  "| LAD_min [m] | max lateral error in turn [m] | max error [m] | placements divergence / flip |",
+                  "|---|---|---|---|"]
         for row in summary["lad_sweep"]:
-            lines.append(f"| {row['lad_min_m']} | {row['turn_lat_max_m']:.3f} | {row['err_max_m']:.3f} |")
+            lines.append(f"| {row['lad_min_m']} | {row['turn_lat_max_m']:.3f} | {row['err_max_m']:.3f} | "
+                         f"{row.get('placements_divergence', 0)} / {row.get('placements_flip', 0)} |")
     if summary.get("truncated_recording"):
         lines += ["", "**The recording is truncated**: numbers cover what it holds."]
     return "\n".join(lines) + "\n"
