@@ -171,7 +171,8 @@ _N_MODES = len(AgentMode)
 
 def _bin(a: np.ndarray, dtype: str) -> memoryview:
     # msgpack packs a memoryview as bin straight from the array: no intermediate bytes copy
-    return memoryview(np.ascontiguousarray(a, dtype=dtype)).cast("B")
+    # flat: memoryview cannot cast an empty 2-D array (a step whose agents have no path)
+    return memoryview(np.ascontiguousarray(a, dtype=dtype).reshape(-1)).cast("B")
 
 
 def _columns(obj: Any, spec: tuple[tuple[str, str], ...]) -> dict[str, bytes]:

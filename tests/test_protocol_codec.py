@@ -235,3 +235,13 @@ def test_truncated_messages_rejected(name, data):
     cut = data.draw(st.integers(0, len(raw) - 1))
     with pytest.raises(ProtocolError):
         decode(raw[:cut])
+
+
+def test_round_trip_step_whose_agents_have_no_path_points():
+    """Offsets for every agent but no points at all (agents parked or at their route's end)."""
+    from dataclasses import replace
+
+    msg = synthetic_step(5, seed=1, path_points=2)
+    agents = replace(msg.agents, path_offsets=np.zeros(6, np.uint32), path_xy=np.zeros((0, 2), np.float32))
+    out = decode_as(encode(replace(msg, agents=agents)), StepMessage)
+    assert out.agents.n == 5 and len(out.agents.path_xy) == 0
