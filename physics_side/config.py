@@ -166,7 +166,7 @@ class DefaultControl:
     decel_max: float = 11.0  # [m/s^2] commanded deceleration limit (SUMO's motorcycles brake at 10)
     hold_speed: float = 0.2  # [m/s] below this reference speed a stopped agent holds its brakes
     hold_brake: float = 0.3  # [1] hold brake as a fraction of max brake torque
-    ped_omega: float = 4.0  # [rad/s] pedestrian position-loop natural frequency
+    ped_omega: float = 6.0  # [rad/s] pedestrian position-loop natural frequency
     ped_zeta: float = 1.0  # [1] pedestrian position-loop damping ratio
     bike_roll_kp: float = 1500.0  # [N*m/rad] roll stabiliser stiffness (bicycles, every preset)
     bike_roll_kd: float = 250.0  # [N*m*s/rad] roll stabiliser damping
