@@ -56,6 +56,30 @@ SUMOCFG = f"""<configuration>
 """
 
 
+def _demo(tmp_path, run_id: str, scenario, sim_s: float) -> dict:
+    """``sumoco demo`` on ``scenario`` with the default preset only, in lockstep, as a user runs
+    it; checks its exit codes and returns summary.json."""
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(f"""
+[run]
+id = "{run_id}"
+timing = "lockstep"
+lockstep_timeout_s = 30.0
+[physics]
+preset = "default"
+[demo]
+presets = ["default"]
+lad_sweep = false
+""")
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--sumocfg",
+                        str(scenario), "--out", str(out), "--duration", str(sim_s), "--quiet"],
+                       capture_output=True, text=True, timeout=240, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["daemons"]["exit_codes"] == {"sumo": 0, "physics-default": 0}
+    return s
+
 @pytest.fixture(scope="module")
 def scenario(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("unseen")
@@ -72,25 +96,8 @@ def scenario(tmp_path_factory) -> Path:
 
 
 def test_unseen_scenario_runs_clean(scenario, tmp_path):
-    cfg = tmp_path / "run.toml"
-    cfg.write_text("""
-[run]
-id = "unseen"
-timing = "lockstep"
-lockstep_timeout_s = 30.0
-[physics]
-preset = "default"
-[demo]
-presets = ["default"]
-lad_sweep = false
-""")
+    s = _demo(tmp_path, "unseen", scenario, SIM_S)
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--sumocfg",
-                        str(scenario), "--out", str(out), "--duration", str(SIM_S), "--quiet"],
-                       capture_output=True, text=True, timeout=240, cwd=ROOT)
-    assert r.returncode == 0, r.stderr[-3000:]
-    s = json.loads((out / "summary.json").read_text())
-    assert s["daemons"]["exit_codes"] == {"sumo": 0, "physics-default": 0}
     assert s["daemons"]["completed"] is True
     assert s["steps"] == round(SIM_S / STEP_S)
     p = s["presets"]["default"]
@@ -160,25 +167,7 @@ def mixed_scenario(tmp_path_factory) -> Path:
 def test_mixed_classes_no_phantom_collisions(mixed_scenario, tmp_path):
     """A motorcycle stops where SUMO stops it (SUMO brakes it at up to 10 m/s^2) and a coach
     keeps up when SUMO pulls away: no collision that SUMO did not have, tracking within limits."""
-    cfg = tmp_path / "run.toml"
-    cfg.write_text("""
-[run]
-id = "mixed"
-timing = "lockstep"
-lockstep_timeout_s = 30.0
-[physics]
-preset = "default"
-[demo]
-presets = ["default"]
-lad_sweep = false
-""")
-    out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--sumocfg",
-                        str(mixed_scenario), "--out", str(out), "--duration", str(MIXED_SIM_S), "--quiet"],
-                       capture_output=True, text=True, timeout=240, cwd=ROOT)
-    assert r.returncode == 0, r.stderr[-3000:]
-    s = json.loads((out / "summary.json").read_text())
-    assert s["daemons"]["exit_codes"] == {"sumo": 0, "physics-default": 0}
+    s = _demo(tmp_path, "mixed", mixed_scenario, MIXED_SIM_S)
     p = s["presets"]["default"]
     seen = s["agents_seen_sumo"]
     assert seen.get("bicycle", 0) >= 2 and seen.get("pedestrian", 0) >= 3 and seen.get("other", 0) >= 6, seen
