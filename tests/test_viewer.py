@@ -71,6 +71,18 @@ def test_mailbox_keeps_only_the_newest_frame():
     asyncio.run(go())
 
 
+def test_a_departed_physics_instance_stays_gone_until_its_token_returns():
+    """A state that overtakes the token's DELETE must not bring the instance back."""
+    store = LatestStore()
+    store.put_physics("main", b"s1")
+    store.drop_physics("main")
+    store.put_physics("main", b"late")  # in flight when the token went
+    assert "main" not in store.physics
+    store.revive_physics("main")  # its token is declared again (a restart)
+    store.put_physics("main", b"s2")
+    assert store.physics["main"][0] == b"s2"
+
+
 def test_slow_consumer_never_accumulates_more_than_one_pending_frame():
     async def go():
         box = Mailbox()

@@ -114,6 +114,9 @@ class LatestStore:
         self.stale_s = stale_s
         self.step: bytes | None = None
         self.physics: dict[str, tuple[bytes, float]] = {}  # instance -> (payload, rx monotonic)
+        # Instances whose liveliness token went: their states are ignored until the token is
+        # back, because a state sample can overtake the token's DELETE (different priorities).
+        self.departed: set[str] = set()
         self.static: bytes | None = None
         self.map_glb: bytes | None = None  # the network as glTF (SPEC 9), for the 3D page
         self.map_sha256 = ""
@@ -142,13 +145,21 @@ class LatestStore:
 
     def put_physics(self, instance: str, payload: bytes) -> None:
         with self._lock:
+            if instance in self.departed:
+                return
             self.physics[instance] = (payload, time.monotonic())
             self.physics_received += 1
             self.version += 1
         self._changed()
 
+    def revive_physics(self, instance: str) -> None:
+        """The instance's liveliness token is (back) up: accept its states again."""
+        with self._lock:
+            self.departed.discard(instance)
+
     def drop_physics(self, instance: str) -> None:
         with self._lock:
+            self.departed.add(instance)
             if self.physics.pop(instance, None) is None:
                 return
             self.version += 1
@@ -580,10 +591,14 @@ class ZenohFeed:
     def _on_physics_token(self, sample: Any) -> None:
         import zenoh
 
+        inst = Keys.instance_of(str(sample.key_expr))
+        if not inst:
+            return
         if sample.kind == zenoh.SampleKind.DELETE:
-            inst = Keys.instance_of(str(sample.key_expr))
             log.info("physics instance %r left", inst)
             self.store.drop_physics(inst)
+        else:
+            self.store.revive_physics(inst)
 
     def _ask_static(self) -> None:
         self._last_static_ask = time.monotonic()
