@@ -40,6 +40,7 @@ class SumoConfig:
     ego_timeout_s: float = 30.0  # [s] without poses the ego is removed (re-added when poses resume)
     ego_jump_m: float = 5.0  # [m] a pose further than this from the previous one flags the ego JUMPED
     ego_max: int = 8  # [vehicles] most egos at once (ego_id "*" takes any id); poses for more are rejected
+    ego_max_per_client: int = 4  # [vehicles] most egos of one client at once: an id "<client>.<name>" counts against <client>, an id without "." is a client of its own; more are rejected
     max_peer_keys: int = 256  # [keys] ack / physics-liveliness keys held at once (newest per key; more refused)
 
     lockstep_instances: tuple[str, ...] = ("main",)  # physics instances whose acks lockstep waits for
@@ -69,6 +70,8 @@ class SumoConfig:
             raise ConfigError("sumo.ego_hold_s / ego_timeout_s: expected >= 0 and > 0")
         if self.ego_max < 1 or self.max_peer_keys < 1:
             raise ConfigError(f"sumo.ego_max / max_peer_keys: expected >= 1, got {self.ego_max} and {self.max_peer_keys}")
+        if self.ego_max_per_client < 1:
+            raise ConfigError(f"sumo.ego_max_per_client: expected >= 1, got {self.ego_max_per_client}")
         if self.status_period_s <= 0:
             raise ConfigError(f"sumo.status_period_s: expected > 0, got {self.status_period_s}")
         if not self.lockstep_instances:

@@ -238,10 +238,10 @@ class SumoDaemon:
             if not self.ego.accepts(msg.id):
                 self._reject(f"ego pose on {key}", f"ego id {msg.id!r} is not [sumo] ego_id {self.cfg.ego_id!r}")
                 continue
-            if msg.id not in self.ego.egos and len(self.ego.egos) >= self.cfg.ego_max:
-                # ego_id "*" takes any id: without a cap, poses under many ids would each add a vehicle
-                self._reject(f"ego pose on {key}", f"{len(self.ego.egos)} egos already, the most "
-                                                   f"[sumo] ego_max allows; ego {msg.id!r} not added")
+            # ego_id "*" takes any id: without caps, poses under many ids would each add a vehicle
+            refused = self.ego.admit(msg.id)
+            if refused:
+                self._reject(f"ego pose on {key}", refused)
                 continue
             self.ego.offer(msg)
 

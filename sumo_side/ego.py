@@ -10,6 +10,15 @@ When poses pause, the ego stays where it was last put: for ``ego_hold_s`` with i
 last speed, then standing (speed 0); after ``ego_timeout_s`` without a pose it is removed
 (with a log line) and created again as soon as poses resume.
 
+How many egos: at most ``[sumo] ego_max`` at once, and at most ``ego_max_per_client`` of
+one client, where the client of an ego is what its id says: ``<client>.<name>`` counts
+against ``<client>`` (``unity1.car``, ``unity1.trailer``), an id without a dot is a client
+of its own. A pose for one ego more is refused before it reaches SUMO (``admit``, counted
+in ``ego_refused`` and ``ego_refused_client``); an ego already in keeps being driven, and a
+removed one frees its place. Ids are chosen by the sender: against a hostile sender the
+total cap is the bound, and the secure profile's access control lets each renderer
+certificate put its own ego key only.
+
 Drift is the distance between the requested pose and the pose SUMO reports after the
 step; with keepRoute=2 it is normally zero, larger values mean SUMO could not put the ego
 where asked (e.g. blocked insertion or no road nearby).
@@ -60,6 +69,8 @@ class EgoManager:
             "ego_removed": 0,
             "ego_errors": 0,
             "ego_drift_events": 0,
+            "ego_refused": 0,  # poses for one ego more than [sumo] ego_max
+            "ego_refused_client": 0,  # poses for one ego more than its client's ego_max_per_client
         }
         self.drift_last_m = 0.0
         self.drift_max_m = 0.0
@@ -72,6 +83,28 @@ class EgoManager:
 
     def accepts(self, ego_id: str) -> bool:
         return self.cfg.ego_id in ("*", ego_id)
+
+    @staticmethod
+    def client_of(ego_id: str) -> str:
+        """The client an ego counts against: the id up to its first "." (the whole id without one)."""
+        return ego_id.split(".", 1)[0]
+
+    def admit(self, ego_id: str) -> str:
+        """"" when a pose for ``ego_id`` may be offered, else why not (counted): a known ego
+        always may; a new one only within ``ego_max`` and its client's ``ego_max_per_client``."""
+        if ego_id in self.egos:
+            return ""
+        if len(self.egos) >= self.cfg.ego_max:
+            self.counters["ego_refused"] += 1
+            return (f"{len(self.egos)} egos already, the most [sumo] ego_max allows; "
+                    f"ego {ego_id!r} not added")
+        client = self.client_of(ego_id)
+        n = sum(1 for other in self.egos if self.client_of(other) == client)
+        if n >= self.cfg.ego_max_per_client:
+            self.counters["ego_refused_client"] += 1
+            return (f"client {client!r} has {n} egos already, the most [sumo] ego_max_per_client allows; "
+                    f"ego {ego_id!r} not added")
+        return ""
 
     def offer(self, pose: EgoPose) -> None:
         """Newest pose of an ego (poses of one ego arrive in order; the last one wins)."""

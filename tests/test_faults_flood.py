@@ -4,7 +4,8 @@ The hand-over queues on their own (``DropOldest``: physics steps; ``LatestPerKey
 SUMO side's acks and liveliness changes), then the real SUMO side as a process under a
 flood of acknowledgements (newest per key: memory stays flat and lockstep still advances
 on the real acks; keys beyond ``max_peer_keys`` refused) and of ego poses under many ids
-(at most ``[sumo] ego_max`` egos are created, the rest rejected).
+(at most ``[sumo] ego_max_per_client`` egos of one client and ``ego_max`` in all are created,
+the rest refused and counted; another client still gets its egos in).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import zenoh
 
 from protocol.codec import decode, encode
 from protocol.keys import Keys
-from protocol.messages import EgoPose, StepAck
+from protocol.messages import AgentFlag, EgoPose, StepAck
 from sumoco.app.soak import rss_mb
 from sumoco.common.config import ZenohConfig
 from sumoco.common.queues import DropOldest, LatestPerKey
@@ -69,13 +70,14 @@ def _status(session, keys):
 
 
 @pytest.mark.integration
-def test_sumo_side_survives_an_ack_flood_and_caps_egos(tmp_path):
+def test_sumo_side_survives_an_ack_flood_and_caps_egos_per_client_and_in_total(tmp_path):
     scenario = make_testnet(tmp_path / "net")
     ep = endpoint()
     toml = tmp_path / "flood.toml"
     toml.write_text(
         '[run]\nid = "flood"\ntiming = "lockstep"\nlockstep_timeout_s = 10.0\n\n'
-        f'[sumo]\nsumocfg = "{scenario}"\nlockstep_instances = ["main"]\nego_id = "*"\nego_max = 3\n'
+        f'[sumo]\nsumocfg = "{scenario}"\nlockstep_instances = ["main"]\nego_id = "*"\nego_max = 4\n'
+        'ego_max_per_client = 2\n'
         'max_peer_keys = 4\n'
     )
     sumo = Daemon("sumo", ["sumo", "--config", str(toml), "--listen", ep, "--quiet"], tmp_path)
@@ -116,21 +118,45 @@ def test_sumo_side_survives_an_ack_flood_and_caps_egos(tmp_path):
             k1 = len(steps)
             wait_until(lambda: len(steps) > k1 + 10, 30, "lockstep to go on", procs=[sumo])
 
-            def pose(i: int) -> bytes:
+            def pose(ego_id: str, i: int) -> bytes:
                 m = steps[-1]
-                return encode(EgoPose(f"e{i}", float(m.agents.x[0]) + 5.0 * i, float(m.agents.y[0]),
+                return encode(EgoPose(ego_id, float(m.agents.x[0]) + 5.0 * i, float(m.agents.y[0]),
                                       float(m.agents.angle[0]), 0.0))
-            for _ in range(10):
-                for i in range(12):
-                    s.put(keys.ego(f"e{i}"), pose(i))
-                time.sleep(0.05)
-            st = wait_until(lambda: (c := _status(s, keys)) and c["ego_created"] >= 3 and c, 20,
-                            "the first egos in SUMO", procs=[sumo])
+
+            def flood(ids: list[str], rounds: int = 10) -> None:
+                for _ in range(rounds):
+                    for i, ego_id in enumerate(ids):
+                        s.put(keys.ego(ego_id), pose(ego_id, i))
+                    time.sleep(0.05)
+
+            def egos_by_client() -> dict[str, set[str]]:
+                m = steps[-1]
+                out: dict[str, set[str]] = {}
+                for i, f in zip(m.agents.ids, m.agents.flags):
+                    if f & AgentFlag.EGO:
+                        out.setdefault(i.split(".")[0], set()).add(i)
+                return out
+
+            # one client ("a.<n>") floods twelve ids: its two get in, the rest are refused
+            flood([f"a.{i}" for i in range(12)])
+            wait_until(lambda: (c := _status(s, keys)) and c["ego_created"] >= 2, 20,
+                       "the first client's egos in SUMO", procs=[sumo])
             time.sleep(0.5)  # let any ego beyond the cap arrive before counting (none must be created)
             st = wait_until(lambda: _status(s, keys), 10, "SUMO status")
-            assert st["ego_created"] == 3 and st["rejected"] >= 9
-            egos = {i for i in steps[-1].agents.ids if i.startswith("e") and i[1:].isdigit()}
-            assert len(egos) == 3, egos
+            assert st["ego_created"] == 2 and st["ego_refused_client"] >= 10 and st["ego_refused"] == 0, st
+            # another client still gets its egos in, up to its own cap
+            flood([f"b.{i}" for i in range(12, 16)])
+            wait_until(lambda: (c := _status(s, keys)) and c["ego_created"] >= 4, 20,
+                       "the second client's egos in SUMO", procs=[sumo])
+            # the total cap holds for anyone: a third client and ids without a client part
+            flood(["c.0", "solo", "e16"])
+            time.sleep(0.5)
+            st = wait_until(lambda: _status(s, keys), 10, "SUMO status")
+            assert st["ego_created"] == 4 and st["ego_refused"] >= 3 and st["rejected"] >= 13, st
+            k2 = len(steps)
+            wait_until(lambda: len(steps) > k2 + 2, 20, "steps after the flood", procs=[sumo])
+            by_client = egos_by_client()
+            assert {c: len(v) for c, v in by_client.items()} == {"a": 2, "b": 2}, by_client
             sub.undeclare()
             token.undeclare()
     finally:

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import json
 import os
 import shutil
 import subprocess
 import threading
+import time
 
 import pytest
 import zenoh
@@ -18,7 +20,7 @@ from protocol.codec import decode, encode
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import CameraPose, EgoPose, StaticData, StepMessage
-from sumoco.app.gateway import pack_frame, unpack_frame
+from sumoco.app.gateway import Gateway, GatewayConfig, pack_frame, unpack_frame
 from sumoco.common.config import ZenohConfig
 from sumoco.common.transport import open_session
 from sumoco.testing.feed import FakePublisher
@@ -215,3 +217,73 @@ def test_node_client_from_the_examples(run_and_gateway):
     assert all(f["bytes"] == len(base64.b64decode(f["b64"])) for f in frames)
     wait_until(lambda: egos, 5.0, "the Node client's ego pose on Zenoh")
     assert decode(egos[-1]) == ego
+
+
+@pytest.mark.integration
+def test_gateway_bounds_ego_ids_per_client_and_in_total():
+    """A client gets at most ego_per_client ego ids, all clients at most ego_total: a pose for
+    one more is refused with an error to that client, counted, and never reaches Zenoh."""
+    ep = endpoint()
+    victim = open_session(ZenohConfig(listen=(ep,)))  # stands in for the SUMO side
+    got: list[str] = []
+    lock = threading.Lock()
+
+    def on_ego(s):
+        with lock:
+            got.append(decode(s.payload.to_bytes()).id)
+    sub = victim.declare_subscriber(KEYS.ego_all, on_ego)
+    gw_session = open_session(ZenohConfig(connect=(ep,), listen=()))
+    gw = Gateway(gw_session, KEYS, GatewayConfig(port=0, ego_per_client=2, ego_total=3))
+    ready, loop_of = threading.Event(), {}
+
+    async def serve_until_stopped():
+        loop_of["stop"], loop_of["loop"] = asyncio.Event(), asyncio.get_running_loop()
+        await gw.run(loop_of["stop"], lambda _: ready.set())
+    server = threading.Thread(target=asyncio.run, args=(serve_until_stopped(),), daemon=True)
+    server.start()
+
+    def seen(ego_id: str) -> int:
+        with lock:
+            return got.count(ego_id)
+
+    def send(ws, ego_id: str) -> None:
+        ws.send(pack_frame(f"ego/{ego_id}", encode(EgoPose(ego_id, 1.0, 2.0, 90.0, 0.0))))
+
+    def next_error(ws) -> str:
+        while True:
+            m = ws.recv(timeout=10)
+            if isinstance(m, str) and json.loads(m)["op"] == "error":
+                return json.loads(m)["error"]
+
+    try:
+        assert ready.wait(20), "the gateway did not start"
+        wait_until(lambda: list(gw_session.info.peers_zid()), 10, "the gateway's session to reach the run")
+        with connect(gw.url(), open_timeout=10) as a, connect(gw.url(), open_timeout=10) as b:
+            for ws in (a, b):
+                assert json.loads(ws.recv(timeout=5))["op"] == "hello"
+            for ego_id in ("a0", "a1"):
+                wait_until(lambda i=ego_id: send(a, i) or seen(i), 10, f"{ego_id} on Zenoh", poll_s=0.1)
+            send(a, "a2")  # a third id from the same client
+            err = next_error(a)
+            assert err.startswith("ego/a2: refused") and "per client (2)" in err, err
+            wait_until(lambda: send(b, "b0") or seen("b0"), 10, "another client's ego on Zenoh", poll_s=0.1)
+            send(b, "b1")  # within b's own bound, but the gateway holds 3 ids in all
+            err = next_error(b)
+            assert err.startswith("ego/b1: refused") and "the most it allows (3)" in err, err
+            n0 = seen("a0")  # ids already driven still go through, after the refused ones
+            wait_until(lambda: send(a, "a0") or seen("a0") > n0 + 1, 10, "a0 again", poll_s=0.1)
+            time.sleep(0.3)
+            assert seen("a2") == 0 and seen("b1") == 0, got
+            st = gw.status()
+            assert st["egos"] == 3 and st["ego_refused"] == 2 and st["rejected"] == 2, st
+            a.close()  # a leaves: its two ids are freed
+            wait_until(lambda: gw.status()["clients"] == 1, 10, "the gateway to see the client go")
+            wait_until(lambda: send(b, "b1") or seen("b1"), 10, "b1 once a's ids are free", poll_s=0.1)
+            assert gw.status()["egos"] == 2
+    finally:
+        if "loop" in loop_of:
+            loop_of["loop"].call_soon_threadsafe(loop_of["stop"].set)
+        server.join(10)
+        sub.undeclare()
+        gw_session.close()
+        victim.close()

@@ -12,6 +12,7 @@ import pytest
 from protocol import ProtocolError, decode, encode
 from protocol.codec import DEFAULT_LIMITS, DecodeLimits
 from protocol.golden_vectors import valid_messages
+from protocol.keys import Keys
 from sumoco.common.config import ConfigError, RunConfig, from_dict
 from sumoco.testing.synthetic import synthetic_step
 
@@ -92,3 +93,92 @@ def test_duplicate_ids_rejected_in_physics_and_static():
     with pytest.raises(ProtocolError) as e:
         decode(msgpack.packb(d, use_bin_type=True))
     assert e.value.field == "lanes.id"
+
+
+# ------------------------------------------------------------------ decoders outside the daemons
+
+
+class _NoFile:
+    """A recorder without a file: the live recorder's writer needs only these."""
+
+    context = None
+
+    def write(self, topic, payload, stamp_ns=None, schema=None) -> None:
+        pass
+
+    def flush(self) -> None:
+        pass
+
+
+def test_recorder_peeks_and_compacts_within_the_run_limits():
+    from sumoco.app.record import LiveRecorder, RecordConfig, _peek
+
+    lim = RunConfig(max_agents=50).decode_limits
+    step = encode(synthetic_step(5, step=7))
+    assert _peek(step, "t", lim) == decode(step).time and _peek(step, "sv", lim) == 0
+    wide = msgpack.packb({"agents": [None] * 100_000, "t": 2.5})  # the other values are skipped, not built
+    assert _peek(wide, "t", lim) == 2.5
+    big = msgpack.packb({"pad": b"x" * 2_000_000, "t": 1.0})  # over 1 MiB + 4 KiB per agent
+    assert _peek(big, "t") == 1.0 and _peek(big, "t", lim) is None
+    for header in (b"\xdd" + struct.pack(">I", 2**31), b"\xc6" + struct.pack(">I", 2**31)):
+        t0 = time.perf_counter()
+        assert _peek(b"\x82\xa1t" + header + b"\x00" * 8, "t", lim) is None
+        assert time.perf_counter() - t0 < 0.5
+    live = LiveRecorder(None, Keys("sumoco", "lim"), _NoFile(), limits=lim,
+                        config=RecordConfig(scene=False, physics_hz=0.0))
+    try:
+        assert live._compact(live.keys.step, step, None)[1] == "sumoco.rec.step"
+        over = encode(synthetic_step(60, step=8))  # more agents than the run is configured for
+        assert live._compact(live.keys.step, over, None) == (over, None)  # kept as it came
+        assert live.compact_errors == 1
+    finally:
+        live.stop(5)
+
+
+def test_scene_decodes_steps_with_the_run_limits_and_static_data_with_the_default_ones():
+    from sumoco.app import scene
+
+    if not scene.available():
+        pytest.skip("foxglove-sdk is not installed")
+    import foxglove
+
+    keys = Keys("sumoco", "lim")
+    pub = scene.ScenePublisher(foxglove.Context(), limits=RunConfig(max_agents=50).decode_limits)
+    assert pub.feed(keys.static, encode(valid_messages()["static"]))
+    assert pub.feed(keys.step, encode(synthetic_step(5)))
+    assert not pub.feed(keys.step, encode(synthetic_step(60, step=2))) and pub.errors == 1
+
+
+def test_gateway_upstream_is_decoded_with_the_tightest_limits():
+    from sumoco.app.gateway import MAX_UPSTREAM_BYTES, UPSTREAM_LIMITS
+
+    ego = msgpack.unpackb(encode(valid_messages()["ego"]), raw=False)
+    assert decode(msgpack.packb(ego), UPSTREAM_LIMITS) == valid_messages()["ego"]
+    padded = msgpack.packb({**ego, "junk": list(range(100))})  # unknown keys are fine, long arrays not
+    assert decode(padded) == valid_messages()["ego"]
+    with pytest.raises(ProtocolError, match="msgpack"):
+        decode(padded, UPSTREAM_LIMITS)
+    assert UPSTREAM_LIMITS.max_bytes == MAX_UPSTREAM_BYTES
+
+
+def test_viewer_map_reply_decoded_within_limits():
+    import hashlib
+    from types import SimpleNamespace
+
+    from sumoco.app.viewer.server import LatestStore, ViewerConfig, ZenohFeed
+
+    glb = b"glTF" + b"\x00" * 60
+    good = msgpack.packb({"v": [1, 2], "kind": "map", "sha256": hashlib.sha256(glb).hexdigest(), "glb": glb})
+    hostile = msgpack.packb({"v": [1, 2], "kind": "map", "pad": [None] * 3_000_000})  # > 2,000,000 rows
+    replies: list[bytes] = []
+
+    class Session:
+        def get(self, key, timeout):
+            return [SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda d=d: d)))
+                    for d in replies]
+
+    feed = ZenohFeed(Session(), Keys("sumoco", "lim"), LatestStore(), ViewerConfig())
+    replies[:] = [hostile]
+    assert feed._query_map() is None  # refused while msgpack parses, no exception
+    replies[:] = [hostile, good]
+    assert feed._query_map() == (glb, hashlib.sha256(glb).hexdigest())

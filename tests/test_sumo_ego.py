@@ -122,3 +122,43 @@ def test_bad_ego_vtype_is_counted_not_fatal(sim):
     ego.offer(EgoPose("ego", 30.0, LANE_Y, 90.0, 0.0, vtype="no-such-type"))
     snap, _ = step(sim, ego)
     assert "ego" not in snap.ids and ego.counters["ego_errors"] == 1
+
+
+def test_egos_capped_per_client_and_in_total(sim):
+    clock = FakeClock()
+    ego = EgoManager(sim.api, SumoConfig(ego_id="*", ego_max=4, ego_max_per_client=2, ego_timeout_s=5.0), clock)
+
+    slots = {"a.0": 20.0, "a.1": 32.0, "b.0": 44.0, "b.1": 56.0}  # 12 m apart on one lane
+
+    def offer_all(ids):
+        taken = []
+        for i in ids:
+            if not ego.admit(i):  # what the daemon does before offering a pose
+                ego.offer(EgoPose(i, slots.get(i, 68.0), LANE_Y, 90.0, 0.0))
+                taken.append(i)
+        return taken
+
+    # one client, many ids: two of them get in, the rest never reach SUMO
+    assert offer_all([f"a.{k}" for k in range(6)]) == ["a.0", "a.1"]
+    assert EgoManager.client_of("a.7") == "a" and EgoManager.client_of("solo") == "solo"
+    assert "ego_max_per_client" in ego.admit("a.9")
+    # another client still gets its egos in; the total cap then holds for everyone
+    assert offer_all(["b.0", "b.1", "b.2"]) == ["b.0", "b.1"]
+    assert "[sumo] ego_max allows" in ego.admit("c.0") and "[sumo] ego_max allows" in ego.admit("solo")
+    assert offer_all(["a.0", "b.1"]) == ["a.0", "b.1"]  # egos already in keep being driven
+    snap, flags = step(sim, ego)
+    in_sumo = {i for i, f in zip(snap.ids, flags) if f & AgentFlag.EGO}
+    assert in_sumo == {"a.0", "a.1", "b.0", "b.1"} == set(sim.api.vehicle.getIDList()) & in_sumo
+    assert not {"a.2", "a.9", "b.2", "c.0", "solo"} & set(sim.api.vehicle.getIDList())
+    assert ego.counters["ego_created"] == 4
+    # a.2-a.5 and a.9 over their client's cap; b.2, c.0 and solo over the total
+    assert ego.counters["ego_refused_client"] == 5 and ego.counters["ego_refused"] == 3
+    # a removed ego frees its place for its client
+    clock.t += 10.0
+    ego.offer(EgoPose("b.0", 44.0, LANE_Y, 90.0, 0.0))
+    ego.offer(EgoPose("b.1", 56.0, LANE_Y, 90.0, 0.0))
+    snap, _ = step(sim, ego)  # a.0 and a.1 time out
+    assert {"a.0", "a.1"}.isdisjoint(snap.ids) and ego.counters["ego_removed"] == 2
+    assert offer_all(["a.5"]) == ["a.5"]
+    snap, _ = step(sim, ego)
+    assert "a.5" in snap.ids

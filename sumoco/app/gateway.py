@@ -18,8 +18,12 @@ Trust: listens on 127.0.0.1 by default; the handshake must carry the per-run tok
 names this server (against DNS rebinding) and, when a browser sends one, an ``Origin``
 from the allowed list (loopback pages by default). Every client has a bounded outbox
 that drops its oldest frame when the client lags (counted); upstream frames are size-
-bounded, decoded before they are forwarded, and only ``ego/<id>`` and ``viewer/camera``
-(the client's camera, published under an id the gateway assigns) are accepted.
+bounded, decoded (with tight limits) before they are forwarded, and only ``ego/<id>`` and
+``viewer/camera`` (the client's camera, published under an id the gateway assigns) are
+accepted. A client drives at most ``ego_per_client`` ego ids and all clients together at
+most ``ego_total``; a pose for one more is refused with an error to that client (counted
+in ``ego_refused``), and a client's ego ids are freed when it leaves. Downstream frames
+(subscriptions, query answers) are relayed as they came, never decoded here.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from protocol.codec import decode
+from protocol.codec import DecodeLimits, decode
 from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys, check_chunk
 from protocol.messages import CameraPose, EgoPose
@@ -52,6 +56,9 @@ log = logging.getLogger(__name__)
 
 PATH = "/ws"
 MAX_UPSTREAM_BYTES = 64 * 1024  # [B] an EgoPose is ~100 B; anything near this is not one
+#: Upstream frames carry one ego pose or one camera, never an agent table: the tightest
+#: limits while msgpack parses, whatever the run's ``[run] max_agents``.
+UPSTREAM_LIMITS = DecodeLimits(max_agents=1, max_static_rows=16, max_points=1, max_bytes=MAX_UPSTREAM_BYTES)
 _KEY_LEN = struct.Struct("<H")
 _LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
 
@@ -88,6 +95,13 @@ class GatewayConfig:
     allow_origins: tuple[str, ...] = ()  # extra allowed Origin values (scheme://host:port)
     allow_hosts: tuple[str, ...] = ()  # extra allowed Host header names (besides loopback)
     outbox: int = 256  # [frames] per client; full: drop the oldest (counted)
+    ego_per_client: int = 4  # [ego ids] one client may drive at once; a pose for one more is refused (counted)
+    ego_total: int = 32  # [ego ids] all clients together; a pose for one more is refused (counted)
+
+    def __post_init__(self) -> None:
+        if self.outbox < 1 or self.ego_per_client < 1 or self.ego_total < 1:
+            raise ConfigError(f"gateway: outbox, ego_per_client and ego_total must be >= 1, got "
+                              f"{self.outbox}, {self.ego_per_client} and {self.ego_total}")
 
 
 class Outbox:
@@ -121,6 +135,7 @@ class _Client:
     rejected: int = 0
     camera_id: str = field(default_factory=lambda: f"gw-{secrets.token_hex(4)}")
     camera: CameraPublisher | None = None  # declared with the client's first camera
+    egos: dict[str, zenoh.Publisher] = field(default_factory=dict)  # full ego key -> its publisher
 
 
 class Gateway:
@@ -136,7 +151,7 @@ class Gateway:
         self.relayed = 0
         self.ego_forwarded = 0
         self.cameras_forwarded = 0
-        self._ego_pubs: dict[str, zenoh.Publisher] = {}
+        self.ego_refused = 0  # poses for an ego id beyond ego_per_client or ego_total
         self._lock = threading.Lock()
 
     # --- handshake checks -------------------------------------------------------------
@@ -185,7 +200,8 @@ class Gateway:
         return full
 
     def _on_sample(self, client: _Client, sample: zenoh.Sample) -> None:
-        # Zenoh's thread: frame it and hand it to the event loop; never wait here.
+        # Zenoh's thread: frame it and hand it to the event loop; never wait here. The payload
+        # is relayed as it came, not decoded: the client decodes it with its own limits.
         frame = pack_frame(str(sample.key_expr), sample.payload.to_bytes())
         loop = self._loop
         if loop is not None and not loop.is_closed():
@@ -197,7 +213,8 @@ class Gateway:
             self.relayed += 1
 
     async def _get(self, client: _Client, key: str, parameters: str = "") -> None:
-        """One Zenoh query; the first answer goes to the client as a binary frame."""
+        """One Zenoh query; the first answer goes to the client as a binary frame (relayed
+        as it came, not decoded here)."""
         def fetch() -> tuple[list[tuple[str, bytes]], list[str]]:
             ok, err = [], []
             sel = f"{key}?{parameters}" if parameters else key
@@ -225,21 +242,49 @@ class Gateway:
             raise ProtocolError(f"expected 'ego/<id>' or 'viewer/camera' (only ego poses and cameras go "
                                 f"upstream), got {key!r}", "key")
         ego_id = check_chunk(parts[1], "ego id")
-        msg = decode(payload)
+        msg = decode(payload, UPSTREAM_LIMITS)
         if not isinstance(msg, EgoPose):
             raise ProtocolError(f"expected an ego pose message, got {type(msg).__name__}", key)
         full = self.keys.ego(ego_id)
-        pub = self._ego_pubs.get(full)
+        pub = client.egos.get(full)
         if pub is None:
-            pub = self._ego_pubs[full] = self.session.declare_publisher(full)
+            self._admit_ego(client, ego_id)
+            pub = client.egos[full] = self.session.declare_publisher(full)
         pub.put(payload)
         client.upstream += 1
         self.ego_forwarded += 1
 
+    def _admit_ego(self, client: _Client, ego_id: str) -> None:
+        """A new ego id for ``client``: within ``ego_per_client`` and ``ego_total``, else
+        ``ProtocolError`` (the client is told, the refusal counted)."""
+        total = sum(len(c.egos) for c in self.clients)
+        if len(client.egos) >= self.cfg.ego_per_client:
+            why = (f"this connection drives {len(client.egos)} ego ids already, the most the gateway "
+                   f"allows per client ({self.cfg.ego_per_client})")
+        elif total >= self.cfg.ego_total:
+            why = f"the gateway's clients drive {total} ego ids already, the most it allows ({self.cfg.ego_total})"
+        else:
+            return
+        self.ego_refused += 1
+        raise ProtocolError(f"refused: {why}; poses for the ids already driven are still forwarded",
+                            f"ego/{ego_id}")
+
+    def _release(self, client: _Client) -> None:
+        """Undeclare what a leaving client held: its ego publishers (freeing their ids) and its camera."""
+        pubs, client.egos = list(client.egos.values()), {}
+        for pub in pubs:
+            try:
+                pub.undeclare()
+            except zenoh.ZError:  # the session is closing
+                pass
+        if client.camera is not None:  # its token goes: the physics side drops the camera
+            client.camera.close()
+            client.camera = None
+
     def _camera(self, client: _Client, payload: bytes) -> None:
         """The client's camera (SPEC 3.7) under an id of the gateway's choosing, with a
         liveliness token for as long as the client is connected."""
-        msg = decode(payload)
+        msg = decode(payload, UPSTREAM_LIMITS)
         if not isinstance(msg, CameraPose):
             raise ProtocolError(f"expected a camera message, got {type(msg).__name__}", "viewer/camera")
         if client.camera is None:
@@ -303,8 +348,7 @@ class Gateway:
             sender.cancel()
             for sub in client.subs.values():
                 sub.undeclare()
-            if client.camera is not None:  # its token goes: the physics side drops the camera
-                client.camera.close()
+            self._release(client)
             log.info("client %s left: %d frames sent, %d dropped, %d ego poses, %d rejected",
                      ws.remote_address, client.box.sent, client.box.dropped, client.upstream, client.rejected)
 
@@ -321,6 +365,7 @@ class Gateway:
         return {"run": self.keys.run, "clients": len(self.clients), "relayed": self.relayed,
                 "dropped": sum(c.box.dropped for c in self.clients), "refused": self.refused,
                 "ego_forwarded": self.ego_forwarded, "cameras_forwarded": self.cameras_forwarded,
+                "egos": sum(len(c.egos) for c in self.clients), "ego_refused": self.ego_refused,
                 "rejected": sum(c.rejected for c in self.clients)}
 
     def url(self) -> str:
@@ -336,8 +381,8 @@ class Gateway:
             if ready is not None:
                 ready(self)
             await stop.wait()
-        for pub in self._ego_pubs.values():
-            pub.undeclare()
+        for client in list(self.clients):  # handlers normally release their own on the way out
+            self._release(client)
 
 
 def _response(status: int, body: bytes, ctype: str) -> Response:

@@ -10,7 +10,9 @@ recorded on its key.
 The recorder never blocks the transport: Zenoh's callback only appends the payload to a
 bounded FIFO (a full queue drops the message and counts it); a writer thread thins the
 physics states to ``physics_hz`` by simulated time and writes; the scene is built on its
-own drop-oldest worker. Reading is streamed: ``open_recording`` yields messages one at a
+own drop-oldest worker. Payloads are recorded as they came; where the recorder looks into
+one (thinning, compact records, the scene) it decodes with limits from ``[run] max_agents``
+(static data and the map with the default ones: their tables are not agents). Reading is streamed: ``open_recording`` yields messages one at a
 time and stops cleanly at a truncated end (a crash loses at most the last chunk).
 """
 
@@ -30,7 +32,7 @@ import zenoh
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
-from protocol.codec import decode, encode
+from protocol.codec import DEFAULT_LIMITS, MAX_AGENTS, DecodeLimits, decode, encode
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
 from sumoco.app import record_codec as rc
@@ -183,13 +185,21 @@ class McapRecorder:
                 "up to there")
 
 
-def _peek(payload: bytes, key: str) -> float | None:
-    """One top-level number of a msgpack message (``t``, ``sv``), without building the agent arrays."""
+def _peek(payload: bytes, key: str, limits: DecodeLimits = DEFAULT_LIMITS) -> float | None:
+    """One top-level number of a msgpack message (``t``, ``sv``), without building the agent
+    arrays: the other values are skipped, every length bounded by ``limits`` while msgpack parses."""
+    if len(payload) > limits.max_bytes:
+        return None
     try:
-        d = msgpack.unpackb(payload, raw=False)
-        v = d.get(key) if isinstance(d, dict) else None
-        return v if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-    except Exception:  # undecodable: recorded as it came, the reader reports it
+        u = msgpack.Unpacker(raw=False, max_buffer_size=max(len(payload), 1), **limits.unpack_kwargs())
+        u.feed(payload)
+        for _ in range(u.read_map_header()):
+            if u.unpack() == key:
+                v = u.unpack()
+                return v if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+            u.skip()
+        return None
+    except Exception:  # undecodable or over the limits: recorded as it came, the reader reports it
         return None
 
 
@@ -198,14 +208,18 @@ class LiveRecorder:
 
     Counters: ``received``, ``dropped`` (queue full), ``thinned`` (physics states skipped by
     ``physics_hz``), ``written``; ``scene_errors`` and ``scene_dropped`` for the scene.
+    ``limits``: the decode limits of steps and physics states (``RunConfig.decode_limits``
+    of the run; by default those of the largest run).
     """
 
     def __init__(self, session: zenoh.Session, keys: Keys, recorder: McapRecorder,
-                 on_message=None, scene: bool | None = None, config: RecordConfig | None = None) -> None:
+                 on_message=None, scene: bool | None = None, config: RecordConfig | None = None,
+                 limits: DecodeLimits | None = None) -> None:
         from sumoco.app import scene as scene_mod
 
         self.session, self.keys, self.rec = session, keys, recorder
         self.config = config or RecordConfig()
+        self.limits = limits or DecodeLimits.for_agents(MAX_AGENTS)
         self._on_message = on_message
         self._sub = None
         want_scene = self.config.scene if scene is None else scene
@@ -213,7 +227,7 @@ class LiveRecorder:
         self._scene_worker = None
         if want_scene and scene_mod.available():
             period = 1.0 / self.config.scene_hz if self.config.scene_hz > 0 else 0.0
-            self._scene = scene_mod.ScenePublisher(recorder.context, min_period_s=period)
+            self._scene = scene_mod.ScenePublisher(recorder.context, min_period_s=period, limits=self.limits)
             self._scene_worker = scene_mod.LatestWorker(self._scene.feed, self.config.scene_queue, "record-scene")
         self._q: queue.Queue = queue.Queue(self.config.queue)
         self._queued_bytes = 0
@@ -264,7 +278,7 @@ class LiveRecorder:
     def _keep(self, topic: str, payload: bytes) -> bool:
         if not self._period or not topic.endswith("/state"):
             return True
-        t = _peek(payload, "t")
+        t = _peek(payload, "t", self.limits)
         if t is None:
             return True
         last = self._last_t.get(topic)
@@ -324,7 +338,7 @@ class LiveRecorder:
         if self._encoder is None or (schema or kind_of_topic(topic)) not in ("step", "physics"):
             return payload, schema
         try:
-            out_schema, data = self._encoder.encode(topic, decode(payload))
+            out_schema, data = self._encoder.encode(topic, decode(payload, self.limits))
             return data, out_schema
         except (ProtocolError, TypeError, ValueError) as e:
             self.compact_errors += 1
@@ -335,9 +349,9 @@ class LiveRecorder:
     def _track_static_version(self, topic: str, payload: bytes) -> None:
         """Record every static-data version the steps refer to (SPEC 3.2: tables change in a run)."""
         if topic == self.keys.static:
-            self._static_sv = int(_peek(payload, "sv") or 0)
+            self._static_sv = int(_peek(payload, "sv") or 0)  # static data: the default limits
         elif topic == self.keys.step and self._static_sv is not None and not self._refetching.is_set():
-            sv = int(_peek(payload, "sv") or 0)
+            sv = int(_peek(payload, "sv", self.limits) or 0)
             if sv != self._static_sv:
                 self._refetching.set()
                 threading.Thread(target=self._refetch_static, args=(sv,), name="record-static",
@@ -454,7 +468,7 @@ def record_cli(args) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         with open_session(common.zenoh) as session:
-            live = LiveRecorder(session, keys, rec, config=cfg).start()
+            live = LiveRecorder(session, keys, rec, config=cfg, limits=common.run.decode_limits).start()
             if live.fetch_static(timeout_s=10.0) is None:
                 log.warning("no static data answered on %s (recording the live keys anyway)", keys.static)
             log.info("recording %s/** to %s", keys.base, args.out)
@@ -562,11 +576,13 @@ def read_recording(path: str | Path) -> ReadResult:
 
 def iter_decoded(res: ReadResult | Recording, kinds: tuple[str, ...] = ("step", "physics", "static")
                  ) -> Iterator[tuple[RecordedMessage, object]]:
-    """Decoded protocol messages of the given kinds; undecodable ones are skipped."""
+    """Decoded protocol messages of the given kinds; undecodable ones are skipped. A file may
+    come from any run, so the default (largest) decode limits apply: still bounded while
+    msgpack parses."""
     for m in res.messages:
         if m.schema not in kinds:
             continue
         try:
-            yield m, decode(m.data)
+            yield m, decode(m.data, DEFAULT_LIMITS)
         except ProtocolError as e:
             log.debug("skipping undecodable %s on %s: %s", m.schema, m.topic, e)

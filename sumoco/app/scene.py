@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from protocol.codec import decode
+from protocol.codec import DEFAULT_LIMITS, MAX_AGENTS, DecodeLimits, decode
 from protocol.errors import ProtocolError
 from protocol.frames import front_to_centre, sumo_angle_to_yaw
 from protocol.keys import Keys
@@ -127,15 +127,19 @@ class ScenePublisher:
     """Raw protocol payloads in, ``SceneUpdate``s out on ``/scene`` of a foxglove context.
 
     ``min_period_s`` thins the moving parts per key by simulated time (0: every message);
-    the static network is always drawn. Not thread-safe: feed it from one worker.
+    the static network is always drawn. ``limits`` bound the decoding of steps and physics
+    states (``[run] max_agents`` through ``RunConfig.decode_limits``; by default the largest
+    run); static data is decoded with the default limits (its tables are not agents). Not
+    thread-safe: feed it from one worker.
     """
 
-    def __init__(self, context=None, min_period_s: float = 0.0) -> None:
+    def __init__(self, context=None, min_period_s: float = 0.0, limits: DecodeLimits | None = None) -> None:
         if fm is None:
             raise ModuleNotFoundError("foxglove-sdk is not installed", name="foxglove")
         self.channel = SceneUpdateChannel(SCENE_TOPIC, context=context) if context is not None \
             else SceneUpdateChannel(SCENE_TOPIC)
         self.min_period_s = float(min_period_s)
+        self.limits = limits or DecodeLimits.for_agents(MAX_AGENTS)
         self._sizes: dict[str, tuple[float, float]] = {}
         self._last_t: dict[str, float] = {}
         self.updates = 0
@@ -159,7 +163,7 @@ class ScenePublisher:
         if not (is_step or is_static or is_physics):
             return False
         try:
-            msg = decode(payload)
+            msg = decode(payload, DEFAULT_LIMITS if is_static else self.limits)
             if is_static and isinstance(msg, StaticData):
                 upd = network_scene(msg)
             elif is_step and isinstance(msg, StepMessage):

@@ -55,7 +55,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from protocol.codec import COORD_LIMIT, decode_as
+from protocol.codec import COORD_LIMIT, DEFAULT_LIMITS, decode_as
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import StaticData
@@ -566,6 +566,8 @@ class ZenohFeed:
         self._thread.join(timeout=self.cfg.static_timeout_s + 1.0)
 
     # Zenoh callbacks: keep them to a reference swap, never block Zenoh's thread.
+    # Steps and physics states are relayed to the pages as they came, never decoded here: each
+    # page decodes them with its own msgpack reader.
     def _on_step(self, sample: Any) -> None:
         payload = sample.payload.to_bytes()
         self.store.put_step(payload)
@@ -610,7 +612,8 @@ class ZenohFeed:
                 continue
             data = reply.ok.payload.to_bytes()
             try:  # validate once here so a broken reply is reported in our log, not the page's
-                decode_as(data, StaticData)
+                # static tables are not agents: the default limits, bounded while msgpack parses
+                decode_as(data, StaticData, DEFAULT_LIMITS)
             except ProtocolError as e:
                 log.warning("ignoring invalid static data: %s", e)
                 continue
@@ -624,7 +627,15 @@ class ZenohFeed:
         for reply in self.session.get(key, timeout=self.cfg.static_timeout_s):
             if reply.ok is None:
                 continue
-            doc = msgpack.unpackb(reply.ok.payload.to_bytes())
+            data = reply.ok.payload.to_bytes()
+            if len(data) > DEFAULT_LIMITS.max_bytes:
+                log.warning("ignoring a map reply of %d bytes (at most %d)", len(data), DEFAULT_LIMITS.max_bytes)
+                continue
+            try:  # a map is static data: the default limits, applied while msgpack parses
+                doc = msgpack.unpackb(data, raw=False, **DEFAULT_LIMITS.unpack_kwargs())
+            except Exception as e:  # msgpack raises a zoo of types for corrupt or oversized input
+                log.warning("ignoring an undecodable map reply: %s", e)
+                continue
             if not isinstance(doc, dict) or doc.get("kind") != "map":
                 continue
             if doc.get("glb") is None and doc.get("sha256") == have and self.store.map_glb is not None:
@@ -649,7 +660,7 @@ class ZenohFeed:
         try:
             from sumo_side.mapmesh import build_map, geometry_from_static
 
-            mesh = build_map(geometry_from_static(decode_as(static, StaticData)))
+            mesh = build_map(geometry_from_static(decode_as(static, StaticData, DEFAULT_LIMITS)))
         except Exception as e:  # a page without a map still shows the agents
             log.warning("could not build a map from the static data: %s", e)
             return
