@@ -2,8 +2,8 @@
 
 Real processes over loopback Zenoh in lockstep (the timing where a lost peer matters most):
 (a) a physics instance killed with SIGKILL and restarted rejoins: the SUMO side waits for
-    it and sends it the step it missed, and it holds SUMO's agents again; no step index
-    is skipped;
+    it and sends it the step it missed, the new process queries the static data again, and
+    it holds SUMO's agents again; no step index is skipped;
 (b) the SUMO side killed with SIGKILL: physics keeps its agents (braking to rest), stays
     announced through its liveliness token and resumes under a new SUMO side of the same
     run id;
@@ -134,6 +134,13 @@ def test_a_killed_physics_instance_restarts_rejoins_and_catches_up(tmp_path, run
                procs=[r.sumo, restarted])
     st = p.last_physics()
     assert st.counters["rejected"] == 0
+    # the new process knew no static data: it asked the SUMO side for it (its counters start
+    # at zero, and the probe kept only its states), and the answer ended the asking
+    assert st.counters["static_queries"] >= 1, st.counters
+    asked = st.counters["static_queries"]
+    k_asked = p.last_step().step
+    wait_until(lambda: p.last_step().step > k_asked + 30, 30, "more lockstep steps", procs=[r.sumo, restarted])
+    assert p.last_physics().counters["static_queries"] <= asked + 1, "static data asked for again and again"
     assert wait_until(r.status, 10, "SUMO status")["rejoined"] == 1
     with p.lock:
         seen = {m.step for m in p.steps}

@@ -319,3 +319,44 @@ def test_each_role_may_put_only_its_own_cameras(run):
     finally:
         renderer.close()
         sub.undeclare()
+
+
+def test_viewer_role_may_put_nothing_but_its_own_cameras(run):
+    """A viewer certificate reads, and puts its own cameras: its ego pose, step, acks and a
+    camera under another role never reach the daemons (nor another viewer)."""
+    got: list[str] = []
+    sub = run.viewer.session.declare_subscriber(run.keys.viewer_camera_all, lambda s: got.append(str(s.key_expr)))
+    own, foreign = run.keys.viewer_camera("viewer", "v1"), run.keys.viewer_camera("renderer-ego", "v1")
+    m = run.viewer.last_step()
+    pose = encode(EgoPose("ego", float(m.agents.x[0]) + 3.0, float(m.agents.y[0]), float(m.agents.angle[0]), 0.0))
+    before = wait_until(run.status, 10, "SUMO status")
+    attacker = run.client("viewer")
+    try:
+        for i in range(30):
+            attacker.put(run.keys.ego("ego"), pose)
+            attacker.put(run.keys.step, encode(synthetic_step(5, step=FORGED_STEP + i)))
+            attacker.put(Keys("sumoco", "sec", "main").ack, encode(StepAck("sec", before["steps"] + 10 * i, 0)))
+            attacker.put(foreign, encode(CameraPose("v1", 5.0, 6.0)))
+            time.sleep(0.02)
+
+        def sent_and_seen():  # control: the same session's own camera does arrive, after all of the above
+            attacker.put(own, encode(CameraPose("v1", 1.0, 2.0)))
+            return own in got
+        wait_until(sent_and_seen, 20, "the viewer's own camera at another viewer", poll_s=0.05)
+        t0 = run.viewer.last_physics().tick
+        wait_until(lambda: run.viewer.last_physics().tick > t0 + 50, 20, "physics to keep ticking",
+                   procs=[run.physics])
+        after = wait_until(run.status, 10, "SUMO status")
+    finally:
+        attacker.close()
+        sub.undeclare()
+    assert after["ego_poses"] == before["ego_poses"], (before, after)  # not even seen and rejected:
+    assert after["rejected"] == before["rejected"], (before, after)    # never delivered
+    acks = after["acks"] + after["acks_coalesced"] - before["acks"] - before["acks_coalesced"]
+    assert acks <= after["steps"] - before["steps"] + 2, (before, after)  # one ack per step: none forged
+    assert foreign not in got, got
+    with run.viewer.lock:
+        states = [st for lst in run.viewer.physics.values() for st in lst]
+        steps = list(run.viewer.steps)
+    assert max(st.sumo_step for st in states) < FORGED_STEP and max(s.step for s in steps) < FORGED_STEP
+    assert states[-1].counters.get("rejected", 0) == 0
