@@ -20,6 +20,7 @@ once at start, the ack callback only enqueues payloads for the main loop.
 from __future__ import annotations
 
 import gc
+import json
 import logging
 import re
 import math
@@ -570,11 +571,26 @@ def cli_main(args) -> int:
                 previous[s] = signal.signal(s, on_signal)
         return daemon.run()
     finally:
+        if daemon is not None and sim.output_dir is not None:
+            _write_stats(sim.output_dir, daemon.stats())
         for s, h in previous.items():
             signal.signal(s, h)
         sim.close()
         if session is not None:
             session.close()
+
+
+#: The SUMO side's final counters, beside SUMO's own outputs (``sumoco demo`` puts them in
+#: summary.json as ``sumo_side``).
+STATS_FILE = "sumoco_stats.json"
+
+
+def _write_stats(folder: Path, stats: dict) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / STATS_FILE).write_text(json.dumps(stats, indent=1, sort_keys=True, default=float) + "\n")
+    except OSError as e:  # the run's result does not depend on it: say so and go on
+        log.warning("could not write %s: %s", folder / STATS_FILE, e)
 
 
 _SHARD = re.compile(r"^(.+)\.\d+of(\d+)$")

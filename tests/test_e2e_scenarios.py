@@ -91,6 +91,7 @@ def test_slice_runs_clean(runs, case, sumocfg, begin, duration, dt):
     assert s["sim_time_s"] == pytest.approx(duration - dt)
     p = s["presets"]["default"]
     assert p["rejected"] == 0 and p["counters"]["dropped_steps"] == 0
+    assert s["sumo_side"]["rejected"] == 0 and s["sumo_side"]["steps"] == s["steps"]
     assert sum(s["agents_seen_sumo"].values()) > 0
     assert (out / "report.md").stat().st_size > 200
     log = (out / "logs" / "sumo.log").read_text()

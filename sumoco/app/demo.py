@@ -127,6 +127,16 @@ class DaemonFailed(SumocoError):
         self.exit_code = exit_code
 
 
+def _sumo_side_stats(folder: Path) -> dict | None:
+    """The SUMO side's final counters (steps, rejected, acks, egos, ...), None if it wrote none."""
+    from sumo_side.daemon import STATS_FILE
+
+    try:
+        return json.loads((folder / STATS_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+
+
 def _last_error_line(log_file: Path, name: str) -> str:
     """The daemon's own one-line error (``sumoco <cmd>: ...``) from its log, if it wrote one."""
     try:
@@ -257,7 +267,8 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
     try:
         with open_session(zcfg) as session:
             live = LiveRecorder(session, keys, recorder, on_message=progress,
-                                config=record or RecordConfig(physics_hz=0.0)).start()
+                                config=record or RecordConfig(physics_hz=0.0),
+                                limits=common.run.decode_limits).start()
             alive = set()
             tok_sub = session.liveliness().declare_subscriber(
                 f"{keys.base}/**", lambda s: (alive.add(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT
@@ -343,6 +354,7 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
         "ended_by": "interrupted" if interrupted else ended_by or (str(failure) if failure else "the run's end"),
     }
     summary["interrupted"] = interrupted
+    summary["sumo_side"] = _sumo_side_stats(out / "sumo")
     (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
     if failure is not None:
         raise failure

@@ -71,6 +71,7 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
         "agents_by_type": s.get("agents_seen_sumo"),
         "exit_codes": s.get("daemons", {}).get("exit_codes"),
         "completed": s.get("daemons", {}).get("completed"),
+        "sumo_rejected": (s.get("sumo_side") or {}).get("rejected"),
     })
     for inst, p in s.get("presets", {}).items():
         e = p["error_m"]["overall"]
