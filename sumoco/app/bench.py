@@ -1,4 +1,4 @@
-"""``sumoco bench {sumo,physics,e2e,codec,fidelity,scenarios,...} --json``: benchmark rows as JSON on stdout.
+"""``sumoco bench {sumo,physics,e2e,codec,fidelity,scenarios,viewer,...} --json``: benchmark rows as JSON on stdout.
 
 Benchmarks measure speed; tests check correctness. Each area owns its benchmark
 function (``sumo_side.bench``, ``physics_side.bench``, ``sumoco.app.e2e_bench``); this module
@@ -153,6 +153,12 @@ def cli_main(args) -> int:
         from sumoco.app.scale_bench import run_scale_bench
 
         rows = run_scale_bench(quick=quick)
+    elif args.what == "viewer":
+        from sumoco.app.viewer_bench import run_viewer_bench
+
+        counts = getattr(args, "agents", None)
+        rows = run_viewer_bench(tuple(int(x) for x in counts.split(",")) if counts else None,
+                                getattr(args, "duration", None), quick=quick)
     elif args.what == "e2e":
         from sumoco.app.e2e_bench import run_e2e_bench
 

@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
     p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway",
-                                    "scenarios", "scale"])
+                                    "scenarios", "scale", "viewer"])
     p.add_argument("--pack", help="scenarios: folder of the scenario pack (default ../shared/scenarios "
                                   "beside the repository)")
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
@@ -93,7 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--minutes", type=float, default=60.0, help="soak: wall-clock minutes to run")
     p.add_argument("--out", help="soak: output folder (default runs/soak); scenarios: folder for the runs "
                                  "(default a temporary one)")
-    p.add_argument("--duration", type=float, help="scenarios: simulated seconds per scenario (default 60)")
+    p.add_argument("--duration", type=float, help="scenarios: simulated seconds per scenario (default 60); "
+                                                  "viewer: wall seconds measured per agent count (default 10)")
+    p.add_argument("--agents", help="viewer: agent counts, comma-separated (default 500,1000,2500)")
     p.add_argument("--sample-s", dest="sample_s", type=float, help="soak: seconds between rows (default 60)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
     p.add_argument("--quiet", action="store_true")
@@ -155,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene-hz", dest="scene_hz", type=float,
                    help="scene updates per key at most [Hz of simulated time], 0 = all (default 10)")
 
-    p = sub.add_parser("view", help="live top-down view of a run in the browser")
+    p = sub.add_parser("view", help="live 3D view of a run in the browser (three.js; a 2D page is linked)")
     _add_common(p)
     p.add_argument("--host", help="address to serve the page on (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port of the page and its WebSocket (default 8765)")

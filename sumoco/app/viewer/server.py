@@ -1,4 +1,4 @@
-"""``sumoco view``: a live top-down viewer of a run in the browser.
+"""``sumoco view``: a live view of a run in the browser (3D page with three.js, 2D page linked).
 
 One process, three parts:
 

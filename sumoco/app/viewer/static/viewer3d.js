@@ -31,6 +31,7 @@ const stats = {
   tlsHeads: 0, framesReceived: 0, framesDrawn: 0, renders: 0, errors: 0, lastError: '',
   agents: 0, physicsAgents: 0, ghosts: 0, instances: {}, drawCalls: 0, triangles: 0, fps: 0,
   step: -1, simTime: NaN, rtf: 0, follow: null, instance: null, renderMs: 0, updateMs: 0,
+  glRenderer: '', glVendor: '',
 };
 window.sumoco3d = stats;
 
@@ -46,6 +47,16 @@ const renderer = new THREE.WebGLRenderer({ antialias: window.devicePixelRatio < 
 renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
 renderer.setSize(host.clientWidth, host.clientHeight);
 host.appendChild(renderer.domElement);
+// The GL implementation behind the canvas ("SwiftShader" = software rendering on the CPU), so
+// an fps figure can be read against what drew it (sumoco bench viewer, bug reports).
+try {
+  const gl = renderer.getContext();
+  const ext = gl.getExtension('WEBGL_debug_renderer_info');
+  stats.glRenderer = String(gl.getParameter(ext ? ext.UNMASKED_RENDERER_WEBGL : gl.RENDERER));
+  stats.glVendor = String(gl.getParameter(ext ? ext.UNMASKED_VENDOR_WEBGL : gl.VENDOR));
+} catch (e) {
+  stats.glRenderer = `unknown (${e})`;
+}
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x9fb4c7);
 scene.fog = new THREE.Fog(0x9fb4c7, 600, 4000);
