@@ -103,7 +103,8 @@ def test_lint_imports_passes_and_fails_on_a_forbidden_import(tmp_path):
 
 @pytest.mark.integration
 def test_bare_wheel_installs_without_libsumo_and_mujoco(tmp_path):
-    """`pip install sumoco` (no extras): protocol decodes the golden vectors; the sides ask for their extra."""
+    """`pip install sumoco` (no extras): protocol decodes the golden vectors; the sides ask for their extra;
+    a recording replays and `sumoco view` serves the 3D page with its three.js."""
     dist = tmp_path / "dist"
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", str(dist),
                         str(ROOT)], capture_output=True, text=True, timeout=600)
@@ -175,8 +176,49 @@ def _bare_replay_reaches_a_subscriber(exe: Path, tmp_path: Path) -> None:
             static = [r.ok.payload.to_bytes() for r in s.get(keys.static, timeout=5.0) if r.ok is not None]
         assert len(static) == 1
         assert all(isinstance(decode(g), StepMessage) for g in got[:5])
+        _bare_view_serves_the_3d_page(exe, tmp_path, ep)
     finally:
         proc.terminate()
         out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     assert json.loads(out.strip().splitlines()[-1])["steps"] >= 5
+
+
+def _bare_view_serves_the_3d_page(exe: Path, tmp_path: Path, replay_ep: str) -> None:
+    """`sumoco view` from the bare install, on the bare replay: the 3D page, its three.js and the map."""
+    import urllib.request
+
+    from tests.harness import endpoint, wait_until
+
+    proc = subprocess.Popen([str(exe), "view", "--run", "synth", "--connect", replay_ep, "--listen", endpoint(),
+                             "--port", "0", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
+    try:
+        line = proc.stdout.readline()  # "sumoco view: open http://127.0.0.1:PORT/?token=..."
+        assert "?token=" in line, (line, proc.poll())
+        url = line[line.index("http"):].strip()
+        base, token = url.split("/?token=")
+
+        def get(path: str) -> tuple[int, bytes]:
+            with urllib.request.urlopen(f"{base}{path}?token={token}", timeout=10) as r:
+                return r.status, r.read()
+
+        status, page = get("/")
+        assert status == 200 and b"viewer3d.js" in page and b"vendor/three/build/three.module.js" in page
+        for path in ("/viewer3d.js", "/decode.js", "/vendor/three/build/three.module.js",
+                     "/vendor/three/build/three.core.js", "/vendor/three/examples/jsm/loaders/GLTFLoader.js",
+                     "/vendor/three/examples/jsm/controls/OrbitControls.js", "/2d.html"):
+            status, body = get(path)
+            assert status == 200 and len(body) > 1000, (path, status, len(body))
+        def fed() -> dict | None:
+            st = json.loads(get("/status")[1])
+            return st if st["static"] and st["steps_received"] and st["map_bytes"] else None
+
+        st = wait_until(fed, 30.0, "the bare view to get the replay's static data, steps and a map", 0.2)
+        status, glb = get("/map.glb")
+        assert status == 200 and glb[:4] == b"glTF", (status, glb[:4], st)
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
