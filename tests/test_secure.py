@@ -45,7 +45,7 @@ def test_certs_init_makes_a_ca_and_one_certificate_per_role(tmp_path):
     assert cli(["certs", "init", str(tmp_path), "--renderer", "ego", "--renderer", "car7", "--quiet"]) == 0
     ca = x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes())
     assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
-    for role in ("sumo", "physics", "viewer", "renderer-ego", "renderer-car7"):
+    for role in ("sumo", "physics", "viewer", "gateway", "renderer-ego", "renderer-car7"):
         cert = x509.load_pem_x509_certificate((tmp_path / f"{role}.pem").read_bytes())
         assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == role
         assert cert.issuer == ca.subject
@@ -82,11 +82,13 @@ def test_policy_denies_unless_allowed_and_grants_each_renderer_its_own_key_only(
     grants = {p["id"]: set(p["rules"]) for p in acl["policies"]}
     assert grants["viewer"] == {"receive", "read", "camera-viewer", "camera-token-viewer"}
     assert grants["renderer-a"] == {"receive", "read", "ego-a", "camera-renderer-a", "camera-token-renderer-a"}
+    assert grants["gateway"] == {"receive", "read", "gateway-ego", "camera-gateway", "camera-token-gateway"}
     assert rules["ego-a"]["key_exprs"] == ["sumoco/*/ego/a"] and rules["ego-a"]["flows"] == ["ingress"]
     put_keys = {k for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
                 for k in r["key_exprs"]}
     assert put_keys == {"sumoco/*/sumo/step", "sumoco/*/physics/*/state", "sumoco/*/physics/*/ack",
-                        "sumoco/*/ego/a", "sumoco/*/ego/b", "sumoco/*/viewer/viewer/*/camera",
+                        "sumoco/*/ego/a", "sumoco/*/ego/b", "sumoco/*/ego/*", "sumoco/*/viewer/viewer/*/camera",
+                        "sumoco/*/viewer/gateway/*/camera",
                         "sumoco/*/viewer/renderer-a/*/camera", "sumoco/*/viewer/renderer-b/*/camera"}
     assert rules["camera-token-renderer-a"]["key_exprs"] == ["sumoco/*/viewer/renderer-a/*/alive"]
 
@@ -360,3 +362,19 @@ def test_viewer_role_may_put_nothing_but_its_own_cameras(run):
         steps = list(run.viewer.steps)
     assert max(st.sumo_step for st in states) < FORGED_STEP and max(s.step for s in steps) < FORGED_STEP
     assert states[-1].counters.get("rejected", 0) == 0
+
+
+def test_gateway_role_relays_egos_of_any_id(run):
+    """The WebSocket gateway relays engines without a Zenoh binding: its certificate may put
+    ego poses under any ego key (it caps ids per client itself), which a renderer cannot."""
+    before = wait_until(run.status, 10, "SUMO status")["ego_poses"]
+    gateway = run.client("gateway")
+    try:
+        def sent_and_counted():
+            m = run.viewer.last_step()
+            gateway.put(run.keys.ego("ego"), encode(EgoPose(
+                "ego", float(m.agents.x[0]) + 3.0, float(m.agents.y[0]), float(m.agents.angle[0]), 0.0)))
+            return wait_until(run.status, 10, "SUMO status")["ego_poses"] >= before + 5
+        wait_until(sent_and_counted, 20, "the gateway's ego poses at the SUMO side", poll_s=0.05)
+    finally:
+        gateway.close()

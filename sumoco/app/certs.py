@@ -10,6 +10,7 @@ tells roles apart by the common name (CN) of the certificate a peer presents:
 | physics.pem/.key   | physics        | physics states, acks, physics tokens   |
 | renderer-<id>.pem  | renderer-<id>  | ego poses on ``ego/<id>`` only         |
 | viewer.pem/.key    | viewer         | nothing (subscribe and query only)     |
+| gateway.pem/.key   | gateway        | ego poses for any id (WebSocket relay) |
 
 Every role may subscribe and query. ``ca.pem`` is the trust root every process loads;
 ``ca.key`` signs the certificates and should not leave the machine that made them.

@@ -431,7 +431,7 @@ def cli_main(args) -> int:
             loop.call_later(float(limit), stop.set)
         await gw.run(stop, ready)
 
-    with open_session(common.zenoh) as session:
+    with open_session(common.zenoh, role="gateway") as session:
         gw = Gateway(session, keys, cfg)
         t0 = time.monotonic()
         asyncio.run(main())

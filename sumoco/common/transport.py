@@ -26,8 +26,9 @@ from sumoco.common.config import SecurityConfig, ZenohConfig
 
 log = logging.getLogger(__name__)
 
-#: Roles with one certificate each (CN = role); renderers have one per ego id.
-ROLES = ("sumo", "physics", "viewer")
+#: Roles with one certificate each (CN = role); renderers have one per ego id. The gateway
+#: relays engines that have no Zenoh binding; it checks its WebSocket clients' token itself.
+ROLES = ("sumo", "physics", "viewer", "gateway")
 
 #: Every message kind Zenoh's access control knows (Zenoh >= 1.0 names).
 _ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -45,7 +46,8 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
     Ingress rules say what a peer of a role may send us: every role may subscribe and
     query; only ``sumo`` may put steps, serve static data and status and hold the SUMO
     liveliness token; only ``physics`` may put states and acks and hold physics tokens;
-    ``renderer-<id>`` may put ego poses on ``ego/<id>`` alone; ``viewer`` and every
+    ``renderer-<id>`` may put ego poses on ``ego/<id>`` alone; ``gateway`` may put ego poses
+    for any id (it relays engines that hold its token, SPEC 10); ``viewer``, ``gateway`` and every
     ``renderer-<id>`` may put cameras and hold camera tokens under their own role only
     (``viewer/<role>/*/camera``, ``viewer/<role>/*/alive``, SPEC 3.7).
     Egress is open to every authenticated role: anyone with a certificate may read.
@@ -65,13 +67,14 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
         rule("sumo-token", "ingress", ("liveliness_token",), [f"{r}/*/sumo/alive"]),
         rule("physics-put", "ingress", ("put", "delete"), [f"{r}/*/physics/*/state", f"{r}/*/physics/*/ack"]),
         rule("physics-token", "ingress", ("liveliness_token",), [f"{r}/*/physics/*/alive"]),
+        rule("gateway-ego", "ingress", ("put", "delete"), [f"{r}/*/ego/*"]),
     ]
     grants = {"sumo": ["sumo-put", "sumo-serve", "sumo-token"], "physics": ["physics-put", "physics-token"],
-              "viewer": []}
+              "viewer": [], "gateway": ["gateway-ego"]}
     for ego in sec.renderers:
         rules.append(rule(f"ego-{ego}", "ingress", ("put", "delete"), [f"{r}/*/ego/{ego}"]))
         grants[renderer_role(ego)] = [f"ego-{ego}"]
-    for role in ["viewer", *(renderer_role(e) for e in sec.renderers)]:
+    for role in ["viewer", "gateway", *(renderer_role(e) for e in sec.renderers)]:
         rules.append(rule(f"camera-{role}", "ingress", ("put", "delete"), [f"{r}/*/viewer/{role}/*/camera"]))
         rules.append(rule(f"camera-token-{role}", "ingress", ("liveliness_token",), [f"{r}/*/viewer/{role}/*/alive"]))
         grants[role] = [*grants[role], f"camera-{role}", f"camera-token-{role}"]
