@@ -1,68 +1,40 @@
-"""``PhysicsWorld``: the per-tick world and the one owner of MuJoCo indices.
+"""``PhysicsWorld``: the per-tick world over the current layout, and the one owner of MuJoCo indices.
 
-The world is ``shards`` MuJoCo simulations of one model (``mujoco.batch.Batch``, stepped
-on a thread pool; persistent because sleeping needs it), built by ``layout``: *pools* of
-pre-allocated slots, one pool per model family and size (``models.size_key``). Unused slots sit
-asleep in a parking lot far from the network; spawning wakes a slot and places it,
-parking puts it back. A pool that runs out grows by at least ``pool_chunk`` slots per
-shard with one recompile (off the hot path); live agents keep their exact state.
+Per control tick: ``observe`` -> (controllers, outside: ``control``) -> ``place`` /
+``command_vehicles`` / ``command_pedestrians`` (actuate) -> ``step`` -> ``contacts``.
+Nothing outside this module indexes ``qpos``/``qvel``/``ctrl``: callers get named,
+vectorised reads and writes over arrays of *slot numbers*.
 
-Per control tick: ``observe`` -> (controllers, outside) -> ``command_vehicles`` /
-``command_pedestrians`` / ``place`` -> ``step``. Nothing outside this module indexes
-``qpos``/``qvel``/``ctrl``: callers get named, vectorised reads and writes over arrays
-of *slot numbers*. Slot numbers change when the model grows; ``generation`` increments
-then, and ``slot_of`` maps agent ids to current slots.
+Which slots exist and who holds them is ``pools.SlotPools`` (pools per model family and
+size, growth in the background, allocation, parking), over a layout built by ``layout``:
+``shards`` MuJoCo simulations of one model (``mujoco.batch.Batch``, stepped on a thread
+pool; persistent because sleeping needs it). The world delegates ``pool_for`` /
+``reserve`` / ``allocate`` / ``park`` / ``slot_of`` to it and rebinds its views when the
+layout changes: slot numbers change then, ``generation`` increments.
 
 Agents in different shards do not touch each other (they are in different
 simulations); a new agent goes to the shard of the nearest live agent within
-``NEIGHBOUR_M`` (vehicles that follow each other share a shard) unless that shard is
-over its share, else to the least-loaded shard.
+``pools.NEIGHBOUR_M`` (vehicles that follow each other share a shard) unless that shard
+is over its share, else to the least-loaded shard.
 """
 from __future__ import annotations
 
-import concurrent.futures
-import logging
-import math
 import time
 from dataclasses import dataclass
 from functools import cached_property
 
-import mujoco
 import numpy as np
 
 from physics_side import models as M
 from physics_side.kinematics import ackermann, concat_ranges, steady_state_delta
-from physics_side.layout import SLOTS_PER_SIM, Layout, Pool, SlotTables, carry_over, compile_layout
+from physics_side.layout import Layout, SlotTables
+from physics_side.pools import HEADROOM, SLEEP_NEVER, SlotPools
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
 
-log = logging.getLogger(__name__)
-
-SLEEP_NEVER = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
-SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
-NEIGHBOUR_M = 40.0  # [m] a new agent joins the shard of a live agent this close
 MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
-NEW_POOL_SLOTS = 4  # [slots per shard] first capacity of a pool for a newly seen size
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
-HEADROOM = 1.25  # expected agents -> slots (sized up front)
-
-
-@dataclass(frozen=True)
-class _Growth:
-    """A bigger model being compiled on the worker thread."""
-
-    future: concurrent.futures.Future
-    capacity: dict[int, int]
-    """Slots per simulation of each pool in it."""
-    sims: int
-
-    def covers(self, needs: dict[int, int], pools: list[Pool], sims: int) -> bool:
-        """Whether it adds ``needs`` (pool -> slots per simulation of ``sims``) to ``pools``."""
-        return all(
-            p in self.capacity and self.capacity[p] * self.sims - pools[p].capacity * sims >= e * sims
-            for p, e in needs.items()
-        )
 
 
 @dataclass(frozen=True)
@@ -166,7 +138,7 @@ class _SlotPlan:
 
 
 class PhysicsWorld:
-    """Pooled multi-agent MuJoCo world (see module docstring)."""
+    """Pooled multi-agent MuJoCo world, per tick (see module docstring)."""
 
     def __init__(
         self, timestep: float = 0.005, substeps: int = 4, shards: int = 1, threads: int = 0,
@@ -174,75 +146,32 @@ class PhysicsWorld:
         awd: frozenset[AgentClass] = frozenset(), expect: dict[AgentClass, int] | None = None,
         adopt_early: bool = False,
     ):
-        """``initial``: slots per simulation per class (its default size bucket); ``expect``:
-        agents per class expected at once over the whole world (sized up front with
-        ``HEADROOM``). ``shards`` simulations at least, more when the slots would exceed
-        ``layout.SLOTS_PER_SIM`` per simulation. ``adopt_early``: switch to a model grown in
-        the background as soon as it is ready (realtime); else only when a pool runs out,
-        so that a lockstep run does not depend on compile times."""
+        """``initial``, ``pool_chunk``, ``awd``, ``expect``, ``adopt_early``: the slot pools
+        (``pools.SlotPools``); ``substeps`` MuJoCo steps of ``timestep`` [s] per control tick,
+        on ``threads`` threads (default: one per shard)."""
         self.timestep = float(timestep)
         self.substeps = int(substeps)
         self.threads = int(threads) or int(shards)
-        self.pool_chunk = int(pool_chunk)
-        self.awd = frozenset(awd)
-        self.adopt_early = bool(adopt_early)
-        self._pools: list[Pool] = []
-        self._pool_key: dict[tuple[str, int, int], int] = {}
-        initial = {AgentClass(c): int(n) for c, n in (initial or {}).items()}
-        expect = {AgentClass(c): int(n) for c, n in (expect or {}).items()}
-        demand = {  # pools numbered in the order the config lists the types
-            c: max(initial.get(c, 0) * int(shards), math.ceil(expect.get(c, 0) * HEADROOM))
-            for c in [*initial, *(c for c in expect if c not in initial)]
-        }
-        self.shards = max(int(shards), math.ceil(sum(demand.values()) / SLOTS_PER_SIM))
-        for cls in demand:
-            if demand[cls] > 0:
-                self._add_pool(M.default_key(cls), max(initial.get(cls, 0), math.ceil(demand[cls] / self.shards)))
-        self.generation = 0
-        self.agent_slot: dict[str, int] = {}
-        self.slot_agent: list[str | None] = []
         self.counters = {
             "placements": 0, "spawned": 0, "parked": 0, "collisions": 0, "pool_grows": 0, "growth_waits": 0,
         }
         self.mujoco_s = 0.0  # [s] wall time spent in MuJoCo steps (cumulative)
         self.mujoco_cpu_s = 0.0  # [s] CPU time of the process (all threads) in MuJoCo steps (cumulative)
-        self.build_s = 0.0  # [s] wall time spent compiling on the stepping thread (cumulative)
-        self.wait_s = 0.0  # [s] wall time spent waiting for a background growth (cumulative)
         self.time = 0.0  # [s] simulated time
-        self.live = np.zeros(0, bool)
-        self._growth: _Growth | None = None
-        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
-        self._install(compile_layout(self._pools, self.timestep, self.shards, self.threads))
+        self.pools = SlotPools(
+            self.timestep, shards, self.threads, initial, pool_chunk=pool_chunk, awd=awd, expect=expect,
+            adopt_early=adopt_early, counters=self.counters,
+        )
+        self._layout: Layout | None = None
+        self._bind()
 
-    # ------------------------------------------------------------------ pools / compile
-
-    def _spec_of(self, key: tuple[str, int, int]) -> M.AgentSpec:
-        spec = M.spec_for_key(key)
-        return M.with_awd(spec, spec.cls in self.awd and spec.kind == M.KIND_CAR)
-
-    def _add_pool(self, key: tuple[str, int, int], capacity: int) -> int:
-        if key in self._pool_key:
-            p = self._pool_key[key]
-            old = self._pools[p]
-            self._pools[p] = Pool(old.index, old.spec, old.capacity + capacity)
-            return p
-        p = len(self._pools)
-        self._pools.append(Pool(p, self._spec_of(key), capacity))
-        self._pool_key[key] = p
-        return p
-
-    @property
-    def capacity(self) -> int:
-        """Total slots over all pools and shards."""
-        return self.shards * sum(p.capacity for p in self._pools)
-
-    def _install(self, layout: Layout) -> None:
-        """Switch to a compiled layout; live agents of the previous one keep their exact
-        qpos/qvel/ctrl/brakes (slot numbers change: ``generation`` increments)."""
-        old = getattr(self, "_layout", None)
+    def _bind(self) -> None:
+        """Views of the pools' current layout (after a switch: slot numbers changed; the
+        contact memory starts afresh)."""
+        layout = self.pools.layout
+        if layout is self._layout:
+            return
         self._layout = layout
-        self._pools = list(layout.pools)
-        self.shards = layout.shards
         self.model = layout.model
         self._batch = layout.batch
         self._state = layout.state
@@ -254,267 +183,93 @@ class PhysicsWorld:
         self._tables = layout.tables
         self._plans: dict[bytes, _SlotPlan] = {}
         G = layout.slots
-        old_live = self.live if old is not None else None
-        old_agents = self.slot_agent
-        self.live = np.zeros(G, bool)
         self.in_contact = np.zeros(G, bool)
         self.last_touch = np.full(G, -np.inf)
-        self.slot_agent = [None] * G
-        self.agent_slot = {}
-        t = self._tables
-        self._free: dict[tuple[int, int], list[int]] = {}
-        key = t.pool * self.shards + t.shard
-        order = np.argsort(key, kind="stable")
-        bounds = np.flatnonzero(np.diff(key[order])) + 1
-        for group in np.split(order, bounds) if len(order) else ():
-            g = int(group[0])
-            # popped from the end: lowest slot number first
-            self._free[(int(t.pool[g]), int(t.shard[g]))] = group[::-1].tolist()
-        if old is not None:
-            self._restore(old, old_live, old_agents)
-        self.generation += 1
 
-    def _restore(self, old: Layout, live: np.ndarray, agents: list) -> None:
-        """Copy live agents from the previous layout (same pool/shard/index) into this one."""
-        olds = np.flatnonzero(live)
-        if len(olds) == 0:
-            return
-        new, ot = self._tables, old.tables
-        news = carry_over(old, self._layout, olds)
-        for a, n in (("qpos", "nq"), ("qvel", "nv"), ("ctrl", "nu")):
-            src = concat_ranges(getattr(ot, a)[olds], getattr(ot, n)[olds])
-            dst = concat_ranges(getattr(new, a)[news], getattr(new, n)[news])
-            self._state[dst] = old.state[src]
-        ok = ot.spin_fl[olds] >= 0
-        self._fl[new.spin_fl[news][ok]] = old.frictionloss[ot.spin_fl[olds][ok]]
-        self._contype[new.geom[news]] = old.contype[ot.geom[olds]]  # ghosts stay ghosts
-        self._conaff[new.geom[news]] = old.conaffinity[ot.geom[olds]]
-        self._policy[new.tree[news]] = SLEEP_NEVER
-        self.live[news] = True
-        for g_old, g_new in zip(olds, news):
-            aid = agents[g_old]
-            self.slot_agent[g_new] = aid
-            self.agent_slot[aid] = int(g_new)
-        taken = set(news.tolist())
-        for k in {(int(new.pool[g]), int(new.shard[g])) for g in news}:
-            self._free[k] = [g for g in self._free[k] if g not in taken]
+    # ------------------------------------------------------------------ slots (``SlotPools``)
 
-    def _grown_pools(self, extra: dict[int, int]) -> tuple[list[Pool], int]:
-        """Pools and simulation count with ``extra`` more slots per simulation for some pools:
-        more slots per simulation up to ``SLOTS_PER_SIM``, more simulations beyond."""
-        pools = [Pool(p.index, p.spec, p.capacity + extra.get(p.index, 0)) for p in self._pools]
-        per_sim = sum(p.capacity for p in pools)
-        sims = self.shards
-        if per_sim > SLOTS_PER_SIM:
-            total = {p.index: p.capacity * self.shards for p in pools}
-            sims = max(self.shards, math.ceil(sum(total.values()) / SLOTS_PER_SIM))
-            old = {p.index: p.capacity for p in self._pools}
-            pools = [Pool(p.index, p.spec, max(old[p.index], math.ceil(total[p.index] / sims))) for p in pools]
-        return pools, sims
+    @property
+    def generation(self) -> int:
+        """Increments whenever slot numbers change (the layout was switched)."""
+        return self.pools.generation
 
-    def _grow(self, needs: dict[int, int]) -> None:
-        """Grow pools (pool index -> extra slots per simulation) now, with one recompile:
-        a pool the background growth does not cover (e.g. a size seen for the first time)."""
-        # a pool's first slots (a size seen for the first time) start small: sizes are many,
-        # and every slot of every pool is rebuilt by the recompile
-        extra = {p: max(e, self.pool_chunk if self._pools[p].capacity else NEW_POOL_SLOTS) for p, e in needs.items()}
-        log.warning(
-            "physics world: pools exhausted (%s), recompiling with more slots",
-            ", ".join(f"{self._pools[p].spec.name} +{e}" for p, e in extra.items()),
-        )
-        pools, sims = self._grown_pools(extra)
-        t0 = time.perf_counter()
-        layout = compile_layout(pools, self.timestep, sims, self.threads)
-        self.build_s += time.perf_counter() - t0
-        self._install(layout)
-        self.counters["pool_grows"] += 1
+    @property
+    def shards(self) -> int:
+        return self.pools.shards
 
-    def _grow_in_background(self, extra: dict[int, int]) -> None:
-        """Compile a bigger model on a worker thread (MuJoCo's compile releases the GIL);
-        ``_adopt`` switches to it later."""
-        if self._growth is not None:
-            return
-        pools, sims = self._grown_pools(extra)
-        if self._executor is None:
-            self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="physics-growth")
-        log.info(
-            "physics world: pools running low (%s), compiling %d slots in the background",
-            ", ".join(f"{self._pools[p].spec.name} +{e}" for p, e in extra.items()), sims * sum(p.capacity for p in pools),
-        )
-        fut = self._executor.submit(compile_layout, pools, self.timestep, sims, self.threads)
-        self._growth = _Growth(fut, {p.index: p.capacity for p in pools}, sims)
+    @property
+    def capacity(self) -> int:
+        """Total slots over all pools and shards."""
+        return self.pools.capacity
 
-    def _adopt(self, wait: bool) -> bool:
-        """Switch to the background-grown model if it is ready (or ``wait`` for it)."""
-        g = self._growth
-        if g is None or (not wait and not g.future.done()):
-            return False
-        if not g.future.done():
-            t0 = time.perf_counter()
-            concurrent.futures.wait([g.future])
-            self.wait_s += time.perf_counter() - t0
-            self.counters["growth_waits"] += 1
-        self._growth = None
-        layout = g.future.result()
-        if len(layout.pools) < len(self._pools) or any(
-            p.capacity > q.capacity for p, q in zip(self._pools, layout.pools)
-        ):
-            return False  # pools were added meanwhile: that growth is stale
-        self._install(layout)
-        self.counters["pool_grows"] += 1
-        return True
+    @property
+    def live(self) -> np.ndarray:
+        """Which slots hold an agent (bool per slot)."""
+        return self.pools.live
 
-    def reserve(self, sizes) -> int:
-        """Make pools for agents that may come, given as (family, length, width) [m] (e.g.
-        every size of a step, also those of other shards' agents): a size seen for the first
-        time gets its pool compiled in the background, so that taking over an agent of that
-        size later spawns it without a compile on the stepping thread. Returns the number
-        of new pools."""
-        n = len(self._pools)
-        for fam, length, width in sizes:
-            self.pool_for(fam, float(length), float(width))
-        added = len(self._pools) - n
-        if self._growth is not None and self._growth.future.done() and any(
-            p.capacity == 0 for p in self._pools
-        ):
-            self._adopt(wait=False)  # (dropped if stale: pools were added meanwhile)
-        self._low_water()
-        return added
+    @property
+    def agent_slot(self) -> dict[str, int]:
+        return self.pools.agent_slot
 
-    def _low_water(self) -> None:
-        """Start a background growth for pools with less than a quarter of their slots free
-        (each grows by half its size, at least ``pool_chunk`` per simulation), and for pools
-        reserved without slots yet."""
-        if self._growth is not None:
-            return
-        extra = {}
-        for p in self._pools:
-            if p.capacity == 0:
-                extra[p.index] = NEW_POOL_SLOTS
-                continue
-            free = sum(len(self._free.get((p.index, s), ())) for s in range(self.shards))
-            if 4 * free < p.capacity * self.shards:
-                extra[p.index] = max(self.pool_chunk, p.capacity // 2)
-        if extra:
-            self._grow_in_background(extra)
+    @property
+    def build_s(self) -> float:
+        """[s] wall time spent compiling on the stepping thread (cumulative)."""
+        return self.pools.build_s
+
+    @property
+    def wait_s(self) -> float:
+        """[s] wall time spent waiting for a background growth (cumulative)."""
+        return self.pools.wait_s
 
     @property
     def growing(self) -> bool:
-        """A bigger model is being compiled, or waits to be switched in."""
-        return self._growth is not None
+        return self.pools.growing
 
     @property
     def growth_ready(self) -> bool:
-        """The bigger model is compiled (switched in when a pool runs out, or at once with
-        ``adopt_early``)."""
-        return self._growth is not None and self._growth.future.done()
+        return self.pools.growth_ready
 
     def close(self) -> None:
         """Stop a background growth (its result is dropped)."""
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
-        self._growth = None
-
-    # ------------------------------------------------------------------ agent set
+        self.pools.close()
 
     def pool_for(self, family: str, length: float, width: float) -> int:
         """Pool index for an agent of a model family (``models.FAMILIES``) and size [m]."""
-        key = M.size_key(family, length, width)
-        p = self._pool_key.get(key)
-        if p is None:  # a pool of the family within SIZE_TOLERANCE of this size does as well
-            for k, q in self._pool_key.items():
-                spec = self._pools[q].spec
-                if (k[0] == family and abs(spec.length / length - 1) <= M.SIZE_TOLERANCE
-                        and abs(spec.width / width - 1) <= M.SIZE_TOLERANCE):
-                    return q
-        if p is None:
-            p = self._add_pool(key, 0)
-        return p
+        return self.pools.pool_for(family, length, width)
+
+    def slot_of(self, ids: list[str]) -> np.ndarray:
+        """Current slot of each agent id, -1 when not in the world."""
+        return self.pools.slot_of(ids)
+
+    def reserve(self, sizes) -> int:
+        """``SlotPools.reserve``: pools for sizes that may come, compiled in the background."""
+        added = self.pools.reserve(sizes)
+        self._bind()
+        return added
 
     def allocate(self, ids: list[str], pools: np.ndarray, near_x: np.ndarray, near_y: np.ndarray) -> np.ndarray:
-        """Take a slot for each new agent (growing pools if needed); returns slot numbers.
+        """Take a slot for each new agent (growing pools if needed), in the shard of the
+        live agent nearest to (``near_x``, ``near_y``) [m]; returns slot numbers.
 
         The slot is woken but not placed: call ``place`` next.
         """
-        pools = np.asarray(pools, np.int64)
-        if self.adopt_early:
-            self._adopt(wait=False)
-        needs = self._needs(pools)
-        if needs and self._growth is not None and self._growth.covers(needs, self._pools, self.shards):
-            self._adopt(wait=True)
-            needs = self._needs(pools)
-        if needs:
-            self._grow(needs)
-        t = self._tables
-        load = np.bincount(t.shard[self.live], minlength=self.shards).astype(np.float64)
-        live = np.flatnonzero(self.live)
+        self.pools.make_room(pools)
+        self._bind()
+        live = np.flatnonzero(self.pools.live)
         obs = self.observe(live) if len(live) else None
-        out = np.empty(len(ids), np.int64)
-        for k, (aid, p) in enumerate(zip(ids, pools)):
-            shard = -1
-            share = (load.sum() + 1) / self.shards * 1.1 + 2
-            if obs is not None and len(live):
-                d2 = (obs.fx - near_x[k]) ** 2 + (obs.fy - near_y[k]) ** 2
-                j = int(np.argmin(d2))
-                if d2[j] < NEIGHBOUR_M**2:
-                    s = int(t.shard[live[j]])
-                    if load[s] < share and self._free.get((int(p), s)):
-                        shard = s
-            if shard < 0:
-                order = np.argsort(load, kind="stable")
-                shard = next(int(s) for s in order if self._free.get((int(p), int(s))))
-            g = self._free[(int(p), shard)].pop()
-            load[shard] += 1
-            out[k] = g
-            self.live[g] = True
-            self.slot_agent[g] = aid
-            self.agent_slot[aid] = g
-        self._policy[t.tree[out]] = SLEEP_NEVER
-        self.counters["spawned"] += len(ids)
-        self._low_water()
-        return out
-
-    def _needs(self, pools: np.ndarray) -> dict[int, int]:
-        """Extra slots per simulation each pool needs for ``pools`` (one entry per new agent)."""
-        needs: dict[int, int] = {}
-        for p in np.unique(pools):
-            want = int((pools == p).sum())
-            have = sum(len(self._free.get((int(p), s), [])) for s in range(self.shards))
-            if self._pools[int(p)].capacity == 0 or have < want:
-                needs[int(p)] = -(-(want - have) // self.shards) + 1
-        return needs
+        return self.pools.take(
+            ids, pools, near_x, near_y, live, None if obs is None else obs.fx, None if obs is None else obs.fy,
+        )
 
     def park(self, slots: np.ndarray) -> None:
         """Send slots back to the parking lot (zero velocity, brakes on) and let them sleep."""
         slots = np.asarray(slots, np.int64)
         if len(slots) == 0:
             return
-        t = self._tables
-        q0 = self.model.qpos0
-        src = concat_ranges(t.qpos0[slots], t.nq[slots])
-        self._state[concat_ranges(t.qpos[slots], t.nq[slots])] = q0[src]
-        self._state[concat_ranges(t.qvel[slots], t.nv[slots])] = 0.0
-        self._state[concat_ranges(t.ctrl[slots], t.nu[slots])] = 0.0
-        fl = t.spin_fl[slots]
-        self._fl[fl[fl >= 0]] = 100.0
-        self._policy[t.tree[slots]] = SLEEP_ALLOWED
-        for g in slots:
-            aid = self.slot_agent[g]
-            if aid is not None:
-                self.agent_slot.pop(aid, None)
-            self.slot_agent[g] = None
-            self._free[(int(t.pool[g]), int(t.shard[g]))].append(int(g))
-        self.live[slots] = False
+        self.pools.park(slots)
         self.set_ghost(slots, False)
         self.in_contact[slots] = False
         self.last_touch[slots] = -np.inf
-        self.counters["parked"] += len(slots)
-
-    def slot_of(self, ids: list[str]) -> np.ndarray:
-        """Current slot of each agent id, -1 when not in the world."""
-        get = self.agent_slot.get
-        return np.fromiter((get(a, -1) for a in ids), np.int64, len(ids))
 
     def _plan(self, slots: np.ndarray) -> _SlotPlan:
         """The (cached) ``_SlotPlan`` of an int64 slot array; keyed by content, so callers
@@ -761,4 +516,4 @@ def _quat_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarra
     ], axis=-1)
 
 
-__all__ = ["Observation", "PhysicsWorld"]
+__all__ = ["HEADROOM", "Observation", "PhysicsWorld"]  # HEADROOM: re-exported (``pools``)

@@ -112,7 +112,7 @@ def test_classes_modes_ego_and_riders(caplog):
     assert list(kinds) == [M.KIND_CAR, M.KIND_CAR, M.KIND_CAR, M.KIND_BIKE, M.KIND_PED]
     # a truck drives as a truck of its own size (not the nearest bus)
     assert f.world.tables.length[f.slots[1]] == pytest.approx(12.0, rel=0.02)
-    assert "truck" in f.world._pools[int(f.world.tables.pool[f.slots[1]])].spec.name
+    assert "truck" in f.world.pools[int(f.world.tables.pool[f.slots[1]])].spec.name
     assert f.counters["skipped_inside_vehicle"] == 2
     counts = f.mode_counts()
     assert counts == {"physical": 3, "kinematic": 1, "external": 1, "stopping": 0}
