@@ -9,11 +9,17 @@ Building blocks (unit-tested on their own):
 - ``stanley_bumper``: Stanley's law with the guide point at the front bumper.
 - ``accel_command``: damped along-path position loop with feed-forward and integral.
 - ``accel_to_torques`` / ``pedal_to_torques``: wheel torques and brakes.
-- ``roll_stabiliser``: bicycle roll PD towards the steady-turn lean.
-- ``planar_force``: pedestrian force with a bounded norm.
+- ``roll_stabiliser`` / ``steered_roll_stabiliser``: bicycle roll PD towards the steady-turn lean.
+- ``planar_force`` / ``pedestrian_force``: pedestrian force with a bounded norm, heading servo.
 
-``control_vehicles`` / ``control_pedestrians`` compose them for one preset. Integrator
-state lives in ``ControlState`` (arrays aligned with the agents), nothing else is kept.
+Vehicle limits every preset gets after its controller (tyres and drivetrain, not tuning):
+
+- ``friction_steer_limit``: no steering beyond what the tyres carry at the current speed.
+- ``traction_limit``: no drive torque beyond the driven wheels' grip the turn leaves.
+- ``curve_speed_cut``: no drive while faster than the bend ahead allows (default preset).
+
+``control_paper`` / ``control_default`` compose them for one preset. Integrator state
+lives in ``ControlState`` (arrays aligned with the agents), nothing else is kept.
 """
 
 from __future__ import annotations
@@ -28,6 +34,13 @@ from physics_side.reference import Reference, tracking_error
 from protocol.frames import wrap_pi
 
 G = 9.81  # [m/s^2]
+A_LAT_SHARE = 0.92  # [1] share of the tyres' grip (mu g) the steering limit allows in lateral acceleration
+GRIP_LATERAL = 1.0  # [1] weight of the turn's lateral acceleration in the drive's friction circle
+CURVE_PREVIEW_S = np.array([0.0, 0.5, 1.0])  # [s] path curvature taken this far ahead at the current speed
+DRIVE_GRIP_USE = 0.9  # [1] share of the driven wheels' grip the drive may use (traction control)
+PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
+PED_YAW_KD = 15.0  # [N*m*s/rad]
+PED_YAW_MAX = 150.0  # [N*m] pedestrian heading servo torque limit
 
 
 def _clip(x, lo, hi):
@@ -131,17 +144,106 @@ def roll_stabiliser(
     return _clip(-kp * (roll - target) - kd * roll_rate, -limit, limit)
 
 
+def steered_roll_stabiliser(
+    roll: np.ndarray, roll_rate: np.ndarray, speed: np.ndarray, steer: np.ndarray, wheelbase: np.ndarray,
+    kp: float, kd: float, limit: np.ndarray,
+) -> np.ndarray:
+    """``roll_stabiliser`` [N*m] leaning for the turn the steering asks for: yaw rate
+    r = v tan(delta) / L of a kinematic bicycle (speed [m/s], steer [rad], wheelbase [m]),
+    not the measured one, which feeds lean transients back into the target."""
+    r_cmd = speed * np.tan(steer) / wheelbase
+    return roll_stabiliser(roll, roll_rate, speed, r_cmd, kp, kd, limit)
+
+
 def planar_force(
     ex: np.ndarray, ey: np.ndarray, evx: np.ndarray, evy: np.ndarray, ax: np.ndarray, ay: np.ndarray,
     mass: np.ndarray, omega: float, zeta: float, fmax: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pedestrian PD + feed-forward force (x, y) [N], its norm clipped to ``fmax``."""
+    fx, fy, _, scale = _bounded_force(ex, ey, evx, evy, ax, ay, mass, omega, zeta, fmax)
+    return fx * scale, fy * scale
+
+
+def _bounded_force(ex, ey, evx, evy, ax, ay, mass, omega, zeta, fmax):
+    """``planar_force`` before scaling: (fx, fy, norm [N], scale [1] that bounds it to ``fmax``)."""
     k, c = omega * omega, 2.0 * zeta * omega
     fx = mass * (ax + k * ex + c * evx)
     fy = mass * (ay + k * ey + c * evy)
     norm = np.hypot(fx, fy)
     scale = np.where(norm > fmax, fmax / np.maximum(norm, 1e-9), 1.0)
-    return fx * scale, fy * scale
+    return fx, fy, norm, scale
+
+
+def pedestrian_force(
+    px: np.ndarray, py: np.ndarray, vx: np.ndarray, vy: np.ndarray, yaw: np.ndarray, yaw_rate: np.ndarray,
+    tx: np.ndarray, ty: np.ndarray, theading: np.ndarray, v: np.ndarray, accel: np.ndarray, curvature: np.ndarray,
+    mass: np.ndarray, omega: np.ndarray, zeta: np.ndarray, fmax: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Planar force control of pedestrians towards a moving target.
+
+    Position (``px``, ``py``) [m], velocity (``vx``, ``vy``) [m/s], ``yaw`` [rad] and
+    ``yaw_rate`` [rad/s] of each pedestrian; target (``tx``, ``ty``) [m] moving along
+    ``theading`` [rad] at ``v`` [m/s] with along-path ``accel`` [m/s^2] on a path of
+    ``curvature`` [1/m] (feed-forward: along-path plus centripetal v^2 * kappa); loop
+    ``omega`` [rad/s] and ``zeta`` [1] per pedestrian, ``mass`` [kg], force norm bounded
+    by ``fmax`` [N]. Returns (force x [N], force y [N], yaw torque [N*m] of a heading
+    servo towards ``theading``, force norm [N]).
+    """
+    c, s = np.cos(theading), np.sin(theading)
+    cen = v * v * curvature
+    ax = accel * c - cen * s
+    ay = accel * s + cen * c
+    fx, fy, norm, scale = _bounded_force(tx - px, ty - py, v * c - vx, v * s - vy, ax, ay, mass, omega, zeta, fmax)
+    tz = np.clip(PED_YAW_KP * wrap_pi(theading - yaw) - PED_YAW_KD * yaw_rate, -PED_YAW_MAX, PED_YAW_MAX)
+    return fx * scale, fy * scale, tz, norm * scale
+
+
+# --------------------------------------------------------------------------- vehicle limits
+
+
+def lateral_accel_limit(tyre_mu: np.ndarray) -> np.ndarray:
+    """Lateral acceleration [m/s^2] the steering limit allows on tyres of friction ``tyre_mu`` [1]."""
+    return A_LAT_SHARE * G * tyre_mu
+
+
+def drive_grip_torque(drive_grip: np.ndarray, r_wheel: np.ndarray) -> np.ndarray:
+    """Drive torque [N*m] the driven wheels may use: ``DRIVE_GRIP_USE`` of the force they
+    carry (``drive_grip`` [N], inf where unlimited) at wheel radius ``r_wheel`` [m]."""
+    finite = np.isfinite(drive_grip)
+    return np.where(finite, DRIVE_GRIP_USE * np.where(finite, drive_grip, 0.0) * r_wheel, np.inf)
+
+
+def friction_steer_limit(
+    steer: np.ndarray, speed: np.ndarray, wheelbase: np.ndarray, a_lat: np.ndarray, max_steer: np.ndarray,
+) -> np.ndarray:
+    """Steering angle [rad] clipped to the friction circle at the current ``speed`` [m/s]:
+    |delta| <= atan(L * a_lat / v^2) (wheelbase L [m], lateral acceleration ``a_lat``
+    [m/s^2]; v at least 0.1 m/s), and to ``max_steer`` [rad] (like the Unity car
+    controller's speed-dependent steering limit)."""
+    lim = np.minimum(max_steer, np.arctan(wheelbase * a_lat / np.maximum(speed, 0.1) ** 2))
+    return np.minimum(np.maximum(steer, -lim), lim)
+
+
+def traction_limit(drive: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, grip_torque: np.ndarray) -> np.ndarray:
+    """Drive torque [N*m] bounded by the driven wheels' grip ``grip_torque`` [N*m] less what
+    the turn uses (friction circle with the lateral acceleration v * r, speed [m/s], yaw
+    rate [rad/s], at most 0.95 g): a spinning rear axle carries no side force, and a
+    rear-driven car pulling away in a bend spun round."""
+    use = np.minimum(np.abs(speed * yaw_rate) / G, 0.95) * GRIP_LATERAL
+    return np.minimum(drive, grip_torque * np.sqrt(1.0 - use * use))
+
+
+def curve_speed_cut(
+    drive: np.ndarray, speed: np.ndarray, curvature_ahead: np.ndarray, v_ref: np.ndarray, a_lat: np.ndarray,
+    mask: np.ndarray,
+) -> np.ndarray:
+    """Drive torque [N*m], zero for agents of ``mask`` faster (``speed`` [m/s]) than both
+    their reference speed ``v_ref`` [m/s] and the speed sqrt(a_lat / kappa) that the
+    largest ``curvature_ahead`` |kappa| [1/m] allows at lateral acceleration ``a_lat``
+    [m/s^2]: catching up into a tight turn ran cars metres wide."""
+    v_curve = np.sqrt(a_lat / np.maximum(curvature_ahead, 1e-6))
+    over = mask & (speed > np.maximum(v_curve, v_ref))
+    return np.where(over, 0.0, drive)
 
 
 # --------------------------------------------------------------------------- composed laws
@@ -319,4 +421,6 @@ __all__ = [
     "ControlState", "VehicleCommand", "VehicleObs", "VehicleParams", "accel_command", "accel_to_torques",
     "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
+    "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
+    "steered_roll_stabiliser", "traction_limit",
 ]

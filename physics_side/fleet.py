@@ -1,12 +1,14 @@
-"""``Fleet``: the agents of the current SUMO step, aligned arrays, one control tick at a time.
+"""``Fleet``: the agents of the current SUMO step as aligned arrays; syncs them on each step, drives them each tick.
 
-One object between the transport (``daemon``) and the world (``world``):
+One object between the transport (``daemon``) and the world (``world``); the control
+laws are ``control``'s, the references ``reference``'s, neither calls back here:
 
 - ``apply_step(msg)``: sync the agent set with a ``StepMessage`` - spawn new agents at
   their SUMO pose and speed, park agents that left, place agents that SUMO teleported
   (JUMPED) or that diverged/flipped (each placement counted), rebuild the references.
-- ``tick()``: controllers for every agent at once (``control``), commands into the
-  world, ``substeps`` MuJoCo steps, then tracking errors and contacts.
+- ``tick()``: observe (the world's state) -> control (controllers and vehicle limits for
+  every agent at once, pure numpy) -> actuate (commands, kinematic placements) -> step
+  (``substeps`` MuJoCo steps) -> tracking errors and contacts.
 - ``snapshot()``: the ``PhysicsAgents`` columns for ``PhysicsState``.
 - ``begin_stop()``: SUMO is gone: every agent brakes to rest along its last path.
 
@@ -26,7 +28,7 @@ import numpy as np
 from physics_side import control as C
 from physics_side import models as M
 from physics_side.config import PhysicsSettings, Rates
-from physics_side.reference import Reference, tracking_error
+from physics_side.reference import Reference, ReferencePoint, tracking_error
 from physics_side.world import PhysicsWorld
 from protocol.frames import sumo_angle_to_yaw, wrap_pi, yaw_to_sumo_angle
 from protocol.messages import AgentBatch, AgentClass, AgentFlag, AgentMode, PhysicsAgents, StepMessage
@@ -39,17 +41,10 @@ _TYPE_NAME = {
     AgentClass.PASSENGER: "passenger", AgentClass.TAXI: "taxi", AgentClass.BUS: "bus",
     AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian", AgentClass.OTHER: "other",
 }
-A_LAT_SHARE = 0.92  # [1] share of the tyres' grip (mu g) the steering limit allows in lateral acceleration
-G = 9.81  # [m/s^2]
-GRIP_LATERAL = 1.0
-CURVE_PREVIEW_S = np.array([0.0, 0.5, 1.0])  # [s] path curvature taken this far ahead at the current speed
-DRIVE_GRIP_USE = 0.9  # [1] share of the driven wheels' grip the drive may use (traction control)
 GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
 CARRY_SPEED = 0.5  # [m/s] below this SUMO speed a sideways slide is carried, not driven
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
-PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
-PED_YAW_KD = 15.0  # [N*m*s/rad]
 
 
 def _stack_batches(a, b):
@@ -111,6 +106,28 @@ class _Groups:
     all_veh: bool
     ped_idx: np.ndarray
     """Pedestrians under force control."""
+
+
+@dataclass(frozen=True)
+class _Commands:
+    """What one control tick writes into the world (arrays over the agents unless noted)."""
+
+    steer: np.ndarray
+    """Bicycle-model road-wheel angle [rad]."""
+    drive: np.ndarray
+    """Drive torque [N*m] (pedestrians: force norm [N])."""
+    brake: np.ndarray
+    """Brake torque [N*m]."""
+    aux: np.ndarray
+    """Controller diagnostics (``VehicleCommand.aux``)."""
+    stab: np.ndarray | None
+    """Bicycle stabiliser torque [N*m] per vehicle (``_Groups.veh_idx``), None without bicycles."""
+    ped: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    """Force x, y [N] and yaw torque [N*m] per pedestrian (``_Groups.ped_idx``)."""
+    at: ReferencePoint | None
+    """Reference point where kinematic agents and ``carry`` are placed (``Reference.at``), or None."""
+    carry: np.ndarray | None
+    """Standing agents carried along SUMO's sideways slide (placed), or None."""
 
 
 @dataclass
@@ -535,12 +552,9 @@ class Fleet:
         )
         self.mass = t.mass[s]
         self.stab_max = t.stab_max[s]
-        self._a_lat = A_LAT_SHARE * G * t.tyre_mu[s]  # [m/s^2] lateral acceleration the tyres carry
-        self._steer_lim_num = wb * self._a_lat  # numerator of the friction-circle steering limit
+        self._a_lat = C.lateral_accel_limit(t.tyre_mu[s])  # [m/s^2] lateral acceleration the tyres carry
         # drive torque the driven wheels carry (four-wheeled vehicles; inf for the others)
-        grip = t.drive_grip[s]
-        self._grip_torque = np.where(np.isfinite(grip), DRIVE_GRIP_USE * np.where(np.isfinite(grip), grip, 0.0)
-                                     * t.r_wheel[s], np.inf)
+        self._grip_torque = C.drive_grip_torque(t.drive_grip[s], t.r_wheel[s])
         self._any_grip = bool(np.isfinite(self._grip_torque).any())
         self._any_bike = bool(np.any(self.kind == M.KIND_BIKE))
         self._gen = self.world.generation
@@ -579,14 +593,29 @@ class Fleet:
         self._groups = None
 
     def tick(self) -> None:
-        """One control tick: controllers -> commands -> MuJoCo substeps -> errors, contacts."""
+        """One control tick: observe -> control (pure numpy, laws in ``control``) -> actuate
+        -> ``substeps`` MuJoCo steps -> tracking errors and contacts."""
         w = self.world
-        n = self.n
-        if n == 0 or self.ref is None:
+        if self.n == 0 or self.ref is None:
             w.step()
             self.tick_count += 1
             return
-        if self._gen != w.generation:
+        obs, proj = self._observe()
+        tau = min(self.tau, self.max_extrapolation)
+        u = self._control(obs, proj, tau)
+        self._actuate(u)
+        w.step()
+        self.tick_count += 1
+        self.tau += self.dt
+        if self.stopping:
+            self.stop_t += self.dt
+        self._measure(obs, u)
+
+    def _observe(self):
+        """This tick's start state: (observation, bumper projection or None); after the model
+        grew, the agents' new slot numbers first (and their ghost bits again)."""
+        w = self.world
+        if self._gen != w.generation:  # the model grew: every slot number changed
             self.slots = w.slot_of(self.ids)
             self._params()
             self._cache = None
@@ -594,12 +623,16 @@ class Fleet:
         # the previous tick's end state (or the one ``apply_step`` read) is this tick's start
         # state unless a placement happened in between (then the cache was dropped)
         if self._cache is not None:
-            obs, proj = self._cache
-        else:
-            obs, proj = w.observe(self.slots), None
+            return self._cache
+        return w.observe(self.slots), None
+
+    def _control(self, obs, proj, tau: float) -> _Commands:
+        """Commands for every agent from the observation and the reference ``tau`` [s] past
+        the sample: the presets' controllers, then the vehicle limits, the bicycle
+        stabiliser and the pedestrians' force control (all in ``control``). Writes nothing into
+        the world (the controllers' integrators are ``self.state``)."""
+        n = self.n
         ref = self.ref
-        tau_max = self.max_extrapolation
-        tau = min(self.tau, tau_max)
         p = self.params
         if self._groups is None:
             self._groups = self._build_groups()
@@ -629,66 +662,70 @@ class Fleet:
                 drive = np.where(use, cmd.drive, drive)
                 brake = np.where(use, cmd.brake, brake)
                 aux = np.where(use, cmd.aux, aux)
-        if len(g.kin_idx):
+        at = None
+        if len(g.kin_idx):  # placed at the reference (``_actuate``), steering shown for its path
             idx = g.kin_idx
-            r = ref.at(tau)
-            self._place(idx, r, count=False, steady_turn=False)
-            steer[idx] = np.arctan(p.wheelbase[idx] * r.curvature[idx])
+            at = ref.at(tau)
+            steer[idx] = np.arctan(p.wheelbase[idx] * at.curvature[idx])
+        carry = None
         if not self.stopping and self.carry.any():  # standing, slid sideways by SUMO: follow the slide
-            idx = np.flatnonzero(self.carry)
-            self._place(idx, ref.at(tau), count=False)
-            drive[idx] = 0.0
-        # vehicle property (as the paper's Unity car controller's speed-dependent steering
-        # limit): never steer beyond the friction circle at the current speed
-        lim = np.minimum(p.max_steer, np.arctan(self._steer_lim_num / np.maximum(obs.speed, 0.1) ** 2))
-        steer = np.minimum(np.maximum(steer, -lim), lim)
+            carry = np.flatnonzero(self.carry)
+            at = ref.at(tau)
+            drive[carry] = 0.0
+        # vehicle properties, whatever the controller asked for
+        steer = C.friction_steer_limit(steer, obs.speed, p.wheelbase, self._a_lat, p.max_steer)
         if self._any_grip:
-            # ... nor drive the driven wheels beyond their grip, what the turn leaves of it
-            # (friction circle): a spinning rear axle carries no side force and a rear-driven
-            # car pulling away in a bend spun round (1 s steps: cars flipped at junction exits)
-            use = np.minimum(np.abs(obs.speed * obs.yaw_rate) / G, 0.95) * GRIP_LATERAL
-            drive = np.minimum(drive, self._grip_torque * np.sqrt(1.0 - use * use))
+            drive = C.traction_limit(drive, obs.speed, obs.yaw_rate, self._grip_torque)
         if g.any_default and not self.stopping:
-            # ... nor catch up with a reference ahead faster than the bend ahead allows: a car
-            # behind SUMO speeding into a tight junction turn ran metres wide and was placed
             v = np.maximum(obs.speed, 0.0)
-            kap = np.abs(ref.path.at(self.s_act + v * CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
-            v_curve = np.sqrt(self._a_lat / np.maximum(kap, 1e-6))
-            over = g.use_default & (obs.speed > np.maximum(v_curve, ref.at(tau).speed))
-            drive = np.where(over, 0.0, drive)
+            kap = np.abs(ref.path.at(self.s_act + v * C.CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
+            drive = C.curve_speed_cut(drive, obs.speed, kap, ref.at(tau).speed, self._a_lat, g.use_default)
+        vi = g.veh_idx
+        stab = None
+        if len(vi) and self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
+            stab = C.steered_roll_stabiliser(
+                obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], steer[vi], p.wheelbase[vi],
+                self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
+            )
+        ped = None
+        if len(g.ped_idx):
+            fx, fy, tz, force = self._pedestrians(g.ped_idx, obs, tau, stopping, stop_speed)
+            ped = (fx, fy, tz)
+            drive[g.ped_idx] = force
+        return _Commands(steer, drive, brake, aux, stab, ped, at, carry)
+
+    def _actuate(self, u: _Commands) -> None:
+        """Write the commands into the world: kinematic agents and SUMO's sideways slides
+        placed at the reference, vehicles' steering / drive / brakes, pedestrians' forces."""
+        w = self.world
+        g = self._groups
+        if len(g.kin_idx):
+            self._place(g.kin_idx, u.at, count=False, steady_turn=False)
+        if u.carry is not None:
+            self._place(u.carry, u.at, count=False)
         vi = g.veh_idx
         if len(vi):
-            stab = None
-            if self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
-                # lean for the turn the steering asks for (kinematic bicycle), not for the
-                # measured yaw rate: the latter feeds lean transients back into the target
-                r_cmd = obs.speed[vi] * np.tan(steer[vi]) / p.wheelbase[vi]
-                stab = C.roll_stabiliser(
-                    obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], r_cmd,
-                    self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
-                )
             if g.all_veh:
-                w.command_vehicles(g.veh_slots, steer, drive, brake, stab)
+                w.command_vehicles(g.veh_slots, u.steer, u.drive, u.brake, u.stab)
             else:
-                w.command_vehicles(g.veh_slots, steer[vi], drive[vi], brake[vi], stab)
-        pi = g.ped_idx
-        if len(pi):
-            drive[pi] = self._pedestrians(pi, obs, tau, stopping, stop_speed)
-        w.step()
-        self.tick_count += 1
-        self.tau += self.dt
-        if self.stopping:
-            self.stop_t += self.dt
-        # tracking error at the end of the tick, against the extrapolated reference
+                w.command_vehicles(g.veh_slots, u.steer[vi], u.drive[vi], u.brake[vi], u.stab)
+        if u.ped is not None:
+            w.command_pedestrians(self.slots[g.ped_idx], *u.ped)
+
+    def _measure(self, obs, u: _Commands) -> None:
+        """After the step: tracking errors against the extrapolated reference, contacts and
+        collisions; the end state is the next tick's start state."""
+        w = self.world
+        ref = self.ref
         obs2 = w.observe(self.slots)
         s_guess = self.s_act + np.maximum(obs.speed, 0.0) * self.dt
-        r2, (s2, lat2, pp2) = ref.at_and_project(min(self.tau, tau_max), obs2.fx, obs2.fy, s_guess)
+        r2, (s2, lat2, pp2) = ref.at_and_project(min(self.tau, self.max_extrapolation), obs2.fx, obs2.fy, s_guess)
         self.s_act = s2
         self.err_lon = s2 - r2.s
         self.err_lat = lat2
-        self.drive = drive
-        self.brake = brake
-        self.aux = aux
+        self.drive = u.drive
+        self.brake = u.brake
+        self.aux = u.aux
         flip = math.radians(self.cfg.flip_deg)
         upright = (np.abs(obs2.roll) < flip) & (np.abs(obs2.pitch) < flip)
         _, began = w.contacts(self.slots, upright)
@@ -697,8 +734,10 @@ class Fleet:
         self._last_obs = obs2
         self._cache = (obs2, (s2, lat2, pp2))
 
-    def _pedestrians(self, pi: np.ndarray, obs, tau: float, stopping, stop_speed) -> np.ndarray:
-        """Planar force control of pedestrians ``pi``; returns the force magnitudes [N]."""
+    def _pedestrians(self, pi: np.ndarray, obs, tau: float, stopping, stop_speed) -> tuple:
+        """Force control of pedestrians ``pi`` (``control.pedestrian_force``) towards the held
+        sample (paper preset) or the extrapolated reference (default), or to a stop where
+        they are; returns (force x, force y [N], yaw torque [N*m], force norm [N])."""
         ref = self.ref
         paper = (self.preset[pi] == P_PAPER) & (not self.stopping)
         r = ref.at(tau)
@@ -710,24 +749,13 @@ class Fleet:
         if stopping is not None:
             v = stop_speed[pi]
             tx, ty = obs.fx[pi], obs.fy[pi]
-        c, s = np.cos(tyaw), np.sin(tyaw)
-        acc = np.where(paper, 0.0, r.accel[pi])
-        # feed-forward: along-path acceleration plus centripetal v^2 * kappa
-        cen = np.where(paper, 0.0, v * v * r.curvature[pi])
-        ax = acc * c - cen * s
-        ay = acc * s + cen * c
-        om = np.where(paper, self.ctl.paper.ped_omega, self.ctl.default.ped_omega)
-        ze = np.where(paper, self.ctl.paper.ped_zeta, self.ctl.default.ped_zeta)
-        k, cd = om * om, 2.0 * ze * om
-        m = self.mass[pi]
-        fx = m * (ax + k * (tx - obs.fx[pi]) + cd * (v * c - obs.vx[pi]))
-        fy = m * (ay + k * (ty - obs.fy[pi]) + cd * (v * s - obs.vy[pi]))
-        fmax = self.params.max_drive[pi]
-        nrm = np.hypot(fx, fy)
-        sc = np.where(nrm > fmax, fmax / np.maximum(nrm, 1e-9), 1.0)
-        tz = np.clip(PED_YAW_KP * wrap_pi(tyaw - obs.yaw[pi]) - PED_YAW_KD * obs.yaw_rate[pi], -150.0, 150.0)
-        self.world.command_pedestrians(self.slots[pi], fx * sc, fy * sc, tz)
-        return nrm * sc
+        # feed-forward (along-path acceleration, centripetal) for the extrapolated reference only
+        return C.pedestrian_force(
+            obs.fx[pi], obs.fy[pi], obs.vx[pi], obs.vy[pi], obs.yaw[pi], obs.yaw_rate[pi], tx, ty, tyaw, v,
+            np.where(paper, 0.0, r.accel[pi]), np.where(paper, 0.0, r.curvature[pi]), self.mass[pi],
+            np.where(paper, self.ctl.paper.ped_omega, self.ctl.default.ped_omega),
+            np.where(paper, self.ctl.paper.ped_zeta, self.ctl.default.ped_zeta), self.params.max_drive[pi],
+        )
 
     # ------------------------------------------------------------------ output
 
