@@ -349,3 +349,32 @@ def test_interpolated_speed_is_continuous_across_long_steps():
         assert ref.at(0.5 * L).accel[0] == pytest.approx(a, abs=1e-9)
     # each step starts at the speed the previous one ended with (after the first)
     assert np.allclose(starts[1:], ends[:-1])
+
+
+def test_a_vtype_change_respawns_the_agent_in_the_model_of_its_new_size():
+    """vehicle.setType mid-run (a car becomes a 12 m bus): the agent leaves its car slot and
+    is spawned again in a pool whose model has the new type's length and width."""
+    f = _fleet()
+    for k in range(3):
+        _run_step(f, circle_traffic(2, k))
+    w = f.world
+    car_pool = int(w.tables.pool[w.slot_of(["veh0"])[0]])
+    assert w.pools[car_pool].spec.length == pytest.approx(5.0, rel=0.05)
+    msg = circle_traffic(2, 3)
+    a = msg.agents
+    vtype, cls = a.vtype.copy(), a.cls.copy()
+    length, width = a.length.copy(), a.width.copy()
+    vtype[0], cls[0], length[0], width[0] = 1, int(AgentClass.BUS), 12.0, 2.5
+    msg = replace(msg, vtypes=[VType("car", "passenger"), VType("city_bus", "bus")])
+    spawns = f.counters["placements_spawn"]
+    _run_step(f, _with(msg, vtype=vtype, cls=cls, length=length, width=width))
+    assert f.counters["retyped"] == 1 and f.counters["placements_spawn"] == spawns + 1
+    pool = int(w.tables.pool[w.slot_of(["veh0"])[0]])
+    assert pool != car_pool
+    assert w.pools[pool].spec.length == pytest.approx(12.0, rel=0.05)
+    assert w.pools[pool].spec.width == pytest.approx(2.5, rel=0.05)
+    # veh1 kept its slot and type; the bus drives on from where SUMO has it
+    assert int(w.tables.pool[w.slot_of(["veh1"])[0]]) == car_pool
+    snap = f.snapshot()
+    assert snap.cls[0] == AgentClass.BUS
+    assert np.hypot(snap.x[0] - msg.agents.x[0], snap.y[0] - msg.agents.y[0]) < 1.5
