@@ -99,6 +99,14 @@ def test_lint_imports_passes_and_fails_on_a_forbidden_import(tmp_path):
     bad = _lint(tmp_path)
     assert bad.returncode != 0
     assert "BROKEN" in bad.stdout and "sumo_side.bridge -> physics_side.control" in bad.stdout
+    # ... and with the common runtime reaching up into the application instead
+    bridge.write_text(bridge.read_text().replace("\nfrom physics_side import control  # noqa: E402,F401\n", "\n"))
+    logs = tmp_path / "sumoco" / "common" / "logs.py"
+    logs.write_text(logs.read_text() + "\nfrom sumoco.app import demo  # noqa: E402,F401\n")
+    bad = _lint(tmp_path)
+    assert bad.returncode != 0
+    assert "BROKEN" in bad.stdout and "sumoco.common.logs -> sumoco.app.demo" in bad.stdout
+    assert "sumo_side.bridge -> physics_side.control" not in bad.stdout
 
 
 @pytest.mark.integration
