@@ -14,9 +14,12 @@ own counters (``window.sumoco3d``) are read over ``seconds`` of wall time:
   samples); one instanced mesh per model class, so draw calls do not grow with the agents;
 - ``agents_drawn``: body instances (car + bus + bicycle + pedestrian), ``instances`` per mesh;
 - ``frames_received_hz``: WebSocket frames the page got from the server (at most the
-  viewer's ``max_hz``), ``frames_applied_hz``: those the page applied to the scene;
-- ``update_ms``, ``render_ms``: mean CPU time per frame of the page's per-frame update (the
-  instance matrices) and of ``renderer.render`` (submitting; SwiftShader rasterises later);
+  viewer's ``max_hz``; ``frame_kib`` each: a step and two physics states),
+  ``frames_applied_hz``: those the page applied to the scene;
+- ``decode_ms``, ``update_ms``, ``render_ms``: mean CPU time of the page's main thread per
+  frame: decoding a received frame (step + every physics instance), the per-frame update
+  (the instance matrices) and ``renderer.render`` (submitting; SwiftShader rasterises in
+  the GPU process);
 - ``gl_renderer``: ``UNMASKED_RENDERER_WEBGL``: "SwiftShader" means software rendering on
   the CPU, so the fps say little about a browser with a GPU; ``browser_cores`` (CPU
   seconds of the browser's processes per wall second), ``loadavg_1min`` and ``cpus`` tell
@@ -41,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.codec import encode
 from sumoco.common.config import ZenohConfig
 from sumoco.common.errors import MissingExtraError, SumocoError
 from sumoco.common.transport import free_tcp_port, open_session
@@ -177,6 +181,7 @@ class _Viewer:
 def measure(driver: Any, agents: int, seconds: float, tmp: str, load_timeout: float = 120.0) -> dict:
     """One row: the 3D page drawing ``agents`` agents, measured over ``seconds``."""
     fake = FakeRun(grid=GRID, n=agents, run=f"bench-viewer-{agents}")
+    frame_bytes = len(encode(fake.step(10))) + 2 * len(encode(fake.physics(20, 1.0, 10)))  # step + 2 instances
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     with open_session(ZenohConfig(listen=(ep,))) as session:
         pub = FakePublisher(session, fake, step_hz=10.0, physics_hz=20.0).start()
@@ -237,10 +242,12 @@ def measure(driver: Any, agents: int, seconds: float, tmp: str, load_timeout: fl
         "agents_drawn": sum(int(inst.get(k, 0)) for k in BODY_MESHES),
         "agents_in_step": b["agents"],
         "instances": inst,
+        "frame_kib": round(frame_bytes / 1024, 1),
         "frames_received_hz": round((b["framesReceived"] - a["framesReceived"]) / dt, 2),
         "frames_applied_hz": round((b["framesDrawn"] - a["framesDrawn"]) / dt, 2),
         "server_max_hz": (b.get("hello") or {}).get("max_hz"),
         "server_frames_dropped": server.get("frames_dropped"),
+        "decode_ms": mean("decodeMs"),
         "update_ms": mean("updateMs"),
         "render_ms": mean("renderMs"),
         "page_errors": b["errors"],

@@ -31,7 +31,7 @@ const stats = {
   tlsHeads: 0, framesReceived: 0, framesDrawn: 0, renders: 0, errors: 0, lastError: '',
   agents: 0, physicsAgents: 0, ghosts: 0, instances: {}, drawCalls: 0, triangles: 0, fps: 0,
   step: -1, simTime: NaN, rtf: 0, follow: null, instance: null, renderMs: 0, updateMs: 0,
-  glRenderer: '', glVendor: '',
+  decodeMs: 0, glRenderer: '', glVendor: '',
 };
 window.sumoco3d = stats;
 
@@ -275,6 +275,7 @@ addEventListener('pageshow', (ev) => { if (ev.persisted) { leaving = false; conn
 function consumeFrame(now) {
   const env = pendingFrame;
   pendingFrame = null;
+  const t0 = performance.now();
   try {
     if (env.step) {
       const s = readStep(unpack(env.step));
@@ -293,6 +294,7 @@ function consumeFrame(now) {
   } catch (e) {
     return fail(e);
   }
+  stats.decodeMs = performance.now() - t0;
   stats.framesDrawn++;
   if (!userMoved && !mapRoot && stats.framesDrawn === 1) fit();
 }
