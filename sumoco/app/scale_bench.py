@@ -267,10 +267,10 @@ def _shard_ticks(shards: int, per_shard: int, seconds: float = 3.0) -> float:
     return max(o["tick_ms"] for o in out), max(o["tick_cpu_ms"] for o in out), out[0]["control_dt_ms"]
 
 
-def shard_rows(counts=(1, 2), probe=(150, 450)) -> list[dict]:
+def shard_rows(counts=(1, 2), probe=(150, 450), seconds: float = 3.0) -> list[dict]:
     """``agents_realtime`` per shard count: the most full-physics cars that ``shards``
     processes keep at real-time factor >= 1 (a control tick within its period), from the
-    tick time at two sizes per shard (linear in the cars)."""
+    tick time at two sizes per shard (linear in the cars), each measured for ``seconds``."""
     rows = []
 
     def most(t_a: float, t_b: float, dt: float) -> int:
@@ -278,7 +278,7 @@ def shard_rows(counts=(1, 2), probe=(150, 450)) -> list[dict]:
         return max(0, int(probe[0] + (dt - t_a) / slope))
 
     for k in counts:
-        (t_a, c_a, dt), (t_b, c_b, _) = (_shard_ticks(k, n) for n in probe)
+        (t_a, c_a, dt), (t_b, c_b, _) = (_shard_ticks(k, n, seconds) for n in probe)
         rows.append({"shards": k, "agents_realtime": most(t_a, t_b, dt) * k,
                      # the same from CPU time per tick: what each process needs of one core
                      # (independent of other load; equal to the wall figure on an idle host)
@@ -530,20 +530,27 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
                     quick: bool = False, lod_off_max: int = 2500) -> list[dict]:
     """Pool rows, co-simulation rows per size (LOD off only up to ``lod_off_max`` agents: every
     agent in full physics beyond that is minutes per row), shard rows, the take-over of a
-    killed shard and the realtime row (quick: 1,024 slots and 1,000 agents only)."""
+    killed shard and the realtime row. Quick (a smoke run of every kind of row but the
+    take-over, which ``tests/test_e2e_shards.py`` covers): 1,024 slots, 1,000 agents for
+    10 steps, one shard probed at 20 and 60 cars for 1 s each, and 1,000 agents in realtime
+    for 3 s with about 100 in full physics."""
     if quick:
         sizes, pool_sizes, steps = (1000,), (1024,), 10
     rows = [pool_row(n) for n in pool_sizes]
     for size in sizes:
         rows.extend(cosim_rows(size, steps, lod_modes=(False, True) if size <= lod_off_max else (True,)))
-    if not quick:
-        for name, f in (("shards", shard_rows), ("takeover", lambda: [takeover_row()]),
-                        ("realtime", lambda: [realtime_row()])):
-            try:  # processes under load may miss a deadline: the other rows still count
-                rows.extend(f())
-            except (RuntimeError, OSError, subprocess.SubprocessError) as e:
-                log.error("bench scale: %s rows failed: %s", name, e)
-                rows.append({"row": name, "error": str(e)})
+    if quick:
+        process_rows = (("shards", lambda: shard_rows(counts=(1,), probe=(20, 60), seconds=1.0)),
+                        ("realtime", lambda: [realtime_row(agents=1000, seconds=3.0, full=100)]))
+    else:
+        process_rows = (("shards", shard_rows), ("takeover", lambda: [takeover_row()]),
+                        ("realtime", lambda: [realtime_row()]))
+    for name, f in process_rows:
+        try:  # processes under load may miss a deadline: the other rows still count
+            rows.extend(f())
+        except (RuntimeError, OSError, subprocess.SubprocessError) as e:
+            log.error("bench scale: %s rows failed: %s", name, e)
+            rows.append({"row": name, "error": str(e)})
     return rows
 
 
