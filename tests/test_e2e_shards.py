@@ -52,8 +52,8 @@ shard_halo_m = 10.0
         # the shards split the agents of a step: no agent in both
         s0, s1 = probe.last_physics("main.0of2"), probe.last_physics("main.1of2")
         assert not set(s0.agents.ids) & set(s1.agents.ids)
+        t_kill = time.monotonic()  # before: kill() waits for the process to end
         p1.kill()
-        t_kill = time.monotonic()
 
         def taken_over():
             st = probe.last_physics("main.0of2")
@@ -66,10 +66,12 @@ shard_halo_m = 10.0
             return st if want and want <= set(st.agents.ids) else None
         st = wait_until(taken_over, 30, "shard 0 simulating every agent", procs=[sumo, p0])
         took = time.monotonic() - t_kill
+        print(f"take-over: {took:.3f} s")  # shown with -rP
         assert st.counters["shard_takeovers"] > 0
         # liveliness notice + one lockstep step + spawning its agents (their sizes have pools
-        # reserved in the background; `sumoco bench scale` measures the time)
-        assert took < 5.0, took
+        # reserved in the background; `sumoco bench scale` measures the time). The goal is
+        # 1 s; 2 s leaves a margin for a loaded machine (0.1-0.3 s measured at load 6-9 on 2 cores)
+        assert took < 2.0, took
         # the run goes on to its end in lockstep with the surviving shard
         # (shard 0 may finish its last step and exit before the SUMO side does)
         wait_until(lambda: sumo.poll() is not None, 180, "SUMO side reaching the run's duration")
