@@ -12,6 +12,13 @@ summarised as a stream (``analyse_recording``): errors are computed window by wi
 simulated time and go into fixed-size accumulators (counts, sums, maxima, log-spaced
 histograms for the percentiles, within 0.1 %), so memory does not grow with the run's
 length; only the reference car's own samples are kept whole, for the figures.
+
+Lane changes (``lane_changes`` per preset): the same error, restricted to the physics
+samples of an agent within a window around each of its lane changes in the SUMO steps
+(``lane_change_events``: the recorded ``lane`` index changes between two consecutive
+steps to another lane of the same edge) whose reference is not inside a junction (that
+is a turn's error). ``count`` is the lane changes with at least one such sample of that
+preset; ``max_error_m`` / ``p95_error_m`` are over all their samples.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import numpy as np
 
 from protocol.keys import Keys
 from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsState, StaticData, StepMessage
+from sumo_side.config import SumoConfig
 from sumoco.app.record import ReadResult, Recording, iter_decoded, read_recording
 
 log = logging.getLogger(__name__)
@@ -366,6 +374,76 @@ def internal_lane_mask(static: StaticData | None, lane_idx: np.ndarray) -> np.nd
     return internal[np.where(lane_idx >= 0, lane_idx, len(internal) - 1)]
 
 
+# The window around a lane change. SUMO's continuous lane change (``--lanechange.duration
+# D``, which the SUMO side sets to ``sumo.lanechange_duration_s`` unless the scenario chose
+# its own lateral model) moves the vehicle sideways over D seconds and reports the target
+# lane from the step the manoeuvre passes its midpoint: the recorded lane index changes at
+# mid-manoeuvre, so the sideways motion spans t_change - D/2 .. t_change + D/2. The window
+# reaches D before it (the start of the manoeuvre, and the physics steering towards a
+# look-ahead point that moves sideways before the vehicle's own front does) and D/2 + 2 s
+# after it (the end of the manoeuvre plus 2 s for the vehicle to settle on the new lane's
+# centre line). A one-step hop (D = 0 in a scenario that chose it) lies well inside.
+LANE_CHANGE_DURATION_S = SumoConfig.lanechange_duration_s
+LANE_CHANGE_BEFORE_S = LANE_CHANGE_DURATION_S
+LANE_CHANGE_AFTER_S = LANE_CHANGE_DURATION_S / 2 + 2.0
+
+
+def lane_change_events(ref: RefTable, static: StaticData | None, after_t: float = -np.inf
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Lane changes in SUMO samples: (time of the first sample on the new lane, agent), in
+    (time, agent) order. A lane change is one agent on two different lanes of the same
+    (non-internal) edge in two consecutive steps of ``ref``, the later one after ``after_t``,
+    not jumped (teleport, moveToXY) or riding there, and not a pedestrian. Lanes of another
+    edge are route progress; without static data (no lane -> edge table) none are found."""
+    none = np.zeros(0), np.zeros(0, np.int64)
+    if static is None or len(ref.t) < 2:
+        return none
+    n_lanes = len(static.lanes.ids)
+    _, edge_idx = np.unique(np.asarray(static.lanes.edge, dtype=object).astype(str), return_inverse=True)
+    edge_of = np.append(edge_idx, -1)  # lane -1 (not on a lane) -> edge -1
+    internal = internal_lane_mask(static, np.arange(n_lanes))
+    order = np.lexsort((ref.t, ref.aid))
+    t, aid, lane = ref.t[order], ref.aid[order], ref.lane[order]
+    steps = np.unique(ref.t)
+    k = np.searchsorted(steps, t)
+    lane_ok = (lane >= 0) & (lane < n_lanes)
+    lane_c = np.where(lane_ok, lane, n_lanes)
+    edge = edge_of[lane_c]
+    inner = np.append(internal, True)[lane_c]
+    odd = (ref.flags[order] & (AgentFlag.INSIDE_VEHICLE | AgentFlag.JUMPED)) != 0
+    a, b = slice(None, -1), slice(1, None)
+    change = ((aid[a] == aid[b]) & (k[b] == k[a] + 1) & (t[b] > after_t)
+              & lane_ok[a] & lane_ok[b] & (lane[a] != lane[b]) & (edge[a] == edge[b])
+              & ~inner[a] & ~inner[b] & ~odd[b] & (ref.cls[order][b] != AgentClass.PEDESTRIAN))
+    j = np.flatnonzero(change) + 1
+    ev = np.lexsort((aid[j], t[j]))
+    return t[j][ev], aid[j][ev]
+
+
+def lane_change_cover(t: np.ndarray, aid: np.ndarray, ev_t: np.ndarray, ev_aid: np.ndarray,
+                      before: float = LANE_CHANGE_BEFORE_S, after: float = LANE_CHANGE_AFTER_S) -> np.ndarray:
+    """For each sample (t, aid): the index into the events of a lane change of the same agent
+    whose window ev_t - before <= t <= ev_t + after holds it (the earliest such), else -1."""
+    out = np.full(len(t), -1, np.int64)
+    if not len(t) or not len(ev_t):
+        return out
+    u = np.unique(ev_aid)
+    r = np.searchsorted(u, aid)
+    has = (r < len(u)) & (u[np.minimum(r, len(u) - 1)] == aid)
+    # one sorted key per (agent, time): agents in bands of width K, wider than every time
+    # span involved, times relative to the earliest so the key keeps its precision
+    t0 = min(float(t.min()), float(ev_t.min()))
+    K = max(float(t.max()), float(ev_t.max())) - t0 + before + after + 1.0
+    ev_r = np.searchsorted(u, ev_aid)
+    ev_key = ev_r * K + (ev_t - t0)
+    order = np.argsort(ev_key, kind="stable")
+    j = np.searchsorted(ev_key[order], r * K + (t - t0 - after), side="left")
+    jj = order[np.minimum(j, len(order) - 1)]
+    ok = has & (j < len(order)) & (ev_r[jj] == r) & (ev_t[jj] - before <= t)
+    out[ok] = jj[ok]
+    return out
+
+
 _SERIES = ("t", "x", "y", "speed", "steer", "drive", "brake")
 _ERR_SERIES = ("err", "lon", "lat", "ref_x", "ref_y", "ref_speed", "ref_lane")
 _TRACK = ("t", "x", "y", "angle", "speed", "lane")
@@ -383,6 +461,9 @@ class _Instance:
         self.seen: dict[int, set] = {}
         self.counters: dict = {}
         self.cand: dict[int, dict[str, list]] = {}  # aid -> series parts
+        self.lane_change = ErrorHistogram()  # errors inside lane-change windows
+        self.lc_events: set[int] = set()  # lane changes with a sample here (event numbers)
+        self.lc_worst: tuple | None = None  # (error, agent, lane-change time, sample time)
 
 
 class Analysis:
@@ -414,6 +495,11 @@ class Analysis:
         self._w_lo: float | None = None
         self._t_max = -np.inf
         self.late = 0  # samples older than the window already summarised (left out)
+        # lane changes found in the SUMO steps so far (time, agent, event number), and up to
+        # which SUMO time they have been looked for
+        self._lc = (np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        self._lc_until = -np.inf
+        self._lc_next = 0
 
     # ---------------------------------------------------------------- input
     def _aids(self, names: list[str]) -> np.ndarray:
@@ -488,6 +574,8 @@ class Analysis:
             self._window(self._w_lo, np.inf)
         self._ref_buf.clear()
         self._phys_buf.clear()
+        self._lc = (np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
+        self._lc_until = -np.inf
 
     # ---------------------------------------------------------------- windows
     @staticmethod
@@ -505,6 +593,16 @@ class Analysis:
         """Errors of physics samples at lo <= t < hi (and of SUMO samples in the same range)."""
         ref = self._ref_table(self._ref_buf)
         want = np.array([self.index[n] for n in self.wanted if n in self.index], np.int64)
+        # lane changes up to the newest buffered step (the buffer runs a window past hi, so
+        # the windows reaching back into this one are known); each looked for once
+        ev_t, ev_aid = lane_change_events(ref, self.static, self._lc_until)
+        if len(ref.t):
+            self._lc_until = max(self._lc_until, float(ref.t.max()))
+        if len(ev_t):
+            num = np.arange(self._lc_next, self._lc_next + len(ev_t))
+            self._lc_next += len(ev_t)
+            self._lc = tuple(np.concatenate(p) for p in zip(self._lc, (ev_t, ev_aid, num)))
+        lc_t, lc_aid, lc_num = self._lc
         for inst, buf in self._phys_buf.items():
             acc = self.inst[inst]
             ph_all = self._phys_table(buf, acc.counters)
@@ -520,6 +618,18 @@ class Analysis:
                 acc.modes.setdefault(m, set()).update(np.unique(ph.aid[ph.mode == m]).tolist())
             for c in np.unique(ph.cls).tolist():
                 acc.seen.setdefault(c, set()).update(np.unique(ph.aid[ph.cls == c]).tolist())
+            # samples whose reference is inside a junction are the turn's (SUMO changes lanes
+            # on normal lanes only; a lane change just before a turn must not take its error)
+            lv = np.flatnonzero(v & ~internal_lane_mask(self.static, e.ref_lane))
+            cover = lane_change_cover(ph.t[lv], ph.aid[lv], lc_t, lc_aid)
+            inside = cover >= 0
+            if inside.any():
+                le, c_in, t_in = e.err[lv][inside], cover[inside], ph.t[lv][inside]
+                acc.lane_change.add(le)
+                acc.lc_events.update(lc_num[c_in].tolist())
+                w = int(np.argmax(le))
+                if acc.lc_worst is None or le[w] > acc.lc_worst[0]:
+                    acc.lc_worst = (float(le[w]), int(lc_aid[c_in[w]]), float(lc_t[c_in[w]]), float(t_in[w]))
             es, ec = sample_errors(ref, ph_all, (lo, hi))
             acc.at_samples.add(es)
             for c in np.unique(ec).tolist():
@@ -536,6 +646,8 @@ class Analysis:
                 part["valid"].append(v[sel])
         if not np.isfinite(hi):
             return
+        keep = lc_t >= hi - LANE_CHANGE_AFTER_S  # windows that reach into the next window
+        self._lc = (lc_t[keep], lc_aid[keep], lc_num[keep])
         # keep what brackets the next window: the last SUMO step and physics state before hi
         self._ref_buf = self._keep(self._ref_buf, hi)
         self._phys_buf = {inst: self._keep(buf, hi) for inst, buf in self._phys_buf.items()}
@@ -596,6 +708,16 @@ class Analysis:
                 "agents_seen": self._seen(acc.seen),
                 "agents_by_mode": {m.name.lower(): len(acc.modes.get(int(m), ())) for m in AgentMode},
                 "counters": {k: int(x) for k, x in sorted(c.items())},
+            }
+            lc = acc.lane_change.stats()
+            entry["lane_changes"] = {
+                "count": len(acc.lc_events), "max_error_m": lc["max"], "p95_error_m": lc["p95"],
+                "samples": lc["samples"],
+                # where the maximum is: the agent, the time its lane index changed and the
+                # time of the sample [s]
+                "worst": None if acc.lc_worst is None else {
+                    "agent": self.ids[acc.lc_worst[1]], "t": round(acc.lc_worst[2], 3),
+                    "at_s": round(acc.lc_worst[3], 3), "error_m": round(acc.lc_worst[0], 4)},
             }
             if rid >= 0:
                 s = self._cand(inst, rid)

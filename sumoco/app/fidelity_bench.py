@@ -8,8 +8,9 @@ own analysis (``analysis.summarise``): front-bumper error against SUMO interpola
 the physics time, PHYSICAL agents only, jumps and rides left out.
 
 Rows (JSON): scenario, step_s, preset, agents by type, overall / reference-car / per-type
-error stats [m], collisions (physics only / SUMO also reported), placements by cause,
-wall time. Runs are short (``--duration``) so the whole sweep fits a few minutes.
+error stats [m], the error around lane changes (count, max, p95 [m]), collisions
+(physics only / SUMO also reported), placements by cause, wall time. Runs are short
+(``--duration``) so the whole sweep fits a few minutes.
 """
 
 from __future__ import annotations
@@ -107,6 +108,8 @@ def run_one(
             "reference_car": summary.get("reference_car"),
             "reference_car_error_m": e.get("reference_car"),
             "per_type_error_m": e.get("error_m", {}).get("per_type"),
+            # the error around each lane change SUMO reports (count, max, p95 [m])
+            "lane_changes": e.get("lane_changes"),
             "collisions": e.get("collisions"),
             "collisions_physics_only": e.get("collisions_physics_only"),
             "collisions_sumo_reported": e.get("collisions_sumo_reported"),

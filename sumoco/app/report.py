@@ -11,7 +11,7 @@ import logging
 from pathlib import Path
 
 from sumoco.app import figures as figs
-from sumoco.app.analysis import analyse_recording
+from sumoco.app.analysis import LANE_CHANGE_AFTER_S, LANE_CHANGE_BEFORE_S, analyse_recording
 from sumoco.app.record import open_recording
 
 log = logging.getLogger(__name__)
@@ -39,6 +39,12 @@ def _fmt(s: dict | None) -> str:
     return f"{s['mean']:.3f} / {s['p95']:.3f} / {s['max']:.3f}"
 
 
+def _fmt_lc(lc: dict | None) -> str:
+    if not lc or not lc.get("count") or lc.get("max_error_m") is None:
+        return "0" if lc else "n/a"
+    return f"{lc['count']}, {lc['p95_error_m']:.3f} / {lc['max_error_m']:.3f}"
+
+
 def render_markdown(summary: dict, recording) -> str:
     lines = [
         "# sumoco run report",
@@ -52,9 +58,9 @@ def render_markdown(summary: dict, recording) -> str:
         "",
         "Front-bumper position error against SUMO at the same time [m], mean / p95 / max:",
         "",
-        "| preset | all agents | reference car | ref straight | ref turn | collisions (physics only) "
-        "| placements (spawn / jump / divergence / flip) |",
-        "|---|---|---|---|---|---|---|",
+        "| preset | all agents | reference car | ref straight | ref turn | lane changes: count, p95 / max "
+        "| collisions (physics only) | placements (spawn / jump / divergence / flip) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for inst, p in summary["presets"].items():
         rc = p.get("reference_car", {})
@@ -62,10 +68,15 @@ def render_markdown(summary: dict, recording) -> str:
         causes = " / ".join(str(pc.get(c, 0)) for c in ("spawn", "jump", "divergence", "flip"))
         lines.append(
             f"| {inst} | {_fmt(p['error_m']['overall'])} | {_fmt(rc.get('overall'))} | "
-            f"{_fmt(rc.get('straight'))} | {_fmt(rc.get('turn'))} | {p['collisions']} "
+            f"{_fmt(rc.get('straight'))} | {_fmt(rc.get('turn'))} | {_fmt_lc(p.get('lane_changes'))} | "
+            f"{p['collisions']} "
             f"({p.get('collisions_physics_only', 0)}) | {p['placements']} ({causes}) |"
         )
     lines += [
+        "",
+        "Lane changes: every lane change SUMO reports (lane index to another lane of the same",
+        f"edge), the error of the agent's samples from {LANE_CHANGE_BEFORE_S:g} s before to "
+        f"{LANE_CHANGE_AFTER_S:g} s after it, outside junctions.",
         "",
         "Collisions count physics contacts between agents; \"physics only\" are those where SUMO",
         "had no collision or teleport of its own (its footprints apart). Placements put an",
