@@ -75,7 +75,7 @@ preset = "default"
                 return False
             k = m.agents.ids.index("v0")
             return abs(m.agents.y[k] - ego_y) < 0.2 and m.agents.speed[k] < 0.05 and m
-        m = wait_until(v0_stopped_behind, 15, "v0 to stop behind the ego", procs=[sumo])
+        m = wait_until(v0_stopped_behind, 40, "v0 to stop behind the ego", procs=[sumo])
         k = m.agents.ids.index("v0")
         gap = ego_x - float(m.agents.x[k]) - 5.0  # ego length 5 m (SUMO default type)
         assert 0.0 < gap < 5.0, f"v0 stopped {gap:.2f} m behind the ego's rear"

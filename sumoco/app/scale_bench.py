@@ -490,7 +490,7 @@ def realtime_row(agents: int = 5000, seconds: float = 15.0, full: int = FULL_AGE
 [run]
 id = "realtime"
 timing = "realtime"
-duration_s = {seconds}
+duration_s = {seconds + 120.0}
 [sumo]
 sumocfg = "{sumocfg}"
 [physics]
@@ -499,6 +499,9 @@ expect = {{passenger = {int(full * 1.3)}}}
 lod_regions = [[{side / 2}, {side / 2}, {radius:.1f}]]
 """)
     eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2)]
+    # The SUMO side's own duration leaves room for a late probe (its Zenoh connect is retried
+    # until the SUMO side listens): the row's window is wall time from the first step seen,
+    # and SIGTERM ends the SUMO side after it.
     run = _Procs("realtime", eps, tmp)
     try:
         run.start("physics", ["physics", "--config", str(cfg), "--listen", eps[1], "--connect", eps[0]])
