@@ -439,6 +439,7 @@ def record_cli(args) -> int:
 
     from sumoco.common.config import CommonConfig, apply_cli, load_common, replace, section
     from sumoco.common.errors import MissingExtraError
+    from sumoco.common.hotpath import start_heap_trimmer
     from sumoco.common.transport import open_session
 
     try:
@@ -466,6 +467,7 @@ def record_cli(args) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
+    start_heap_trimmer()
     try:
         with open_session(common.zenoh) as session:
             live = LiveRecorder(session, keys, rec, config=cfg, limits=common.run.decode_limits).start()

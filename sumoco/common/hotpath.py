@@ -17,6 +17,7 @@ import ctypes
 import ctypes.util
 import gc
 import logging
+import threading
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +41,34 @@ def tune_allocator(mmap_threshold: int = MMAP_THRESHOLD, trim_threshold: int = T
     return ok
 
 
+def _libc():
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+
+
+def start_heap_trimmer(period_s: float = 30.0) -> threading.Event | None:
+    """Hand freed heap back to the kernel every ``period_s`` (glibc ``malloc_trim``).
+
+    For the long-running observers (recorder, viewer): they allocate in bursts from several
+    threads (Zenoh callbacks, writer, scene worker), and glibc keeps each thread arena's
+    high-water mark, so their RSS creeps up to the busiest moment of the run and stays
+    there. Returns the event that stops the thread; None without glibc."""
+    libc = _libc()
+    trim = getattr(libc, "malloc_trim", None) if libc is not None else None
+    if trim is None:
+        return None
+    stop = threading.Event()
+
+    def loop() -> None:
+        while not stop.wait(period_s):
+            trim(0)
+
+    threading.Thread(target=loop, name="heap-trim", daemon=True).start()
+    return stop
+
+
 def freeze_startup_objects() -> None:
     """Move every object alive now (modules, configuration, models) out of the cyclic
     collector's generations, so that collections during the run scan only what the run
@@ -48,4 +77,4 @@ def freeze_startup_objects() -> None:
     gc.freeze()
 
 
-__all__ = ["freeze_startup_objects", "tune_allocator"]
+__all__ = ["freeze_startup_objects", "start_heap_trimmer", "tune_allocator"]

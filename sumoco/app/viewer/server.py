@@ -740,6 +740,9 @@ def cli_main(args: Any) -> int:
         # The one line of output: where to look (the token makes the data private to this URL).
         await server.run(stop, ready=lambda port: print(f"sumoco view: open {server.url}", flush=True))
 
+    from sumoco.common.hotpath import start_heap_trimmer
+
+    trimmer = start_heap_trimmer()
     with open_session(common.zenoh) as session:
         feed = ZenohFeed(session, keys, store, vcfg).start()
         server.cameras = CameraRelay(session, keys)
@@ -747,5 +750,7 @@ def cli_main(args: Any) -> int:
             asyncio.run(main())
         finally:
             feed.stop()
+            if trimmer is not None:
+                trimmer.set()
     log.info("viewer stopped (%d frames sent)", server.frames_sent)
     return 0
