@@ -169,3 +169,37 @@ def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
             th.join(10)
             rep.close()
     assert got == [1]
+
+
+def test_recorder_records_the_network_of_a_restarted_sumo_side(tmp_path):
+    """A SUMO side restarted under the same run id starts again at step 0 and static version
+    0: a different network is recorded again, the same one is not written twice."""
+    from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig
+    from sumoco.common.config import ZenohConfig
+    from sumoco.common.transport import open_session
+    from sumoco.testing.synthetic import FakeRun
+    from tests.harness import wait_until
+
+    keys = Keys("sumoco", "rs")
+    runs = [FakeRun(grid=1, n=8, run="rs"), FakeRun(grid=1, n=8, run="rs"), FakeRun(grid=2, n=8, run="rs")]
+    served = [encode(runs[0].static())]
+    path = tmp_path / "rs.mcap"
+    rec = McapRecorder(path)
+    with open_session(ZenohConfig(listen=(endpoint(),))) as s:
+        s.declare_queryable(keys.static, lambda q: q.reply(keys.static, served[0]))
+        live = LiveRecorder(s, keys, rec, config=RecordConfig(scene=False)).start()
+        assert live.fetch_static(5.0, map_timeout_s=0) is not None
+        pub = s.declare_publisher(keys.step)
+        for i, fake in enumerate(runs):  # the same network again, then another one
+            served[0] = encode(fake.static())
+            for k in range(10):
+                pub.put(encode(fake.step(k)))
+                time.sleep(0.03)
+            if i == 2:
+                wait_until(lambda: live.static_versions == 1, 5.0, "the new network recorded")
+        time.sleep(0.5)  # the restart with the same network had as long to be (wrongly) recorded
+        live.stop()
+    rec.close()
+    statics = [decode(m.data) for m in read_recording(path).messages if m.topic == keys.static]
+    assert [len(st.junctions.ids) for st in statics] == [len(runs[0].junctions.ids), len(runs[2].junctions.ids)]
+    assert len(runs[2].junctions.ids) != len(runs[0].junctions.ids)

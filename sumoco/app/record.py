@@ -240,6 +240,8 @@ class LiveRecorder:
         self._encoder = rc.CompactEncoder() if self.config.encoding == "compact" else None
         self._stopped = threading.Event()
         self._static_sv: int | None = None
+        self._static_bytes: bytes | None = None  # the newest static data recorded (one payload)
+        self._last_step: int | None = None
         self._refetching = threading.Event()
         self.static_versions = 0
         self.failed: str | None = None  # why recording stopped early (disk full), else None
@@ -350,9 +352,15 @@ class LiveRecorder:
         """Record every static-data version the steps refer to (SPEC 3.2: tables change in a run)."""
         if topic == self.keys.static:
             self._static_sv = int(_peek(payload, "sv") or 0)  # static data: the default limits
-        elif topic == self.keys.step and self._static_sv is not None and not self._refetching.is_set():
+            self._static_bytes = payload
+        elif topic == self.keys.step and self._static_sv is not None:
             sv = int(_peek(payload, "sv", self.limits) or 0)
-            if sv != self._static_sv:
+            step = _peek(payload, "step", self.limits)
+            # A step index that goes back is a new SUMO side under the same run id: its static
+            # versions start again, and its network may differ although the version is the same.
+            restarted = step is not None and self._last_step is not None and step < self._last_step
+            self._last_step = None if step is None else int(step)
+            if (sv != self._static_sv or restarted) and not self._refetching.is_set():
                 self._refetching.set()
                 threading.Thread(target=self._refetch_static, args=(sv,), name="record-static",
                                  daemon=True).start()
@@ -369,6 +377,8 @@ class LiveRecorder:
                     return
                 for data in replies:
                     if int(_peek(data, "sv") or 0) >= sv:
+                        if data == self._static_bytes:  # the same network again (a restart): on record
+                            return
                         with self._bytes_lock:
                             self._queued_bytes += len(data)
                         self._q.put((self.keys.static, data, time.time_ns(), "static"))
