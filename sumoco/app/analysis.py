@@ -386,6 +386,10 @@ def internal_lane_mask(static: StaticData | None, lane_idx: np.ndarray) -> np.nd
 LANE_CHANGE_DURATION_S = SumoConfig.lanechange_duration_s
 LANE_CHANGE_BEFORE_S = LANE_CHANGE_DURATION_S
 LANE_CHANGE_AFTER_S = LANE_CHANGE_DURATION_S / 2 + 2.0
+# SUMO often starts a lane change on the first step of the edge after a junction, so the
+# window reaches back into the turn: samples up to this long after the agent's last SUMO
+# sample inside a junction are the turn's (its exit and settling), not the lane change's.
+TURN_SETTLE_S = 1.5
 
 
 def lane_change_events(ref: RefTable, static: StaticData | None, after_t: float = -np.inf
@@ -603,6 +607,7 @@ class Analysis:
             self._lc_next += len(ev_t)
             self._lc = tuple(np.concatenate(p) for p in zip(self._lc, (ev_t, ev_aid, num)))
         lc_t, lc_aid, lc_num = self._lc
+        in_junction = internal_lane_mask(self.static, ref.lane)
         for inst, buf in self._phys_buf.items():
             acc = self.inst[inst]
             ph_all = self._phys_table(buf, acc.counters)
@@ -618,9 +623,12 @@ class Analysis:
                 acc.modes.setdefault(m, set()).update(np.unique(ph.aid[ph.mode == m]).tolist())
             for c in np.unique(ph.cls).tolist():
                 acc.seen.setdefault(c, set()).update(np.unique(ph.aid[ph.cls == c]).tolist())
-            # samples whose reference is inside a junction are the turn's (SUMO changes lanes
-            # on normal lanes only; a lane change just before a turn must not take its error)
-            lv = np.flatnonzero(v & ~internal_lane_mask(self.static, e.ref_lane))
+            # samples whose reference is inside a junction, or that follow one within
+            # TURN_SETTLE_S, are the turn's (SUMO changes lanes on normal lanes only; a lane
+            # change just before or after a turn must not take its error)
+            after_turn = lane_change_cover(ph.t, ph.aid, ref.t[in_junction], ref.aid[in_junction],
+                                           before=0.0, after=TURN_SETTLE_S) >= 0
+            lv = np.flatnonzero(v & ~internal_lane_mask(self.static, e.ref_lane) & ~after_turn)
             cover = lane_change_cover(ph.t[lv], ph.aid[lv], lc_t, lc_aid)
             inside = cover >= 0
             if inside.any():
@@ -650,14 +658,16 @@ class Analysis:
         self._lc = (lc_t[keep], lc_aid[keep], lc_num[keep])
         # keep what brackets the next window: the last SUMO step and physics state before hi
         self._ref_buf = self._keep(self._ref_buf, hi)
-        self._phys_buf = {inst: self._keep(buf, hi) for inst, buf in self._phys_buf.items()}
+        self._phys_buf = {inst: self._keep(buf, hi, back_s=0.0) for inst, buf in self._phys_buf.items()}
 
     @staticmethod
-    def _keep(buf, hi: float):
+    def _keep(buf, hi: float, back_s: float = TURN_SETTLE_S):
+        """The samples from the last one before ``hi`` on, and ``back_s`` before it (a
+        junction sample that far back still tells the next window's samples apart)."""
         before = [t for t, _ in buf if t < hi]
         if not before:
             return buf
-        t0 = max(before)
+        t0 = max(before) - back_s
         return [(t, c) for t, c in buf if t >= t0]
 
     # ---------------------------------------------------------------- output
