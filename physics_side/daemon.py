@@ -26,6 +26,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import faulthandler
 import signal
 import threading
 import time
@@ -55,6 +56,7 @@ REJECT_LOG_PERIOD_S = 2.0  # [s] at most one log line per period about rejected 
 STATIC_QUERY_PERIOD_S = 1.0  # [s] at most one static-data query per period while a step's version is unknown
 IDLE_WAIT_S = 0.05  # [s] wait for messages when there is nothing to simulate
 REST_SPEED = 0.05  # [m/s] below this every stopping agent counts as at rest
+SHUTDOWN_DUMP_S = 5.0  # [s] a shutdown longer than this dumps every thread's stack to stderr (the log)
 
 
 class PhysicsDaemon:
@@ -513,9 +515,12 @@ def cli_main(args) -> int:
             try:
                 return daemon.run()
             finally:
+                # A shutdown that hangs leaves every thread's stack in the log (stderr)
+                faulthandler.dump_traceback_later(SHUTDOWN_DUMP_S, exit=False)
                 daemon.close()
                 fleet.world.close()
     finally:
+        faulthandler.cancel_dump_traceback_later()
         # Restored only after the session closed: a SIGTERM during that shutdown (the run
         # already ended) must not kill the process with -15.
         for sig, h in old.items():

@@ -15,6 +15,7 @@ The per-tick world (``world.PhysicsWorld``) owns a ``SlotPools`` and reads its c
 from __future__ import annotations
 
 import concurrent.futures
+import threading
 import logging
 import math
 import time
@@ -52,6 +53,23 @@ class _Growth:
             p in self.capacity and self.capacity[p] * self.sims - pools[p].capacity * sims >= e * sims
             for p, e in needs.items()
         )
+
+
+def _in_daemon_thread(fn, *args) -> concurrent.futures.Future:
+    """``fn(*args)`` on a daemon thread of its own, as a Future (an executor's worker threads
+    are joined at interpreter exit, so a process could not end during a compile)."""
+    fut: concurrent.futures.Future = concurrent.futures.Future()
+
+    def work() -> None:
+        if not fut.set_running_or_notify_cancel():
+            return
+        try:
+            fut.set_result(fn(*args))
+        except BaseException as e:  # handed to whoever reads the result
+            fut.set_exception(e)
+
+    threading.Thread(target=work, name="physics-growth", daemon=True).start()
+    return fut
 
 
 class SlotPools:
@@ -98,7 +116,6 @@ class SlotPools:
         self.live = np.zeros(0, bool)
         self.layout: Layout | None = None
         self._growth: _Growth | None = None
-        self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._install(compile_layout(self._pools, self.timestep, self.shards, self.threads))
 
     def __getitem__(self, p: int) -> Pool:
@@ -237,13 +254,11 @@ class SlotPools:
         if self._growth is not None:
             return
         pools, sims = self._grown_pools(extra)
-        if self._executor is None:
-            self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="physics-growth")
         log.info(
             "physics world: pools running low (%s), compiling %d slots in the background",
             ", ".join(f"{self._pools[p].spec.name} +{e}" for p, e in extra.items()), sims * sum(p.capacity for p in pools),
         )
-        fut = self._executor.submit(compile_layout, pools, self.timestep, sims, self.threads)
+        fut = _in_daemon_thread(compile_layout, pools, self.timestep, sims, self.threads)
         self._growth = _Growth(fut, {p.index: p.capacity for p in pools}, sims)
 
     def _adopt(self, wait: bool) -> bool:
@@ -312,10 +327,11 @@ class SlotPools:
         return self._growth is not None and self._growth.future.done()
 
     def close(self) -> None:
-        """Stop a background growth (its result is dropped)."""
-        if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        """Drop a background growth without waiting for it: a MuJoCo compile cannot be
+        interrupted, and one of thousands of slots on a loaded machine takes seconds, which
+        a daemon asked to stop must not spend (its thread is a daemon thread)."""
+        if self._growth is not None:
+            self._growth.future.cancel()  # no effect once it runs; its result is never read
         self._growth = None
 
     # ------------------------------------------------------------------ agent set

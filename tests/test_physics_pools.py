@@ -117,3 +117,29 @@ def test_parse_expect():
         parse_expect("tram=3")
     with pytest.raises(ConfigError, match="whole number"):
         parse_expect("bus=many")
+
+
+def test_close_does_not_wait_for_a_background_compile(monkeypatch):
+    """A daemon asked to stop must not wait for a compile (uncancellable, seconds on a busy
+    machine): close returns while the compile still runs, on a daemon thread."""
+    import threading
+
+    from physics_side import pools as pools_mod
+
+    started, release = threading.Event(), threading.Event()
+
+    def held_compile(*args):
+        started.set()
+        release.wait(30.0)
+        raise RuntimeError("a dropped growth's result is never read")
+
+    w = PhysicsWorld(0.005, 4, shards=1, initial={AgentClass.PASSENGER: 8})
+    monkeypatch.setattr(pools_mod, "compile_layout", held_compile)
+    assert w.reserve([("bus", 12.0, 2.5)]) == 1 and w.growing
+    assert started.wait(10.0)
+    worker = next(t for t in threading.enumerate() if t.name == "physics-growth")
+    assert worker.daemon
+    w.close()  # returns although the compile is held
+    assert worker.is_alive() and not w.growing
+    release.set()
+    worker.join(10.0)
