@@ -158,6 +158,7 @@ class DefaultControl:
     lad_min: float = 4.0  # [m] pure pursuit: minimum look-ahead distance (lateral = "pursuit")
     lad_max: float = 10.0  # [m] pure pursuit: maximum look-ahead distance
     k_lad: float = 0.6  # [s] pure pursuit: LAD = v * k_lad between the limits
+    mean_speed_lead: float = 0.5  # [SUMO steps] the extrapolated speed profile is taken this much ahead: SUMO's speed is the mean over the step before its sample (0 = off)
     pos_omega: float = 2.5  # [rad/s] along-path position loop natural frequency
     pos_zeta: float = 1.0  # [1] along-path position loop damping ratio (critically damped)
     k_int: float = 0.5  # [1/s^3] gain on the integral of the along-path error (cornering drag, slopes)

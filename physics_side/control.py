@@ -38,9 +38,12 @@ A_LAT_SHARE = 0.92  # [1] share of the tyres' grip (mu g) the steering limit all
 GRIP_LATERAL = 1.0  # [1] weight of the turn's lateral acceleration in the drive's friction circle
 CURVE_PREVIEW_S = np.array([0.0, 0.5, 1.0])  # [s] path curvature taken this far ahead at the current speed
 DRIVE_GRIP_USE = 0.9  # [1] share of the driven wheels' grip the drive may use (traction control)
+MAX_LEAD_STEP_S = 0.2  # [s] longest step taken for the mean-speed lead (a late or coalesced step is no step length)
 PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
 PED_YAW_KD = 15.0  # [N*m*s/rad]
 PED_YAW_MAX = 150.0  # [N*m] pedestrian heading servo torque limit
+REAR_STEER_K_YAW = 1.5  # [1/s] rear-axle steering: body angle error -> yaw rate
+REAR_STEER_V_MIN = 1.0  # [m/s] below this the rear-axle law acts as at this speed
 
 
 def _clip(x, lo, hi):
@@ -246,6 +249,33 @@ def curve_speed_cut(
     return np.where(over, 0.0, drive)
 
 
+def rear_axle_steer(
+    steer: np.ndarray, yaw: np.ndarray, speed: np.ndarray, yaw_ref: np.ndarray, yaw_rate_ref: np.ndarray,
+    wheelbase: np.ndarray, d_bumper: np.ndarray, max_front: np.ndarray, max_rear: np.ndarray,
+    k_yaw: float = REAR_STEER_K_YAW, v_min: float = REAR_STEER_V_MIN,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(front, rear) bicycle-model angles [rad] of an all-wheel-steered vehicle from the front
+    angle ``steer`` a law asked for a fixed rear axle.
+
+    The law's angle fixes the bumper's direction relative to the body (``stanley_bumper``):
+    tan(beta) = d tan(delta) / L. The rear axle then turns the body towards SUMO's body angle
+    ``yaw_ref`` (the chord from its back to its front on the lane) at the yaw rate
+    r = ``yaw_rate_ref`` + k_yaw * (yaw_ref - yaw); with both axles steered (kinematic
+    bicycle, bumper ``d_bumper`` ahead of the rear axle) tan(beta) = tan(rear) + d r / v and
+    r = v (tan(front) - tan(rear)) / L, so tan(rear) = tan(beta) - d r / v and
+    tan(front) = tan(beta) + (L - d) r / v. A saturated rear axle leaves the bumper's direction
+    to the front one. ``v_min`` [m/s] bounds the angles when standing."""
+    b = d_bumper / wheelbase
+    tb = b * np.tan(steer)
+    r = yaw_rate_ref + k_yaw * wrap_pi(yaw_ref - yaw)
+    v = np.where(speed < 0, np.minimum(speed, -v_min), np.maximum(speed, v_min))
+    t_r = np.tan(max_rear)
+    tr = _clip(tb - d_bumper * r / v, -t_r, t_r)
+    tf = (tb - (1.0 - b) * tr) / b  # the bumper's direction first
+    front = np.arctan(tf)
+    return _clip(front, -max_front, max_front), np.arctan(tr)
+
+
 # --------------------------------------------------------------------------- composed laws
 
 
@@ -255,6 +285,10 @@ class ControlState:
 
     integ: np.ndarray
     """Integral of the along-path position error [m*s]."""
+    tau_last: float = -1.0
+    """``tau`` of the previous tick [s] (it drops when a new SUMO sample arrives)."""
+    step_s: float = 0.0
+    """SUMO step length [s] seen by the controller: time between two samples (0 = unknown)."""
 
     @classmethod
     def zeros(cls, n: int) -> "ControlState":
@@ -264,7 +298,16 @@ class ControlState:
         """State re-aligned to a new agent order; index -1 = new agent (zeros)."""
         index = np.asarray(index, np.int64)
         integ = np.where(index >= 0, self.integ[np.maximum(index, 0)] if len(self.integ) else 0.0, 0.0)
-        return ControlState(integ=np.asarray(integ, np.float64))
+        return ControlState(integ=np.asarray(integ, np.float64), tau_last=self.tau_last, step_s=self.step_s)
+
+    def observe_tau(self, tau: float, dt: float) -> float:
+        """Track the SUMO step length from the reference's age ``tau`` [s] at each tick of
+        ``dt`` [s]: when it drops, a sample arrived ``tau_last + dt - tau`` after the previous
+        one. Returns the step length [s] (0 until two samples were seen)."""
+        if tau + 1e-9 < self.tau_last:
+            self.step_s = self.tau_last + dt - tau
+        self.tau_last = tau
+        return self.step_s
 
 
 @dataclass(frozen=True)
@@ -375,6 +418,13 @@ def control_default(
     s_act, e_lat, pp = proj
     e_s = r.s - s_act  # + = behind the reference
     v_ref, a_ref = r.speed, r.accel
+    step = state.observe_tau(tau, dt)
+    if cfg.mean_speed_lead and step > 0.0:
+        # SUMO's speed is the mean over the step before its sample: follow the smooth motion
+        # through its positions, half a step further on in the speed profile (reference.py)
+        ds, dv = ref.mean_speed_lead(tau, cfg.mean_speed_lead * min(step, MAX_LEAD_STEP_S))
+        e_s = e_s + ds
+        v_ref = v_ref + dv
     if stopping is not None and np.any(stopping):
         v_ref = np.where(stopping, stop_speed, v_ref)
         a_ref = np.where(stopping, np.where(stop_speed > 0, -stop_decel, 0.0), a_ref)
@@ -422,5 +472,5 @@ __all__ = [
     "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
     "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
-    "steered_roll_stabiliser", "traction_limit",
+    "rear_axle_steer", "steered_roll_stabiliser", "traction_limit",
 ]

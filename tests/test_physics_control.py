@@ -138,6 +138,40 @@ def test_control_state_take_realigns():
     assert np.allclose(t.integ, [3.0, 0.0, 1.0])
 
 
+def test_control_state_sees_the_step_length_from_the_reference_age():
+    s = C.ControlState.zeros(1)
+    taus = [0.0, 0.02, 0.04, 0.06, 0.08, 0.0, 0.02]  # 0.1 s steps at 50 Hz
+    got = [s.observe_tau(t, 0.02) for t in taus]
+    assert got[:5] == [0.0] * 5 and got[5] == pytest.approx(0.1) and got[6] == pytest.approx(0.1)
+    # 0.05 s steps: 3, 2, 3 ticks, each new step 0.01 s behind physics time
+    s = C.ControlState.zeros(1)
+    for t in (0.0, 0.02, 0.04, 0.01, 0.03):
+        step = s.observe_tau(t, 0.02)
+    assert step == pytest.approx(0.05)
+    assert s.take(np.array([0])).step_s == pytest.approx(0.05)  # kept over a new SUMO step
+
+
+def test_mean_speed_lead_follows_sumos_euler_positions():
+    """SUMO's Euler update moves a vehicle at its new speed over the step: from a sample
+    (v, a) the next sample is v' = v + a dt, s = v' dt. The extrapolation plus the lead
+    of half a step reaches it exactly; without it, a dt^2 / 2 short and a dt / 2 too fast."""
+    dt, v, a = 0.1, 12.0, -4.5
+    line = np.c_[np.arange(0.0, 40.0, 1.0), np.zeros(40)]
+    ref = Reference(0.0, np.zeros(1), np.zeros(1), np.array([90.0]), np.array([v]), np.array([a]), np.zeros(1),
+                    np.zeros(1), np.array([0, 40]), line)
+    s, vel = ref.profile(dt)
+    ds, dv = ref.mean_speed_lead(dt, 0.5 * dt)
+    assert s[0] + ds[0] == pytest.approx((v + a * dt) * dt)
+    assert vel[0] + dv[0] == pytest.approx(v + a * dt + a * dt / 2)  # the smooth speed at the next sample
+    assert ref.mean_speed_lead(dt, 0.0)[0][0] == 0.0
+    # a stop within the lead never reverses
+    ref = Reference(0.0, np.zeros(1), np.zeros(1), np.array([90.0]), np.array([0.1]), np.array([-4.5]),
+                    np.zeros(1), np.zeros(1), np.array([0, 40]), line)
+    ds, dv = ref.mean_speed_lead(0.01, 0.05)
+    s, vel = ref.profile(0.01)
+    assert vel[0] + dv[0] == pytest.approx(0.0) and s[0] + ds[0] >= 0.0
+
+
 # --------------------------------------------------------------------------- references
 
 
