@@ -13,6 +13,13 @@ Per step (main thread only; libsumo is not thread-safe):
    acknowledgement of step k from every physics instance listed in
    ``[sumo] lockstep_instances`` (lockstep; bounded by ``[run] lockstep_timeout_s``).
 
+Lockstep is pipelined: steps 1-3 of step k+1 run while the physics side works on step k,
+and step k+1 goes out as soon as step k is acknowledged (the SUMO side and the physics
+side are separate processes, so SUMO's step and the physics ticks overlap in wall clock).
+No step is published before the acknowledgements of the one before it (SPEC.md 3.4).
+While an ego vehicle is active the next step is computed only after the
+acknowledgements, so that the poses received meanwhile move the ego in it.
+
 Zenoh callbacks never touch SUMO: the static-data queryable replies with bytes encoded
 once at start, the ack callback only enqueues payloads for the main loop.
 """
@@ -107,6 +114,7 @@ class Counters:
     acks: int = 0
     lag_resets: int = 0  # realtime: SUMO fell behind the wall clock by more than max_lag_s
     rejoined: int = 0  # lockstep: awaited physics instances that left and came back
+    strict_steps: int = 0  # lockstep: steps computed only after the previous step's acks (an ego was active)
     max_agents: int = 0
     static_versions: int = 0  # static data re-encoded for a new static version
     extra: dict = field(default_factory=dict)
@@ -121,13 +129,17 @@ class SumoDaemon:
         cfg: SumoConfig,
         run: RunConfig,
         clock: Callable[[], float] = time.monotonic,
+        pipeline: bool = True,
     ) -> None:
+        """``pipeline``: in lockstep, compute step k+1 while the physics side works on step k
+        (published only after its acknowledgements); False computes it after them."""
         self.session = session
         self.keys = keys
         self.sim = sim
         self.cfg = cfg
         self.run_cfg = run
         self.clock = clock
+        self.pipeline = pipeline
         self.bridge = Bridge(sim, cfg, run.id)
         self.ego = EgoManager(sim.api, cfg, clock)
         self.counters = Counters()
@@ -364,39 +376,48 @@ class SumoDaemon:
             self._log_summary()
         return 0
 
+    def _produce(self, k: int, ego_sub, period: "_Period") -> tuple:
+        """Step ``k``: ego poses in, SUMO's step, read, bridge, encode (not yet published).
+        Returns ``(msg, payload, snap, why)``; ``why`` is non-empty for the run's last step."""
+        perf = time.perf_counter
+        t_a = perf()
+        self._drain_ego(ego_sub)
+        self.ego.apply()
+        t_b = perf()
+        self.sim.step()
+        t_c = perf()
+        snap = self.sim.read()
+        ego_flags = self.ego.after_step(snap.ids, snap.x, snap.y, snap.arrived)
+        # The last step is marked on the wire, so every peer ends on the same step.
+        why = "" if self.ego.active_ids() else self.sim.finished(self.run_cfg.duration_s)
+        if not why and self._stop.is_set():
+            why = "stop requested"
+        msg = self.bridge.build(k, snap, ego_flags, final=bool(why))
+        self._refresh_static(msg.static_version)
+        payload = encode(msg)
+        period.sumo_s += t_c - t_b
+        period.bridge_s += (t_b - t_a) + (perf() - t_c)
+        return msg, payload, snap, why
+
     def _loop(self, publisher, ego_sub, lockstep: bool, hot_gc: HotLoopGC) -> None:
-        cfg, run, sim = self.cfg, self.run_cfg, self.sim
-        dt = sim.step_length
+        cfg = self.cfg
+        dt = self.sim.step_length
         clock = self.clock
         perf = time.perf_counter
         anchor = clock()
         period = _Period(clock())
         k = 0
+        pending = self._produce(0, ego_sub, period)
         while True:  # ends after publishing a final step (also on a stop request)
-            t_a = perf()
-            self._drain_ego(ego_sub)
-            self.ego.apply()
-            t_b = perf()
-            sim.step()
-            t_c = perf()
-            snap = sim.read()
-            ego_flags = self.ego.after_step(snap.ids, snap.x, snap.y, snap.arrived)
-            # The last step is marked on the wire, so every peer ends on the same step.
-            why = "" if self.ego.active_ids() else sim.finished(run.duration_s)
-            if not why and self._stop.is_set():
-                why = "stop requested"
-            msg = self.bridge.build(k, snap, ego_flags, final=bool(why))
-            self._refresh_static(msg.static_version)
-            payload = encode(msg)
+            msg, payload, snap, why = pending
+            t_p = perf()
             publisher.put(payload)
-            t_d = perf()
+            period.bridge_s += perf() - t_p
             self.last_message = msg
             c = self.counters
             c.steps += 1
             c.max_agents = max(c.max_agents, snap.n)
             period.steps += 1
-            period.sumo_s += t_c - t_b
-            period.bridge_s += (t_b - t_a) + (t_d - t_c)
 
             if why:
                 self.end_reason = why
@@ -404,10 +425,22 @@ class SumoDaemon:
                 if lockstep:
                     self._wait_for_final_acks(k)
                 break
-            t_w = perf()
             if lockstep:
+                # Pipelined lockstep: step k+1 is computed while the physics side works on
+                # step k and published only after every acknowledgement of step k (SPEC 3.4).
+                # Nothing the physics side sends feeds SUMO; ego poses do, so with an ego
+                # the next step waits for the acknowledgement and the poses that came with it.
+                pipelined = self.pipeline and not self.ego.active_ids()
+                if pipelined:
+                    pending = self._produce(k + 1, ego_sub, period)
+                t_w = perf()
                 self._wait_for_acks(k, ego_sub, publisher, payload)
+                period.wait_s += perf() - t_w
+                if not pipelined:
+                    pending = self._produce(k + 1, ego_sub, period)
+                    self.counters.strict_steps += 1
             else:
+                t_w = perf()
                 deadline = anchor + (k + 1) * dt
                 now = clock()
                 if now > deadline + cfg.max_lag_s:
@@ -416,7 +449,8 @@ class SumoDaemon:
                     anchor = now - (k + 1) * dt
                 elif deadline > now:
                     self._stop.wait(deadline - now)
-            period.wait_s += perf() - t_w
+                period.wait_s += perf() - t_w
+                pending = self._produce(k + 1, ego_sub, period)
             k += 1
             if clock() - period.t0 >= cfg.status_period_s:
                 hot_gc.tick()
@@ -497,6 +531,7 @@ class SumoDaemon:
             "acks": c.acks,
             "lag_resets": c.lag_resets,
             "rejoined": c.rejoined,
+            "strict_steps": c.strict_steps,
             "acks_coalesced": self._acks.replaced,
             "peer_keys_refused": self._acks.refused + self._alive_events.refused,
             **self.sim.counters,

@@ -55,11 +55,7 @@ TL_PROGRAM = _C.TL_CURRENT_PROGRAM
 # only for vehicles whose lane or route changed (the index moves only with a new lane).
 VEHICLE_VARS = (V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANE, V_LANEPOS, V_TYPE, V_ROUTE)
 PERSON_VARS = (V_POS, V_ANGLE, V_SPEED, V_LANE, V_LANEPOS, V_TYPE, V_VEHICLE)
-_VEHICLE_NUM = operator.itemgetter(V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS)
-_POS = operator.itemgetter(V_POS)
-_LANE = operator.itemgetter(V_LANE)
-_TYPE = operator.itemgetter(V_TYPE)
-_ROUTE = operator.itemgetter(V_ROUTE)
+_VEHICLE_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS, V_LANE, V_TYPE, V_ROUTE)
 _chain = itertools.chain.from_iterable
 _PERSON_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_LANEPOS, V_LANE, V_TYPE, V_VEHICLE)
 TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT, TL_PROGRAM)
@@ -461,24 +457,25 @@ class SumoSim:
         self.counters["teleports"] += n_tele_start
         now = float(sim.getTime())
 
-        # The result dicts are fresh and cache-cold: C-level itemgetter/chain passes
-        # straight into numpy (measured fastest of five variants, ~1.3 ms at 2,500).
+        # The result dicts are fresh and cache-cold: one C-level pass (itemgetter) takes
+        # every variable out of each dict, ``zip`` makes the columns (measured at 10,000
+        # vehicles: 21 ms against 25 ms for one pass per variable).
         vres = api.vehicle.getAllSubscriptionResults()
         vids = list(vres)
         nv = len(vids)
         if nv:
-            vals = vres.values()
-            num = np.fromiter(_chain(map(_VEHICLE_NUM, vals)), np.float64, 4 * nv).reshape(nv, 4)
-            vxy = np.fromiter(_chain(map(_POS, vals)), np.float64, 2 * nv).reshape(nv, 2)
-            vangle, vspeed, vsig, vlpos = num[:, 0], num[:, 1], num[:, 2].astype(np.int64), num[:, 3]
-            vlane = _lookup(self._lane_index, tuple(map(_LANE, vals)))
-            try:  # every step, so that a vehicle.setType shows in the step it happens
-                vtype = self.vtypes.indices(map(_TYPE, vals))
-            except KeyError:  # subscribed by someone else without the type
-                get_type = api.vehicle.getTypeID
-                vtype = self.vtypes.indices([r.get(V_TYPE) or get_type(v) for v, r in vres.items()])
-            vroute = list(map(_ROUTE, vals))
-            del vals
+            try:
+                pos, angle, speed, sig, lpos, lanes, types, vroute = zip(*map(_VEHICLE_ROW, vres.values()))
+            except KeyError:  # subscribed by someone else without some variable
+                pos, angle, speed, sig, lpos, lanes, types, vroute = zip(*(self._vehicle_row(v, r)
+                                                                         for v, r in vres.items()))
+            vxy = np.fromiter(_chain(pos), np.float64, 2 * nv).reshape(nv, 2)
+            num = np.array((angle, speed, sig, lpos), np.float64)
+            vangle, vspeed, vsig, vlpos = num[0], num[1], num[2].astype(np.int64), num[3]
+            vlane = _lookup(self._lane_index, lanes)
+            # every step, so that a vehicle.setType shows in the step it happens
+            vtype = self.vtypes.indices(types)
+            vroute = list(vroute)
         else:
             vxy = np.zeros((0, 2))
             vangle = vspeed = vlpos = _empty_f()
@@ -578,6 +575,16 @@ class SumoSim:
             serial=self._serial,
             route_changed=route_changed,
         )
+
+    def _vehicle_row(self, vid: str, r: dict) -> tuple:
+        """One vehicle's ``_VEHICLE_ROW`` when its subscription lacks variables (getters)."""
+        v = self.api.vehicle
+        return (r.get(V_POS) or v.getPosition(vid), r[V_ANGLE] if V_ANGLE in r else v.getAngle(vid),
+                r[V_SPEED] if V_SPEED in r else v.getSpeed(vid),
+                r[V_SIGNALS] if V_SIGNALS in r else v.getSignals(vid),
+                r[V_LANEPOS] if V_LANEPOS in r else v.getLanePosition(vid),
+                r[V_LANE] if V_LANE in r else v.getLaneID(vid), r.get(V_TYPE) or v.getTypeID(vid),
+                r[V_ROUTE] if V_ROUTE in r else v.getRouteID(vid))
 
     def _align(self, ids: list[str]) -> np.ndarray:
         """Row of each agent in the previous snapshot, -1 for agents new to it."""

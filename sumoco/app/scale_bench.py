@@ -38,6 +38,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -303,7 +304,9 @@ def _paper_cfg():
 class _Procs:
     """``sumoco`` daemons as OS processes, output to log files, and a Zenoh probe of the run."""
 
-    def __init__(self, run: str, connect: list[str], log_dir):
+    def __init__(self, run: str, connect: list[str], log_dir, probe: bool = True):
+        """``probe`` False: no subscription to steps and states (decoding 10,000 agents
+        at 50 Hz would take a core from the daemons being measured)."""
         import threading
 
         import zenoh
@@ -334,7 +337,7 @@ class _Procs:
                 self.states[Keys.instance_of(str(s.key_expr))] = m
 
         self.subs = [self.session.declare_subscriber(self.keys.step, on_step),
-                     self.session.declare_subscriber(self.keys.physics_state_all, on_state)]
+                     self.session.declare_subscriber(self.keys.physics_state_all, on_state)] if probe else []
         _ = zenoh
 
     def start(self, name: str, args: list[str]) -> None:
@@ -355,6 +358,27 @@ class _Procs:
             if time.monotonic() > deadline:
                 raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
             time.sleep(0.01)
+
+    def sumo_counters(self) -> dict | None:
+        """The SUMO side's counters (SPEC.md 3.6), None when it does not answer."""
+        import msgpack
+
+        for r in self.session.get(self.keys.sumo_status, timeout=3.0):
+            if r.ok is not None:
+                return msgpack.unpackb(r.ok.payload.to_bytes(), raw=False)["counters"]
+        return None
+
+    def cpu_s(self) -> float:
+        """CPU time [s] (user + system, all threads) of every daemon so far."""
+        tick = os.sysconf("SC_CLK_TCK")
+        total = 0.0
+        for p in self.procs.values():
+            try:
+                fields = open(f"/proc/{p.pid}/stat").read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            total += (int(fields[11]) + int(fields[12])) / tick
+        return total
 
     def close(self) -> None:
         import signal
@@ -466,6 +490,118 @@ shard_halo_m = 10.0
     return row
 
 
+def _sumo_alone(sumocfg, size: int, steps: int, seed: int = 42) -> tuple[float, float]:
+    """SUMO's own step [s] (wall, CPU) on ``sumocfg`` filled to ``size`` vehicles, averaged
+    over ``steps`` (the read and bridge run between steps, untimed, as in ``cosim_rows``)."""
+    from sumo_side.bridge import Bridge
+    from sumo_side.config import SumoConfig
+    from sumo_side.simulation import SumoSim
+
+    cfg = SumoConfig(sumocfg=sumocfg)
+    sim = SumoSim(cfg, seed=seed, run_id="bench")
+    sim.start()
+    try:
+        bridge = Bridge(sim, cfg, "bench")
+        k = 0
+        for k in range(6000):
+            sim.step()
+            snap = sim.read()
+            bridge.build(k, snap)
+            if snap.n >= 0.97 * size:
+                break
+        wall, cpu = [], []
+        for _ in range(steps):
+            k += 1
+            t0, c0 = time.perf_counter(), time.process_time()
+            sim.step()
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            bridge.build(k, sim.read())
+    finally:
+        sim.close()
+    return float(np.mean(wall)), float(np.mean(cpu))
+
+
+def lockstep_row(agents: int = 10000, seconds: float = 20.0, full: int = FULL_AGENTS, alone_steps: int = 20,
+                 shards: int = 1) -> dict:
+    """The whole system in lockstep: the SUMO side and a physics process (LOD: a region of
+    about ``full`` agents in full physics) as separate OS processes over Zenoh on the grid
+    scenario of ``agents`` vehicles, measured for ``seconds`` of wall time once the network
+    is full, against SUMO alone on the same scenario (in this process, before the daemons
+    start). ``lockstep_to_sumo_ratio``: SUMO alone's step over the system's wall time per
+    step; ``lockstep_to_sumo_cpu_ratio``: over the CPU time of both daemons per step. The
+    physics process runs ``shards`` simulations on as many threads (1: on 2 cores the SUMO
+    process has the other)."""
+    import math
+    import tempfile
+    from pathlib import Path
+
+    from sumo_side.bench import _cache_dir
+    from sumo_side.scenarios import grid_size_for, make_grid_scenario
+    from sumoco.common.transport import free_tcp_port
+
+    sumocfg = make_grid_scenario(_cache_dir(), agents, seed=42)
+    alone_wall, alone_cpu = _sumo_alone(sumocfg, agents, alone_steps)
+    side = (grid_size_for(agents) - 1) * 200.0
+    radius = side * math.sqrt(full / agents / math.pi)  # ~``full`` agents at uniform density
+    tmp = Path(tempfile.mkdtemp(prefix="sumoco-lockstep-"))
+    cfg = tmp / "run.toml"
+    cfg.write_text(f"""
+[run]
+id = "lockstep"
+timing = "lockstep"
+seed = 42
+duration_s = 3600.0
+lockstep_timeout_s = 60.0
+[sumo]
+sumocfg = "{sumocfg}"
+lockstep_instances = ["main"]
+lockstep_start_timeout_s = 120.0
+[physics]
+preset = "default"
+shards = {shards}  # one simulation on one thread: the SUMO process has the other core
+threads = {shards}
+expect = {{passenger = {int(full * 1.3)}}}
+lod_regions = [[{side / 2}, {side / 2}, {radius:.1f}]]
+""")
+    eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2)]
+    run = _Procs("lockstep", eps, tmp, probe=False)
+    try:
+        run.start("physics", ["physics", "--config", str(cfg), "--listen", eps[1], "--connect", eps[0]])
+        run.start("sumo", ["sumo", "--config", str(cfg), "--listen", eps[0]])
+
+        def filled():
+            c = run.sumo_counters()
+            return c if c is not None and c.get("max_agents", 0) >= 0.97 * agents else None
+        run.wait(filled, 600, "the network filled")
+        # the map mesh is built once on a worker thread of the SUMO side: not in the window
+        sumo_log = tmp / "sumo.log"
+        run.wait(lambda: re.search(r"map ready|no map for", sumo_log.read_text(errors="replace")), 300,
+                 "the SUMO side's map")
+        time.sleep(3.0)
+        c0, t0, cpu0 = run.sumo_counters(), time.monotonic(), run.cpu_s()
+        time.sleep(seconds)
+        c1, t1, cpu1 = run.sumo_counters(), time.monotonic(), run.cpu_s()
+        if c0 is None or c1 is None:
+            raise RuntimeError("lockstep run: the SUMO side stopped answering status queries")
+    finally:
+        run.close()
+    steps = max(int(c1["steps"]) - int(c0["steps"]), 1)
+    wall = (t1 - t0) / steps
+    cpu = (cpu1 - cpu0) / steps
+    phys = re.findall(r"\(phys (\d+) ", (tmp / "physics.log").read_text(errors="replace"))
+    row = {"timing": "lockstep", "agents": int(c1["max_agents"]), "processes": 2, "steps": steps,
+           "wall_s": round(t1 - t0, 2), "full_physics_agents": max(map(int, phys[-5:])) if phys else None,
+           "sumo_alone_ms": round(alone_wall * 1e3, 2), "sumo_alone_cpu_ms": round(alone_cpu * 1e3, 2),
+           "lockstep_ms": round(wall * 1e3, 2), "lockstep_cpu_ms": round(cpu * 1e3, 2),
+           "lockstep_to_sumo_ratio": round(alone_wall / wall, 3),
+           "lockstep_to_sumo_cpu_ratio": round(alone_cpu / cpu, 3),
+           "strict_steps": int(c1.get("strict_steps", 0)) - int(c0.get("strict_steps", 0)),
+           "goal_ratio": 0.6, "load_avg_1min": round(os.getloadavg()[0], 2)}
+    log.info("bench scale: %s", row)
+    return row
+
+
 def realtime_row(agents: int = 5000, seconds: float = 15.0, full: int = FULL_AGENTS) -> dict:
     """SUMO side in realtime at its 10 Hz with ``agents`` vehicles and a physics process
     (LOD: a region of about ``full`` agents in full physics), as separate OS processes, for
@@ -557,4 +693,4 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
     return rows
 
 
-__all__ = ["cosim_rows", "pool_row", "realtime_row", "run_scale_bench", "shard_rows", "takeover_row"]
+__all__ = ["cosim_rows", "lockstep_row", "pool_row", "realtime_row", "run_scale_bench", "shard_rows", "takeover_row"]
