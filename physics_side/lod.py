@@ -12,6 +12,7 @@ path at its reference pose, so it starts without a transient.
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -51,25 +52,31 @@ class DetailZones:
         the previous decision per agent (hysteresis; None = no history); ``points``:
         (m, 2) extra interest points [m].
         """
+        rel = self.rel(x, y, ego, points)
+        inner, outer = rel < HYSTERESIS**2, rel < 1.0
+        full = inner if was_full is None else np.where(was_full, outer, inner)
+        return full | np.asarray(ego, bool)
+
+    def rel(self, x: np.ndarray, y: np.ndarray, ego: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+        """Squared distance to the nearest zone centre in units of its radius (< 1: inside;
+        inf without zones), per agent."""
         x = np.asarray(x, np.float64)
         y = np.asarray(y, np.float64)
         n = len(x)
+        ego = np.asarray(ego, bool)
         centres = np.column_stack([x[ego], y[ego]])
         if points is not None and len(points):
             centres = np.concatenate([centres, np.asarray(points, np.float64).reshape(-1, 2)])
         cx = np.concatenate([centres[:, 0], self.regions[:, 0]])
         cy = np.concatenate([centres[:, 1], self.regions[:, 1]])
         r = np.concatenate([np.full(len(centres), self.radius), self.regions[:, 2]])
-        if n == 0 or len(r) == 0:
-            return np.asarray(ego, bool).copy() if n else np.zeros(0, bool)
-        # distance to each zone's edge in units of its radius: < 1 inside
         rel = np.full(n, np.inf)
+        if n == 0 or len(r) == 0:
+            return rel
         for k in range(0, len(r), 256):  # bounded temporaries: n x 256 at most
             d2 = (x[:, None] - cx[None, k:k + 256]) ** 2 + (y[:, None] - cy[None, k:k + 256]) ** 2
             rel = np.minimum(rel, (d2 / np.maximum(r[None, k:k + 256], 1e-9) ** 2).min(axis=1))
-        inner, outer = rel < HYSTERESIS**2, rel < 1.0
-        full = inner if was_full is None else np.where(was_full, outer, inner)
-        return full | np.asarray(ego, bool)
+        return rel
 
 
 class FarAgents:
@@ -109,6 +116,14 @@ class FarAgents:
         )
 
 
+def _take(ids: list[str], rows: np.ndarray) -> tuple[str, ...]:
+    """``ids`` at ``rows`` (one C call)."""
+    if len(rows) == 0:
+        return ()
+    got = operator.itemgetter(*rows.tolist())(ids)
+    return got if len(rows) > 1 else (got,)
+
+
 def concat_agents(a: PhysicsAgents, b: PhysicsAgents) -> PhysicsAgents:
     """``a`` then ``b`` in one batch."""
     if not b.ids:
@@ -125,18 +140,27 @@ class DetailSplit:
     def __init__(self, zones: DetailZones, max_extrapolation_s: float = 0.3) -> None:
         self.zones = zones
         self.far = FarAgents(max_extrapolation_s)
-        self._was_full: dict[str, bool] = {}
+        self._not_full: set[str] = set()  # ids outside full detail in the previous step
         self.points: np.ndarray | None = None  # (m, 2) [m] extra interest points (viewer cameras)
 
     def apply(self, msg: StepMessage) -> StepMessage:
         """``msg`` with only the agents in full detail (the far ones are kept here)."""
         a = msg.agents
-        ego = (np.asarray(a.flags) & AgentFlag.EGO) != 0
-        was = np.fromiter((self._was_full.get(i, True) for i in a.ids), bool, a.n)
-        full = self.zones.full(a.x, a.y, ego, was, self.points)
-        self._was_full = dict(zip(a.ids, full.tolist()))
-        riding = (np.asarray(a.flags) & AgentFlag.INSIDE_VEHICLE) != 0
-        self.far.update(msg.time, subset(a, np.flatnonzero(~full & ~riding)))
+        flags = np.asarray(a.flags)
+        ego = (flags & AgentFlag.EGO) != 0
+        rel = self.zones.rel(a.x, a.y, ego, self.points)
+        full = rel < HYSTERESIS**2
+        # Only agents between 0.9 r and r keep their previous mode (an agent not seen
+        # before counts as full): one set lookup for those few, not a dict of every agent.
+        band = np.flatnonzero((rel < 1.0) & ~full)
+        if len(band):
+            kept = self._not_full
+            full[band] = ~np.fromiter(map(kept.__contains__, _take(a.ids, band)), bool, len(band))
+        full |= ego
+        riding = (flags & AgentFlag.INSIDE_VEHICLE) != 0
+        far = np.flatnonzero(~full & ~riding)
+        self._not_full = set(_take(a.ids, np.flatnonzero(~full)))
+        self.far.update(msg.time, subset(a, far))
         return replace(msg, agents=subset(a, np.flatnonzero(full)))
 
     def snapshot(self, near: PhysicsAgents, t: float) -> PhysicsAgents:

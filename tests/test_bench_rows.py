@@ -53,8 +53,9 @@ def test_scale_bench_quick_rows():
     cosim = [r for r in rows if "lod" in r]
     shards = [r for r in rows if "shards" in r]
     realtime = [r for r in rows if r.get("timing") == "realtime"]
-    assert pools and cosim and shards and realtime, rows
-    assert len(pools) + len(cosim) + len(shards) + len(realtime) == len(rows), rows
+    lockstep = [r for r in rows if r.get("timing") == "lockstep"]
+    assert pools and cosim and shards and realtime and lockstep, rows
+    assert len(pools) + len(cosim) + len(shards) + len(realtime) + len(lockstep) == len(rows), rows
 
     for r in pools:
         _count(r, "pool_slots")
@@ -77,6 +78,13 @@ def test_scale_bench_quick_rows():
         # the CPU-time figure does not depend on other load
         _count(r, "agents_realtime", 0)
         _count(r, "agents_realtime_cpu")
+
+    for r in lockstep:
+        n = _count(r, "agents")
+        assert _count(r, "full_physics_agents") < n, r
+        _count(r, "steps")
+        _positive(r, "sumo_alone_ms", "sumo_alone_cpu_ms", "lockstep_ms", "lockstep_cpu_ms", "lockstep_to_sumo_ratio",
+                  "lockstep_to_sumo_cpu_ratio")
 
     for r in realtime:
         _count(r, "agents")
