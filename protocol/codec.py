@@ -181,9 +181,9 @@ _N_MODES = len(AgentMode)
 
 
 def _bin(a: np.ndarray, dtype: str) -> memoryview:
-    # msgpack packs a memoryview as bin straight from the array: no intermediate bytes copy
-    # flat: memoryview cannot cast an empty 2-D array (a step whose agents have no path)
-    return memoryview(np.ascontiguousarray(a, dtype=dtype).reshape(-1)).cast("B")
+    # msgpack packs any C-contiguous buffer as bin straight from the array (its byte length,
+    # whatever its shape or item format): no intermediate bytes copy, no reshape or cast
+    return memoryview(np.ascontiguousarray(a, dtype=dtype))
 
 
 def _columns(obj: Any, spec: tuple[tuple[str, str], ...]) -> dict[str, bytes]:
@@ -203,9 +203,12 @@ def _polyline(offsets: np.ndarray, xy: np.ndarray) -> dict[str, bytes]:
 def _anchored_path(offsets: np.ndarray, xy: np.ndarray, x: np.ndarray, y: np.ndarray) -> dict[str, bytes]:
     """Path polyline as float32 offsets from its agent's float64 (x, y) (SPEC.md 3.1)."""
     off = np.asarray(offsets, np.int64)
-    pts = np.asarray(xy, np.float64).reshape(-1, 2)[off[0]:off[-1]]
+    first, last = off[[0, -1]].tolist()
+    pts = np.asarray(xy, np.float64).reshape(-1, 2)[first:last]
     anchor = np.repeat(np.column_stack((x, y)), np.diff(off), axis=0)
-    return {"off": _bin(off - off[0], "<u4"), "dxy": _bin(np.subtract(pts, anchor), "<f4")}
+    # float64 difference rounded once to float32, written straight into the wire column
+    dxy = np.subtract(pts, anchor, out=np.empty(pts.shape, "<f4"), dtype=np.float64, casting="same_kind")
+    return {"off": _bin(off - first if first else off, "<u4"), "dxy": memoryview(dxy)}
 
 
 def encode(msg: Message) -> bytes:
@@ -227,8 +230,8 @@ def encode(msg: Message) -> bytes:
         tls = {
             "id": list(msg.tls.ids),
             "state": list(msg.tls.state),
-            "phase": [int(p) for p in msg.tls.phase],
-            "next": [float(s) for s in msg.tls.next_switch],
+            "phase": np.asarray(msg.tls.phase, np.int64).tolist(),  # Python ints and floats, one call each
+            "next": np.asarray(msg.tls.next_switch, np.float64).tolist(),
         }
         if msg.tls.program is not None:
             tls["program"] = list(msg.tls.program)
