@@ -713,8 +713,25 @@ def _fast_step(d: dict, lim: DecodeLimits) -> StepMessage | None:
         return None
     x, y = xy
     la = np.add(xy, b4[_LA_ROWS[0]:_LA_ROWS[1]])  # float64 look-ahead points, one pass
-    if "path" in a:
-        off, pxy = _Reader(lim).path(a, n, x, y)
+    if "path" in a:  # as _Reader.path (1.2: float32 offsets from each agent's position)
+        p = a["path"]
+        offb, db = p["off"], p["dxy"]
+        if type(p) is not dict or type(offb) is not bytes or type(db) is not bytes or len(offb) != 4 * (n + 1) \
+                or len(db) % 8 or len(db) // 8 > lim.max_points:
+            return None
+        pm = len(db) // 8
+        off = np.frombuffer(offb, "<u4")
+        counts = np.diff(off.astype(np.int64))
+        if off[0] != 0 or off[-1] != pm or (n and int(counts.min()) < 0):
+            return None
+        dxy = np.frombuffer(db, "<f4").reshape(pm, 2)
+        if pm:
+            lo, hi = float(dxy.min()), float(dxy.max())
+            if not (-OFFSET_LIMIT <= lo and hi <= OFFSET_LIMIT):
+                return None
+            pxy = np.add(dxy, np.repeat(xy.T, counts, axis=0))  # float64: offsets + anchors, one pass
+        else:
+            pxy = dxy.astype(np.float64)
     else:
         off, pxy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float64)
     ids = a["id"]
