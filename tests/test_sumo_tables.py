@@ -146,3 +146,23 @@ def test_full_table_never_raises_and_reuses_dropped_indexes():
     t.add("car@d")
     t.collect(np.array([0, 1, 3]), force=True)
     assert t.types[2] is UNUSED and t.add("bus@e") == 2 and t.cls[2] == AgentClass.BUS
+
+
+def test_vehicles_without_our_subscription_are_read_with_getters_or_left_out(run):
+    """Someone else re-subscribing a vehicle with fewer variables (libsumo replaces the list)
+    does not lose it; a vehicle with no subscription at all is left out, as before."""
+    sim, step = run
+    for _ in range(30):
+        msg, _ = step()
+    ids = list(msg.agents.ids)
+    assert len(ids) >= 2, ids
+    a, b = ids[0], ids[1]
+    sim.api.vehicle.subscribe(a, (sim.api.VAR_SPEED,))  # only the speed
+    sim.api.vehicle.unsubscribe(b)
+    msg, _ = step()
+    got = list(msg.agents.ids)
+    assert a in got and b not in got
+    i = got.index(a)
+    x, y = sim.api.vehicle.getPosition(a)
+    assert (msg.agents.x[i], msg.agents.y[i]) == pytest.approx((x, y))
+    assert msg.agents.lane[i] >= 0 and msg.vtypes[msg.agents.vtype[i]].id == sim.api.vehicle.getTypeID(a)

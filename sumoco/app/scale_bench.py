@@ -619,47 +619,53 @@ lod_regions = [[{cx:.1f}, {cy:.1f}, {radius:.1f}]]
     return row
 
 
-def realtime_row(agents: int = 5000, seconds: float = 15.0, full: int = FULL_AGENTS) -> dict:
+def realtime_row(agents: int = 5000, seconds: float = 15.0, full: int = FULL_AGENTS, alone_steps: int = 20) -> dict:
     """SUMO side in realtime at its 10 Hz with ``agents`` vehicles and a physics process
     (LOD: a region of about ``full`` agents in full physics), as separate OS processes, for
     ``seconds`` of wall time from the first step: ``lag_resets`` counts the times SUMO fell
     more than ``max_lag_s`` behind the wall clock; ``steps`` against ``seconds`` * 10 shows
-    how far from real time it ran."""
-    import math
-    import re
+    how far from real time it ran; ``sumo_alone_ms`` / ``sumo_alone_cpu_ms`` are SUMO's own
+    step on the same scenario in this process before the daemons start (above the step
+    length, real time is out of reach whatever the rest costs), ``sumo_ms`` / ``bridge_ms``
+    the SUMO side's own figures per step during the run (its status lines)."""
     import tempfile
     from pathlib import Path
 
+    from physics_side.lod import HYSTERESIS
     from sumo_side.bench import _cache_dir
-    from sumo_side.scenarios import grid_size_for, make_grid_scenario
+    from sumo_side.scenarios import make_grid_scenario
     from sumoco.common.transport import free_tcp_port
 
     sumocfg = make_grid_scenario(_cache_dir(), agents, seed=42)
-    side = (grid_size_for(agents) - 1) * 200.0
-    radius = side * math.sqrt(full / agents / math.pi)  # ~``full`` agents at uniform density
+    # SUMO alone on this host: above the step length, no SUMO side can keep real time
+    alone_wall, alone_cpu, x, y = _sumo_alone(sumocfg, agents, alone_steps)
+    cx, cy, radius = _lod_region(x, y, int(full / HYSTERESIS))
     tmp = Path(tempfile.mkdtemp(prefix="sumoco-realtime-"))
     cfg = tmp / "run.toml"
     cfg.write_text(f"""
 [run]
 id = "realtime"
 timing = "realtime"
+seed = 42
 duration_s = {seconds + 120.0}
 [sumo]
 sumocfg = "{sumocfg}"
 [physics]
 preset = "default"
+shards = 1  # one simulation on one thread: the SUMO process has the other core
+threads = 1
 expect = {{passenger = {int(full * 1.3)}}}
-lod_regions = [[{side / 2}, {side / 2}, {radius:.1f}]]
+lod_regions = [[{cx:.1f}, {cy:.1f}, {radius:.1f}]]
 """)
     eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2)]
     # The SUMO side's own duration leaves room for a late probe (its Zenoh connect is retried
     # until the SUMO side listens): the row's window is wall time from the first step seen,
     # and SIGTERM ends the SUMO side after it.
-    run = _Procs("realtime", eps, tmp)
+    run = _Procs("realtime", eps, tmp, probe=False)
     try:
         run.start("physics", ["physics", "--config", str(cfg), "--listen", eps[1], "--connect", eps[0]])
         run.start("sumo", ["sumo", "--config", str(cfg), "--listen", eps[0]])  # INFO: its summary
-        run.wait(lambda: run.steps, 180, "the first step")
+        run.wait(lambda: (run.sumo_counters() or {}).get("steps", 0) > 0, 180, "the first step")
         t_end = time.monotonic() + seconds  # wall clock: a SUMO side behind real time ends here
         while time.monotonic() < t_end and run.procs["sumo"].poll() is None:
             time.sleep(0.1)
@@ -673,10 +679,14 @@ lod_regions = [[{side / 2}, {side / 2}, {radius:.1f}]]
         raise RuntimeError(f"realtime run: no summary in the SUMO log:\n{text[-2000:]}")
     stats = dict(kv.split("=", 1) for kv in m[1].split(", "))
     phys = re.findall(r"\(phys (\d+) ", (tmp / "physics.log").read_text(errors="replace"))
+    status = re.findall(r"sumo ([\d.]+) ms bridge ([\d.]+) ms", text)
     row = {"timing": "realtime", "agents": int(stats["max_agents"]), "lag_resets": int(stats["lag_resets"]),
            "steps": int(stats["steps"]), "wall_s": seconds, "realtime_steps": int(seconds / 0.1), "sumo_step_s": 0.1,
            # most in full physics in the physics side's status lines (it stops them when SUMO ends)
            "full_physics_agents": max(map(int, phys)) if phys else None,
+           "sumo_alone_ms": round(alone_wall * 1e3, 2), "sumo_alone_cpu_ms": round(alone_cpu * 1e3, 2),
+           "sumo_ms": round(float(np.mean([float(a) for a, _ in status])), 2) if status else None,
+           "bridge_ms": round(float(np.mean([float(b) for _, b in status])), 2) if status else None,
            "goal_lag_resets": 0, "load_avg_1min": round(os.getloadavg()[0], 2)}
     log.info("bench scale: %s", row)
     return row
@@ -698,7 +708,7 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
     if quick:
         process_rows = (("shards", lambda: shard_rows(counts=(1,), probe=(20, 60), seconds=1.0)),
                         ("lockstep", lambda: [lockstep_row(agents=1000, seconds=3.0, full=100, alone_steps=5)]),
-                        ("realtime", lambda: [realtime_row(agents=1000, seconds=3.0, full=100)]))
+                        ("realtime", lambda: [realtime_row(agents=1000, seconds=3.0, full=100, alone_steps=5)]))
     else:
         process_rows = (("shards", shard_rows), ("takeover", lambda: [takeover_row()]),
                         ("lockstep", lambda: [lockstep_row()]), ("realtime", lambda: [realtime_row()]))
