@@ -212,6 +212,7 @@ def step_messages(traj: Trajectory, cls: AgentClass, length: float, width: float
 def track_reference(
     preset: str, agent_class: AgentClass | int, traj: Trajectory, *, settings: PhysicsSettings | None = None,
     lad_min: float | None = None, length: float | None = None, lateral: str | None = None,
+    max_steer_deg: float | None = None,
 ) -> dict[str, np.ndarray]:
     """Run one agent of ``agent_class`` under ``preset`` along ``traj``; time series at the control rate.
 
@@ -220,7 +221,8 @@ def track_reference(
     (as published: vs the extrapolated reference), err_held (distance to the held
     sample), dist (distance travelled), speed, v_ref, steer_deg, steer_pct (of max
     steer), drive, brake [N*m], u (u_in for paper, commanded accel for default), roll,
-    pitch [deg], z [m].
+    pitch [deg], z [m]. ``max_steer_deg`` [deg, at most the model's]: the car's steering limit
+    (what the paper preset's P_steer is a share of).
     """
     cls = AgentClass(int(agent_class))
     settings = settings or PhysicsSettings()
@@ -235,6 +237,8 @@ def track_reference(
     spec = default_spec(cls if cls != AgentClass.OTHER else AgentClass.PASSENGER)
     length = spec.length if length is None else length
     world = PhysicsWorld(phys.timestep_s, rates.substeps, shards=1, initial={cls if cls != AgentClass.OTHER else AgentClass.PASSENGER: 1})
+    if max_steer_deg is not None:  # the model's steering joints allow up to their own limit
+        world.tables.max_steer[:] = np.minimum(world.tables.max_steer, np.radians(max_steer_deg))
     fleet = Fleet(world, settings, rates)
     lad_params = (ctl.paper.lad_min, ctl.paper.lad_max, ctl.paper.k_lad)
     rec: dict[str, list] = {k: [] for k in (
@@ -293,5 +297,15 @@ def lad_sweep(lad_mins=(5.0, 6.0, 7.0, 8.0), agent_class=AgentClass.PASSENGER, t
     return {lm: track_reference("paper", agent_class, traj, settings=settings, lad_min=lm) for lm in lad_mins}
 
 
-__all__ = ["Trajectory", "lad_sweep", "lane_change", "paper_route", "step_messages", "straight",
-           "track_reference", "turn90"]
+def steer_sweep(max_steers=(15.0, 20.0, 25.0, 30.0, 35.0), lad_min: float = 7.0, traj: Trajectory | None = None,
+                settings: PhysicsSettings | None = None) -> dict[float, dict[str, np.ndarray]]:
+    """The paper preset through a right turn for several maximum steering angles [deg]: its
+    P_steer = delta_ref[deg] * k_steer is a share of the car's maximum angle, so the law is a
+    plain pure pursuit only where max_steer = 1 / k_steer (20 deg for k_steer = 0.05)."""
+    traj = traj or turn90(v=4.0)
+    return {m: track_reference("paper", AgentClass.PASSENGER, traj, settings=settings, lad_min=lad_min,
+                               max_steer_deg=m) for m in max_steers}
+
+
+__all__ = ["Trajectory", "lad_sweep", "lane_change", "paper_route", "step_messages", "steer_sweep",
+           "straight", "track_reference", "turn90"]
