@@ -10,7 +10,8 @@ keys with the SUMO daemon's publisher settings (``STEP_PUT``):
 - ``e2e``: the same step as the SUMO side sends it. Sent stamp just before ``encode``
   (the message built from numpy columns just before, as the bridge does); received stamp once the physics side's receive
   path has decoded it: callback -> ``to_bytes`` -> bounded ``DropOldest`` queue -> wake the
-  main loop -> ``decode_as`` with the daemon's limits (``physics_side.daemon``).
+  main loop (``sumoco.common.transport.Wake``) -> ``decode_as`` with the daemon's limits
+  (``physics_side.daemon``).
 
 Both processes run with the daemons' process settings (``sumoco.common.hotpath``). CLOCK_MONOTONIC is shared by all processes of one host, so the difference of
 two stamps is the one-way latency. Messages alternate raw / e2e half a period apart, so
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -36,7 +38,7 @@ from protocol.messages import StepMessage
 from sumoco.common.config import ZenohConfig
 from sumoco.common.hotpath import freeze_startup_objects, tune_allocator
 from sumoco.common.queues import DropOldest
-from sumoco.common.transport import free_tcp_port, open_session
+from sumoco.common.transport import Wake, free_tcp_port, open_session
 from sumoco.testing.synthetic import synthetic_step
 
 KEYS = Keys("sumocobench", "e2e")
@@ -65,7 +67,7 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
     decode_cpu_ns: list[int] = []
     handoff_ns: list[int] = []
     steps: DropOldest[tuple[bytes, int]] = DropOldest(64, 256 << 20, size=lambda item: len(item[0]))
-    wake = threading.Event()
+    wake = Wake()  # as PhysicsDaemon._wake
     stop = threading.Event()
     limits = DecodeLimits.for_agents(max_agents)
 
@@ -116,6 +118,7 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
 def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
             path_points: int = 12) -> dict:
     """One row: raw and end-to-end latency at ``agents``, measured in the same run."""
+    load_before = os.getloadavg()[0]
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
     cfg = ZenohConfig(listen=(ep,), shared_memory=shm)
@@ -199,6 +202,9 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
         # CPU time of the same calls: wall minus CPU is time spent waiting for a core
         "encode_cpu_ms_p50": _median_ms(encode_cpu_ns, warmup),
         "decode_cpu_ms_p50": _median_ms(got.get("decode_cpu_ns", []), warmup),
+        # 1-minute load average before and after the row: other processes share the cores,
+        # and every cost here after an idle wait is cold-cache cost, which load inflates
+        "loadavg_1m": [round(load_before, 2), round(os.getloadavg()[0], 2)],
     }
 
 

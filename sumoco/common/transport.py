@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import logging
 import socket
+import threading
 from pathlib import Path
 
 import zenoh
@@ -173,3 +174,40 @@ def free_tcp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+class Wake:
+    """``threading.Event``'s ``set`` / ``wait`` / ``clear`` / ``is_set`` on one C-level lock.
+
+    For a daemon's main loop woken by Zenoh callbacks: ``threading.Event`` runs a
+    ``Condition`` in Python on both sides (a waiter lock allocated per wait, a notify loop
+    under a second lock), which after an idle wait costs tens of microseconds of cold
+    code per step. Here the flag *is* the lock: unlocked = set. ``set`` releases it (from
+    any thread, never blocks), ``wait`` acquires and releases it again (blocking in C,
+    the GIL released), ``clear`` takes it without blocking.
+    """
+
+    __slots__ = ("_lock",)
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._lock.acquire()  # starts cleared
+
+    def set(self) -> None:
+        try:
+            self._lock.release()
+        except RuntimeError:  # already set
+            pass
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """True once set (it stays set), False after ``timeout`` [s]; None waits forever."""
+        if self._lock.acquire(timeout=-1 if timeout is None else max(0.0, timeout)):
+            self.set()
+            return True
+        return False
+
+    def clear(self) -> None:
+        self._lock.acquire(blocking=False)
+
+    def is_set(self) -> bool:
+        return not self._lock.locked()
