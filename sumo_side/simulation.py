@@ -294,6 +294,9 @@ class SumoSim:
             raise ConfigError(f"{path}: SUMO could not load the scenario ({_exc_text(e)}); "
                               "SUMO's own messages are above") from None
         self.api = api
+        # libsumo's SWIG function itself, without its Python wrapper (called per vehicle)
+        self._vehicle_results = getattr(getattr(api, "_libsumo", None), "vehicle_getSubscriptionResults",
+                                        api.vehicle.getSubscriptionResults)
         self._dt = float(api.simulation.getDeltaT())
         self._log_choices()
         try:
@@ -466,7 +469,7 @@ class SumoSim:
         vids = list(veh.getIDList())
         nv = len(vids)
         if nv:
-            rows = list(map(veh.getSubscriptionResults, vids))
+            rows = list(map(self._vehicle_results, vids))
             try:
                 pos, angle, speed, sig, lpos, lanes, types, vroute = zip(*map(_VEHICLE_ROW, rows))
             except (KeyError, TypeError):
