@@ -42,8 +42,10 @@ MAX_LEAD_STEP_S = 0.2  # [s] longest step taken for the mean-speed lead (a late 
 PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
 PED_YAW_KD = 15.0  # [N*m*s/rad]
 PED_YAW_MAX = 150.0  # [N*m] pedestrian heading servo torque limit
-REAR_STEER_K_YAW = 1.5  # [1/s] rear-axle steering: body angle error -> yaw rate
+REAR_STEER_K_YAW = 0.3  # [1/s] rear-axle steering: body angle error -> yaw rate
 REAR_STEER_V_MIN = 1.0  # [m/s] below this the rear-axle law acts as at this speed
+STEER_SAT_SHARE = 0.97  # [1] steering at this share of its limit counts as saturated
+STEER_SAT_DECEL = 2.0  # [m/s^2] braking per m/s over the reference while saturated (at most this)
 
 
 def _clip(x, lo, hi):
@@ -252,7 +254,7 @@ def curve_speed_cut(
 def rear_axle_steer(
     steer: np.ndarray, yaw: np.ndarray, speed: np.ndarray, yaw_ref: np.ndarray, yaw_rate_ref: np.ndarray,
     wheelbase: np.ndarray, d_bumper: np.ndarray, max_front: np.ndarray, max_rear: np.ndarray,
-    k_yaw: float = REAR_STEER_K_YAW, v_min: float = REAR_STEER_V_MIN,
+    k_yaw: float = REAR_STEER_K_YAW, v_min: float = REAR_STEER_V_MIN, a_lat: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(front, rear) bicycle-model angles [rad] of an all-wheel-steered vehicle from the front
     angle ``steer`` a law asked for a fixed rear axle.
@@ -264,16 +266,41 @@ def rear_axle_steer(
     bicycle, bumper ``d_bumper`` ahead of the rear axle) tan(beta) = tan(rear) + d r / v and
     r = v (tan(front) - tan(rear)) / L, so tan(rear) = tan(beta) - d r / v and
     tan(front) = tan(beta) + (L - d) r / v. A saturated rear axle leaves the bumper's direction
-    to the front one. ``v_min`` [m/s] bounds the angles when standing."""
+    to the front one. ``v_min`` [m/s] bounds the angles when standing; ``a_lat`` [m/s^2]: the
+    rear axle never turns the vehicle tighter than its tyres carry at this speed."""
     b = d_bumper / wheelbase
     tb = b * np.tan(steer)
     r = yaw_rate_ref + k_yaw * wrap_pi(yaw_ref - yaw)
     v = np.where(speed < 0, np.minimum(speed, -v_min), np.maximum(speed, v_min))
-    t_r = np.tan(max_rear)
+    t_r, t_f = np.tan(max_rear), np.tan(max_front)
     tr = _clip(tb - d_bumper * r / v, -t_r, t_r)
-    tf = (tb - (1.0 - b) * tr) / b  # the bumper's direction first
-    front = np.arctan(tf)
-    return _clip(front, -max_front, max_front), np.arctan(tr)
+    tf = (tb - (1.0 - b) * tr) / b  # a saturated rear axle: the bumper's direction first
+    # a saturated front axle: the rear one turns against it for the bumper's direction (the
+    # tightest turn a long vehicle has), the body angle goes second
+    # ... unless the body has already turned further than SUMO's (it would spin about its middle)
+    ahead = wrap_pi(yaw - yaw_ref) * np.sign(tb) > 0.0
+    sat = (np.abs(tf) > t_f) & ~ahead
+    tf = _clip(tf, -t_f, t_f)
+    tr = np.where(sat, _clip((tb - b * tf) / (1.0 - b), -t_r, t_r), tr)
+    if a_lat is not None:  # the turn's curvature (tan f - tan r) / L within the tyres' grip at this speed
+        q_max = wheelbase * a_lat / np.maximum(speed * speed, 0.01)
+        tr = _clip(tr, tf - q_max, tf + q_max)
+    return np.arctan(tf), np.arctan(tr)
+
+
+def saturation_speed_cut(
+    drive: np.ndarray, brake: np.ndarray, steer: np.ndarray, max_steer: np.ndarray, speed: np.ndarray,
+    v_ref: np.ndarray, m_eff: np.ndarray, r_wheel: np.ndarray, share: float = STEER_SAT_SHARE,
+    decel: float = STEER_SAT_DECEL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(drive, brake) [N*m]: a vehicle steering at its limit (``share`` of ``max_steer``) and
+    faster than its reference (``v_ref`` [m/s]) does not drive and brakes at ``decel``
+    [m/s^2] per m/s over: a catch-up in a turn it cannot make ran trucks, buses and cars
+    metres wide of SUMO's junction lanes (and into the neighbours); the lag is made up on
+    the straight after."""
+    over = (np.abs(steer) >= share * max_steer) & (speed > v_ref)
+    want = np.minimum((speed - v_ref) * decel, decel) * m_eff * r_wheel
+    return np.where(over, 0.0, drive), np.where(over, np.maximum(brake, want), brake)
 
 
 # --------------------------------------------------------------------------- composed laws
@@ -332,6 +359,8 @@ class VehicleParams:
     """[N*m]."""
     max_brake: np.ndarray
     """[N*m]."""
+    max_rear: np.ndarray | None = None
+    """Rear-axle steering limit [rad] (0 or None: a fixed rear axle)."""
 
 
 @dataclass(frozen=True)
@@ -463,7 +492,9 @@ def control_default(
         alpha = pursuit_alpha(ax_x, ax_y, obs.yaw, tgt.x, tgt.y)
         # arc from the front axle: steer the front wheels towards the target point
         steer = alpha
-    steer = _clip(steer, -p.max_steer, p.max_steer)
+    # (vehicles that steer their rear axle keep the whole demand: ``rear_axle_steer`` splits it)
+    lim = p.max_steer if p.max_rear is None else np.where(p.max_rear > 0, 1.5, p.max_steer)
+    steer = _clip(steer, -lim, lim)
     return VehicleCommand(steer, drive, brake, a_cmd)
 
 
@@ -472,5 +503,5 @@ __all__ = [
     "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
     "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
-    "rear_axle_steer", "steered_roll_stabiliser", "traction_limit",
+    "rear_axle_steer", "saturation_speed_cut", "steered_roll_stabiliser", "traction_limit",
 ]

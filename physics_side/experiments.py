@@ -192,6 +192,10 @@ def step_messages(traj: Trajectory, cls: AgentClass, length: float, width: float
     ref = traj.at(times)
     la = C.lad(ref["speed"], *lad_params)
     ps = PathSet(np.array([0, len(traj.path_xy)]), traj.path_xy)
+    # SUMO's angle is the chord from the vehicle's back to its front on the lane, not the
+    # lane's tangent at the front (they differ in turns by ~asin(length / 2R))
+    back = ps.at(ref["s"] - length)
+    ref["yaw"] = np.where(ref["s"] >= length, np.arctan2(ref["y"] - back.y, ref["x"] - back.x), ref["yaw"])
     vt = [VType("t0", _vtype_for(cls))]
     for k in range(n):
         s0 = ref["s"][k]

@@ -44,6 +44,9 @@ _TYPE_NAME = {
 GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
 CARRY_SPEED = 0.5  # [m/s] below this SUMO speed a sideways slide is carried, not driven
+BIKE_MAX_LEAN_DEG = 35.0  # [deg] bicycles (a rider's lean; motorcycles take their tyres' grip, ~48 deg)
+MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next sample (bounded)
+MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
 
 
@@ -128,6 +131,8 @@ class _Commands:
     """Reference point where kinematic agents and ``carry`` are placed (``Reference.at``), or None."""
     carry: np.ndarray | None
     """Standing agents carried along SUMO's sideways slide (placed), or None."""
+    rear: np.ndarray | None
+    """Rear-axle angle [rad] per agent (vehicles that steer it), None when nobody does."""
 
 
 @dataclass
@@ -161,7 +166,7 @@ class Fleet:
         self.counters: dict[str, int] = {
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
-            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "retyped": 0,
+            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_sumo_overlaps": 0, "retyped": 0,
         }
         self.wire_vtype = np.zeros(0, np.uint16)  # vType index per agent of the newest step
         self._empty()
@@ -189,6 +194,8 @@ class Fleet:
         self.sumo_wid = np.zeros(0)
         self.jump_t = np.zeros(0)
         self.carry = np.zeros(0, bool)
+        self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
+        self._pending_collisions: list[str] = []
         self.tau = 0.0
         self.state = C.ControlState.zeros(0)
         self.s_act = np.zeros(0)
@@ -349,6 +356,7 @@ class Fleet:
             had = prev >= 0
             yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
         ref = cur = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
+        self._sumo_yaw, self._sumo_yaw_rate = yaw, yaw_rate
         side_rate = np.zeros(len(ids))
         if old_ref is not None and bool((prev >= 0).any()):  # (the previous step may have had no agents)
             had = prev >= 0
@@ -459,6 +467,8 @@ class Fleet:
         self.jump_t[jumped | ((flags & AgentFlag.JUMPED) != 0)] = msg.time
         self.sumo_len = a.length[rows].astype(np.float64)
         self.sumo_wid = a.width[rows].astype(np.float64)
+        if self._pending_collisions:
+            self._recheck_collisions()
         self.s_act = (np.where(place, held.s, ref.project_far(obs.fx, obs.fy, held.s + e_lon, tau=self.tau)[0]) if len(ids)
                       else e_lon.copy())
         n = len(ids)
@@ -509,31 +519,78 @@ class Fleet:
         self.counters["ghost_spawns"] += int((ghost & is_new).sum())
         self.ghost = ghost
 
-    def _split_collisions(self, began: np.ndarray) -> None:
-        """Count collisions that began: SUMO also had them (its footprints overlap there,
-        or the agent was teleported / jumped in the last ``JUMP_EXCUSE_S``) or physics only."""
-        ref = self.ref
-        t = ref.t_k
-        h = ref.held()
+    def _sumo_overlaps(self, idx: np.ndarray, h) -> np.ndarray:
+        """Whether each agent of ``idx`` overlaps another agent in SUMO's footprints of sample ``h``."""
         cx = h.x - 0.5 * self.sumo_len * np.cos(h.yaw)
         cy = h.y - 0.5 * self.sumo_len * np.sin(h.yaw)
         ped = self.kind == M.KIND_PED
-        idx = np.arange(self.n)
-        for i in np.flatnonzero(began):
-            other = (idx != i) & ~(ped & ped[i])
-            sumo = bool((t - self.jump_t[i]) <= JUMP_EXCUSE_S) or bool(
-                other.any() and footprints_overlap(cx[i], cy[i], h.yaw[i], self.sumo_len[i], self.sumo_wid[i],
-                                                   cx[other], cy[other], h.yaw[other], self.sumo_len[other],
-                                                   self.sumo_wid[other], SUMO_OVERLAP_M).any())
-            self.counters["collisions_sumo_reported" if sumo else "collisions_physics_only"] += 1
-            if not sumo:
-                log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", t, self.ids[i])
+        every = np.arange(self.n)
+        out = np.zeros(len(idx), bool)
+        for k, i in enumerate(idx):  # (only agents that touched: a handful per step)
+            other = (every != i) & ~(ped & ped[i])
+            out[k] = bool(other.any() and footprints_overlap(
+                cx[i], cy[i], h.yaw[i], self.sumo_len[i], self.sumo_wid[i], cx[other], cy[other], h.yaw[other],
+                self.sumo_len[other], self.sumo_wid[other], SUMO_OVERLAP_M).any())
+        return out
+
+    def _split_collisions(self, began: np.ndarray) -> None:
+        """Count collisions that began: SUMO also had them (its footprints overlap there,
+        or the agent was teleported / jumped in the last ``JUMP_EXCUSE_S``) or physics only.
+        A contact between two samples is SUMO's when its footprints overlap at either: one
+        counted physics-only now moves over if they overlap at the next sample
+        (``_recheck_collisions``)."""
+        t = self.ref.t_k
+        idx = np.flatnonzero(began)
+        sumo = ((t - self.jump_t[idx]) <= JUMP_EXCUSE_S) | self._sumo_overlaps(idx, self.ref.held())
+        later = self._sample_ref is not self.ref  # interpolating: the interval's end sample is known
+        if later:
+            sumo |= self._sumo_overlaps(idx, self._sample_ref.held())
+        self.counters["collisions_sumo_reported"] += int(sumo.sum())
+        self.counters["collisions_physics_only"] += int((~sumo).sum())
+        self._ghost_sumo_overlaps(idx[sumo])
+        for i in idx[~sumo]:
+            if not later and len(self._pending_collisions) < MAX_PENDING_COLLISIONS:
+                self._pending_collisions.append(self.ids[i])
+            log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", t, self.ids[i])
+
+    def _ghost_sumo_overlaps(self, idx: np.ndarray) -> None:
+        """Agents touching where SUMO has them overlap pass through each other as in SUMO (ghosts
+        until clear, ``_update_ghosts``): pushing them apart knocked them into third agents."""
+        if len(idx):
+            self.ghost = self.ghost.copy()
+            self.ghost[idx] = True
+            self.world.set_ghost(self.slots, self.ghost)
+            self.counters["ghost_sumo_overlaps"] += len(idx)
+
+    def _recheck_collisions(self) -> None:
+        """At a new sample: physics-only collisions of the last interval whose agents overlap in
+        SUMO's footprints now were SUMO's (it moved them into each other between its samples)."""
+        pending, self._pending_collisions = self._pending_collisions, []
+        idx = np.array([self._index[a] for a in pending if a in self._index], np.int64)
+        if not len(idx):
+            return
+        overlap = self._sumo_overlaps(idx, self._sample_ref.held())
+        moved = int(overlap.sum())
+        self._ghost_sumo_overlaps(idx[overlap])
+        if moved:
+            self.counters["collisions_physics_only"] -= moved
+            self.counters["collisions_sumo_reported"] += moved
+            log.info("%d collision(s) of the last interval were SUMO's: its footprints overlap at t=%.2f s",
+                     moved, self._sample_ref.t_k)
 
     def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True) -> None:
         """Place agents ``idx`` at reference point ``at`` (full-length arrays)."""
         # physical placements: the steady-turn pose for the path tangent; kinematic ones:
         # SUMO's own body angle (the direct representation)
         yaw = at.tangent if steady_turn else at.yaw
+        if steady_turn and len(self._rear_idx):
+            # a vehicle that steers its rear axle is placed on SUMO's chord, as it drives
+            rear = self._max_rear[idx] > 0
+            if rear.any():
+                r = idx[rear]
+                self.world.place(self.slots[r], at.x[r], at.y[r], at.yaw[r], at.speed[r], at.curvature[r],
+                                 steady_turn=False, count=count)
+                idx = idx[~rear]
         self.world.place(
             self.slots[idx], at.x[idx], at.y[idx], yaw[idx], at.speed[idx], at.curvature[idx],
             steady_turn=steady_turn, count=count,
@@ -548,11 +605,18 @@ class Fleet:
             wheelbase=wb, d_bumper=np.where(ped, 1.0, t.front[s] - t.rear_axle[s]),
             rear_axle=t.rear_axle[s], front_offset=t.front[s], m_eff=t.m_eff[s],
             r_wheel=np.where(ped, 1.0, t.r_wheel[s]), max_steer=t.max_steer[s],
-            max_drive=t.max_drive[s], max_brake=t.max_brake[s],
+            max_drive=t.max_drive[s], max_brake=t.max_brake[s], max_rear=t.max_rsteer[s],
         )
         self.mass = t.mass[s]
         self.stab_max = t.stab_max[s]
-        self._a_lat = C.lateral_accel_limit(t.tyre_mu[s])  # [m/s^2] lateral acceleration the tyres carry
+        self._max_rear = t.max_rsteer[s]
+        self._rear_idx = np.flatnonzero(self._max_rear > 0)
+        # [m/s^2] lateral acceleration the tyres carry; two-wheelers also lean no further than
+        # BIKE_MAX_LEAN_DEG (SUMO's bicycles take junction turns at 5-6 m/s: at the tyres' limit
+        # the stabiliser asked for 50-65 deg of lean and they fell)
+        a_lat = C.lateral_accel_limit(t.tyre_mu[s])
+        bicycle = (self.kind == M.KIND_BIKE) & (t.mass[s] < MOTORCYCLE_MASS_KG)
+        self._a_lat = np.where(bicycle, np.minimum(a_lat, C.G * math.tan(math.radians(BIKE_MAX_LEAN_DEG))), a_lat)
         # drive torque the driven wheels carry (four-wheeled vehicles; inf for the others)
         self._grip_torque = C.drive_grip_torque(t.drive_grip[s], t.r_wheel[s])
         self._any_grip = bool(np.isfinite(self._grip_torque).any())
@@ -672,14 +736,38 @@ class Fleet:
             carry = np.flatnonzero(self.carry)
             at = ref.at(tau)
             drive[carry] = 0.0
+        rear = None
+        if len(self._rear_idx):  # long vehicles: the body onto SUMO's chord (``C.rear_axle_steer``)
+            ri = self._rear_idx  # (under our preset: the paper's car keeps a fixed rear axle)
+            ri = ri[(self.mode[ri] == AgentMode.PHYSICAL) & (self.preset[ri] == P_DEFAULT)]
+            rear = np.zeros(n)
+            # SUMO's body angle moving at its rate between the last two samples (the chord's own
+            # rate: the path's curvature at the front is not the body's in an S or a turn's entry)
+            rate = self._sumo_yaw_rate[ri]
+            if self.stopping:
+                yaw_ref, rate = obs.yaw[ri], np.zeros(len(ri))
+            else:
+                yaw_ref = self._sumo_yaw[ri] + rate * (min(tau, self.max_extrapolation) - self.lag)
+            steer[ri], rear[ri] = C.rear_axle_steer(
+                steer[ri], obs.yaw[ri], obs.speed[ri], yaw_ref, rate, p.wheelbase[ri], p.d_bumper[ri],
+                p.max_steer[ri], self._max_rear[ri], a_lat=self._a_lat[ri],
+            )
         # vehicle properties, whatever the controller asked for
-        steer = C.friction_steer_limit(steer, obs.speed, p.wheelbase, self._a_lat, p.max_steer)
+        if rear is None:
+            steer = C.friction_steer_limit(steer, obs.speed, p.wheelbase, self._a_lat, p.max_steer)
+        else:  # (both axles steered: MuJoCo's tyres and the curve speed cut keep the grip)
+            fixed = self._max_rear <= 0
+            steer = np.where(fixed, C.friction_steer_limit(steer, obs.speed, p.wheelbase, self._a_lat, p.max_steer),
+                             steer)
         if self._any_grip:
             drive = C.traction_limit(drive, obs.speed, obs.yaw_rate, self._grip_torque)
         if g.any_default and not self.stopping:
             v = np.maximum(obs.speed, 0.0)
             kap = np.abs(ref.path.at(self.s_act + v * C.CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
-            drive = C.curve_speed_cut(drive, obs.speed, kap, ref.at(tau).speed, self._a_lat, g.use_default)
+            v_ref = ref.at(tau).speed
+            drive = C.curve_speed_cut(drive, obs.speed, kap, v_ref, self._a_lat, g.use_default)
+            drive, brake = C.saturation_speed_cut(drive, brake, steer, p.max_steer, obs.speed,
+                                                  np.where(g.use_default, v_ref, np.inf), p.m_eff, p.r_wheel)
         vi = g.veh_idx
         stab = None
         if len(vi) and self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
@@ -692,7 +780,7 @@ class Fleet:
             fx, fy, tz, force = self._pedestrians(g.ped_idx, obs, tau, stopping, stop_speed)
             ped = (fx, fy, tz)
             drive[g.ped_idx] = force
-        return _Commands(steer, drive, brake, aux, stab, ped, at, carry)
+        return _Commands(steer, drive, brake, aux, stab, ped, at, carry, rear)
 
     def _actuate(self, u: _Commands) -> None:
         """Write the commands into the world: kinematic agents and SUMO's sideways slides
@@ -706,9 +794,10 @@ class Fleet:
         vi = g.veh_idx
         if len(vi):
             if g.all_veh:
-                w.command_vehicles(g.veh_slots, u.steer, u.drive, u.brake, u.stab)
+                w.command_vehicles(g.veh_slots, u.steer, u.drive, u.brake, u.stab, u.rear)
             else:
-                w.command_vehicles(g.veh_slots, u.steer[vi], u.drive[vi], u.brake[vi], u.stab)
+                w.command_vehicles(g.veh_slots, u.steer[vi], u.drive[vi], u.brake[vi], u.stab,
+                                   None if u.rear is None else u.rear[vi])
         if u.ped is not None:
             w.command_pedestrians(self.slots[g.ped_idx], *u.ped)
 

@@ -32,6 +32,22 @@ def ackermann(delta: np.ndarray, wheelbase: np.ndarray, track: np.ndarray) -> tu
     return left, right
 
 
+def ackermann_4ws(
+    front: np.ndarray, rear: np.ndarray, wheelbase: np.ndarray, track: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(front left, front right, rear left, rear right) road-wheel angles [rad] sharing the turn
+    centre of bicycle-model angles ``front`` and ``rear`` (all-wheel steering). With the rear
+    axle at x = 0, the front at L and q = tan(front) - tan(rear), the centre is at
+    (-tan(rear) L / q, L / q); a wheel at (x, y) points along tan = (x q + tan(rear) L) / (L - y q),
+    which stays finite when q -> 0 (crabbing: every wheel parallel)."""
+    tf, tr = np.tan(front), np.tan(rear)
+    q = tf - tr
+    half = 0.5 * track * q
+    lf, lr = wheelbase * tf, wheelbase * tr
+    return (np.arctan2(lf, wheelbase - half), np.arctan2(lf, wheelbase + half),
+            np.arctan2(lr, wheelbase - half), np.arctan2(lr, wheelbase + half))
+
+
 def concat_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Concatenated ``arange(start, start + count)`` for every pair (vectorised)."""
     counts = np.asarray(counts, np.int64)

@@ -196,7 +196,7 @@ class SlotTables:
     """Flat index of the root body's cfrc_ext force (first of 3)."""
     geom: np.ndarray
     """Flat index into the expanded geom_contype / geom_conaffinity of the body geom
-    (chassis, frame, pedestrian capsule: the one that touches other agents)."""
+    (chassis, frame, pedestrian box: the one that touches other agents)."""
     geom_model: np.ndarray
     """Model index of that geom (its compiled contype / conaffinity)."""
     park_x: np.ndarray
@@ -219,6 +219,12 @@ class SlotTables:
     """[kg]."""
     max_steer: np.ndarray
     """[rad]."""
+    rsteer_q: np.ndarray
+    """(n, 2) left/right rear steer qpos of vehicles that steer their rear axle, else -1."""
+    rsteer_u: np.ndarray
+    """(n, 2) their rear steer ctrl, else -1."""
+    max_rsteer: np.ndarray
+    """Rear-axle steering limit [rad] (0: a fixed rear axle)."""
     max_drive: np.ndarray
     """[N*m] (pedestrian: [N])."""
     max_brake: np.ndarray
@@ -326,6 +332,9 @@ def _build_tables(
         nq_slot = int(_JOINT_NQ[m.jnt_type[tree_joints]].sum())
         nv_slot = int(m.tree_dofnum[tree0])
         nb_slot = int(m.tree_bodynum[tree0])
+        rear = spec.kind == M.KIND_CAR and spec.rear_steer_deg > 0
+        if rear:
+            acts = (*acts, "steer_rl", "steer_rr")
         nu_slot = len(acts)
         rel_act = {n: m.actuator(pre0 + n).id - a0 for n in acts}
         rel_sq = np.array(
@@ -352,6 +361,11 @@ def _build_tables(
         vb = s * nstate + off_qvel + d
         ub = s * nstate + off_ctrl + a
         neg2 = np.full((n, 2), -1, np.int64)
+        rsteer_q, rsteer_u = neg2, neg2
+        if rear:
+            rel_rq = np.array([m.jnt_qposadr[m.joint(pre0 + j).id] - q0 for j in ("steer_rl", "steer_rr")], np.int64)
+            rsteer_q = qb[:, None] + rel_rq[None, :]
+            rsteer_u = ub[:, None] + np.array([rel_act["steer_rl"], rel_act["steer_rr"]])[None, :]
         if spec.kind == M.KIND_CAR:
             steer_q = qb[:, None] + rel_sq[None, :]
             steer_u = ub[:, None] + np.array([rel_act["steer_fl"], rel_act["steer_fr"]])[None, :]
@@ -393,7 +407,8 @@ def _build_tables(
             length=full(spec.length), width=full(spec.width), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
             rear_axle=full(spec.rear_axle), track=full(spec.track), r_wheel=full(spec.wheel_radius),
             m_eff=full(spec.effective_mass), mass=full(spec.total_mass),
-            max_steer=full(math.radians(spec.max_steer_deg)),
+            max_steer=full(math.radians(spec.max_steer_deg)), rsteer_q=rsteer_q, rsteer_u=rsteer_u,
+            max_rsteer=full(math.radians(spec.rear_steer_deg) if rear else 0.0),
             max_drive=full(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force),
             max_brake=full(spec.max_brake), drive_grip=full(spec.drive_grip), tyre_mu=full(spec.tyre_mu), stab_max=full(spec.stab_max), rest_z=full(rest.z),
             rest_pitch=full(rest.pitch),
@@ -404,10 +419,10 @@ def _build_tables(
     return SlotTables(**{k: _concat(k, v) for k, v in cols.items()}), base
 
 
-_WIDTH = {"steer_q": 2, "steer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4}
+_WIDTH = {"steer_q": 2, "steer_u": 2, "rsteer_q": 2, "rsteer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4}
 _FLOAT = {
     "brake_share", "park_x", "park_y", "length", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
-    "mass", "max_steer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "rest_z", "rest_pitch",
+    "mass", "max_steer", "max_rsteer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "rest_z", "rest_pitch",
 }
 
 

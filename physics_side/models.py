@@ -15,7 +15,7 @@ Every agent is one kinematic tree rooted at a body named ``agent``:
   frame's longitudinal axis. The controller drives it with a PD law towards the
   steady-turn lean angle ``atan(v * yaw_rate / g)``, so the bicycle leans into curves like
   a rider would and never falls over; it stands in for the rider's balancing.
-- **pedestrian**: a capsule on two world-aligned slide joints (x, y) and a yaw hinge,
+- **pedestrian**: a box (SUMO's footprint) on two world-aligned slide joints (x, y) and a yaw hinge,
   moved by three motors with bounded force/torque; no wheels, no gravity load.
 
 Sizes: every agent gets its SUMO length and width (from its vType, sent per agent): a
@@ -98,6 +98,9 @@ class AgentSpec:
     """Chassis box bottom above the ground [m]."""
     max_steer_deg: float = 35.0
     """Road-wheel steering limit [deg]."""
+    rear_steer_deg: float = 0.0
+    """Rear-axle steering limit [deg]; 0: a fixed rear axle. Long vehicles steer both axles
+    so that the body lies on SUMO's chord between its front and back on the lane."""
     max_drive: float = 2500.0
     """Total drive torque limit [N*m] (pedestrians: force [N])."""
     max_brake: float = 5000.0
@@ -180,7 +183,13 @@ def _heavy(cls: AgentClass, length: float, width: float, name: str, mass: float,
     """Bus, coach, truck, tram: 0.5 m wheels, high COM, ~3.5 m/s^2 drive, ~9 m/s^2 brakes."""
     return _car(
         cls, length, width, name=name, height=height, mass=mass, com_height=1.0, wheelbase=wheelbase, tyre_mu=1.0,
-        track=max(width - 0.4, 1.2), wheel_radius=0.5, wheel_mass=120.0, clearance=0.35, max_steer_deg=40.0,
+        # city buses and trucks cut their front wheels ~50 deg (a 12 m bus turns within ~11 m)
+        track=max(width - 0.4, 1.2), wheel_radius=0.5, wheel_mass=120.0, clearance=0.35, max_steer_deg=50.0,
+        # SUMO puts a long body on the chord between its front and back positions on the lane,
+        # whatever the turn's radius; a rigid 12-16 m body on a fixed rear axle cuts ~3 m inside
+        # a 10 m junction turn (into the next lane) or cannot make it at all. Steering the rear
+        # axle too (as articulated buses, trailers and bogies effectively do) keeps it on the chord.
+        rear_steer_deg=40.0,
         # SUMO's coach accelerates at 2.0 m/s^2 (bus 1.2, truck 1.3): ~2 m/s^2 of drive left a
         # coach ~6 m behind after every start, so the drive keeps a margin over the fastest
         max_drive=3.5 * mass * 0.5 * 1.3, max_brake=9.0 * mass * 0.5 * 1.2,
@@ -333,7 +342,7 @@ def _box_inertia(m: float, a: float, b: float, c: float) -> list[float]:
 def _wheel(parent, name: str, pos, spec: AgentSpec, steer: bool):
     w = parent.add_body(name=f"w{name}", pos=list(pos))
     if steer:
-        lim = math.radians(spec.max_steer_deg)
+        lim = math.radians(spec.rear_steer_deg if name.startswith("r") else spec.max_steer_deg)
         w.add_joint(
             name=f"steer_{name}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1],
             range=[-lim, lim], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
@@ -381,8 +390,9 @@ def car_template(spec: AgentSpec) -> mujoco.MjSpec:
     xf, xr, y = spec.wheelbase / 2, -spec.wheelbase / 2, spec.track / 2
     _wheel(b, "fl", (xf, y, 0), spec, True)
     _wheel(b, "fr", (xf, -y, 0), spec, True)
-    _wheel(b, "rl", (xr, y, 0), spec, False)
-    _wheel(b, "rr", (xr, -y, 0), spec, False)
+    rear = spec.rear_steer_deg > 0
+    _wheel(b, "rl", (xr, y, 0), spec, rear)
+    _wheel(b, "rr", (xr, -y, 0), spec, rear)
     for w in ("fl", "fr"):
         a = s.add_actuator(name=f"steer_{w}", target=f"steer_{w}", trntype=mujoco.mjtTrn.mjTRN_JOINT)
         a.set_to_position(kp=spec.steer_kp, kv=spec.steer_kv)
@@ -393,6 +403,10 @@ def car_template(spec: AgentSpec) -> mujoco.MjSpec:
     a = s.add_actuator(name="drive", target="drive", trntype=mujoco.mjtTrn.mjTRN_TENDON)
     a.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
     a.ctrlrange = [-spec.max_drive, spec.max_drive]
+    if rear:  # after the drive: the first three actuators of every car stay (steer, steer, drive)
+        for w in ("rl", "rr"):
+            a = s.add_actuator(name=f"steer_{w}", target=f"steer_{w}", trntype=mujoco.mjtTrn.mjTRN_JOINT)
+            a.set_to_position(kp=spec.steer_kp, kv=spec.steer_kv)
     return s
 
 
@@ -427,10 +441,11 @@ def ped_template(spec: AgentSpec) -> mujoco.MjSpec:
     b.add_joint(name="px", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1, 0, 0])
     b.add_joint(name="py", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 1, 0])
     b.add_joint(name="yaw", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], damping=2.0, armature=1.0)
-    rad = 0.5 * spec.width
+    # SUMO's footprint (0.215 m deep, 0.478 m wide by default) as a box: a capsule of the
+    # width's radius stood 0.13 m further out front and back, into passing buses at crossings
     b.add_geom(
-        name="chassis", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[rad, 0, 0],
-        fromto=[0, 0, rad, 0, 0, spec.height - rad], mass=spec.mass, contype=4, conaffinity=2,
+        name="chassis", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5 * spec.length, 0.5 * spec.width, 0.5 * spec.height],
+        pos=[0, 0, 0.5 * spec.height], mass=spec.mass, contype=4, conaffinity=2,
         condim=3, rgba=[0.8, 0.5, 0.3, 1], **BODY_CONTACT,
     )
     for name, j, lim in (("fx", "px", spec.ped_max_force), ("fy", "py", spec.ped_max_force), ("tz", "yaw", 150.0)):

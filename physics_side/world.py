@@ -26,7 +26,7 @@ from functools import cached_property
 import numpy as np
 
 from physics_side import models as M
-from physics_side.kinematics import ackermann, concat_ranges, steady_state_delta
+from physics_side.kinematics import ackermann, ackermann_4ws, concat_ranges, steady_state_delta
 from physics_side.layout import Layout, SlotTables
 from physics_side.pools import HEADROOM, SLEEP_NEVER, SlotPools
 from protocol.frames import wrap_pi
@@ -122,6 +122,13 @@ class _SlotPlan:
         su = t.steer_u[s]
         return (t.wheelbase[s], t.track[s], su[:, 0].copy(), su[:, 1].copy(), t.drive_u[s], t.spin_fl[s],
                 t.brake_share[s])
+
+    @cached_property
+    def rear(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Rows of the slots that steer their rear axle and their (n, 2) rear steer ctrl; None: none."""
+        ru = self.t.rsteer_u[self.slots]
+        ok = np.flatnonzero(ru[:, 0] >= 0)
+        return (ok, ru[ok]) if len(ok) else None
 
     @cached_property
     def stab(self) -> tuple[np.ndarray, np.ndarray]:
@@ -388,6 +395,11 @@ class PhysicsWorld:
             su = t.steer_u[sv]
             st[su[:, 0]] = left
             st[su[:, 1]] = right
+            rq, ru = t.rsteer_q[sv], t.rsteer_u[sv]
+            has = rq[:, 0] >= 0
+            if has.any():  # a steered rear axle starts straight (fixed-axle pose above)
+                st[rq[has].reshape(-1)] = 0.0
+                st[ru[has].reshape(-1)] = 0.0
             # wheels rolling at the forward speed of the axle they are on (rear axle speed)
             v_r = vcx[veh] * c[veh] + vcy[veh] * s[veh]
             st[t.spin_v[sv]] = (v_r / t.r_wheel[sv])[:, None]
@@ -407,9 +419,10 @@ class PhysicsWorld:
 
     def command_vehicles(
         self, slots: np.ndarray, steer: np.ndarray, drive: np.ndarray, brake: np.ndarray,
-        stab: np.ndarray | None = None,
+        stab: np.ndarray | None = None, rear: np.ndarray | None = None,
     ) -> None:
-        """Steer (bicycle-model angle [rad], split by Ackermann), drive and brake torques [N*m]."""
+        """Steer (bicycle-model angle [rad], split by Ackermann), drive and brake torques [N*m];
+        ``rear``: rear-axle bicycle-model angles [rad] of the slots that steer it (else unused)."""
         slots = np.asarray(slots, np.int64)
         if len(slots) == 0:
             return
@@ -417,6 +430,11 @@ class PhysicsWorld:
         wheelbase, track, steer_l, steer_r, drive_u, spin_fl, brake_share = plan.command
         st = self._state
         left, right = ackermann(steer, wheelbase, track)
+        r4 = plan.rear
+        if r4 is not None:
+            ok, ru = r4
+            rr = np.zeros(len(ok)) if rear is None else np.asarray(rear)[ok]
+            left[ok], right[ok], st[ru[:, 0]], st[ru[:, 1]] = ackermann_4ws(steer[ok], rr, wheelbase[ok], track[ok])
         st[steer_l] = left
         st[steer_r] = right
         st[drive_u] = drive

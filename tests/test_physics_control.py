@@ -270,3 +270,25 @@ def test_sumo_body_angle_is_kept_apart_from_the_path_tangent():
     assert ref.at(0.1).yaw[0] == pytest.approx(np.radians(-20.0))  # SUMO's angle, turned with the path
     lon, lat = tracking_error(np.array([1.0]), np.array([0.5]), ref.held())
     assert (lon[0], lat[0]) == pytest.approx((1.0, 0.5))  # along / across the path
+
+
+def test_rear_axle_steer_puts_the_body_on_the_chord_of_a_circle():
+    """On a circle of radius R with the body on the chord (SUMO's angle) both axles sit on the
+    circle: the kinematic solution steers front and rear by the same angle, opposite ways, and
+    keeps the bumper's direction the fixed-axle law asked for."""
+    from physics_side.control import rear_axle_steer
+
+    L, d, R, v = 6.0, 9.0, 12.0, 4.0
+    # both axles on the circle: their velocities are its tangents, +a and -a off the chord,
+    # a = asin(L / 2R); the body turns at V / R with its forward speed v = V cos(a)
+    a = math.asin(L / (2 * R))
+    beta = math.atan((1 - d / L) * math.tan(-a) + d / L * math.tan(a))
+    steer = np.array([math.atan(L * math.tan(beta) / d)])
+    front, rear = rear_axle_steer(steer, np.zeros(1), np.array([v]), np.zeros(1),
+                                  np.array([v / (R * math.cos(a))]), np.array([L]), np.array([d]), np.array([0.9]),
+                                  np.array([0.7]))
+    assert front[0] == pytest.approx(a, abs=1e-9) and rear[0] == pytest.approx(-a, abs=1e-9)
+    # a saturated front axle: the rear turns against it for the bumper's direction
+    front, rear = rear_axle_steer(np.array([1.2]), np.zeros(1), np.array([v]), np.zeros(1), np.zeros(1),
+                                  np.array([L]), np.array([d]), np.array([0.6]), np.array([0.7]))
+    assert front[0] == pytest.approx(0.6) and rear[0] < 0.0

@@ -240,3 +240,38 @@ def test_every_default_vclass_gets_a_model_of_its_sumo_size(tmp_path):
             assert 0.2 < rest.z < 1.0 and abs(rest.pitch) < 0.05, (vclass, rest)
     assert M.family_for(AgentClass.OTHER, "truck", 7.1) == "truck" and M.family_for(AgentClass.OTHER, "tram", 22) == "tram"
     assert M.family_for(AgentClass.OTHER, "delivery", 6.5) == "van"
+
+
+def test_a_long_vehicle_steers_its_rear_axle_and_turns_tighter():
+    """Buses, coaches, trucks and trams steer both axles (SUMO puts their body on the chord of
+    the lane): counter-phase rear steering about doubles the yaw rate of the front axle alone,
+    as the kinematic bicycle with two steered axles says; cars keep a fixed rear axle."""
+    bus = M.spec_for_size("bus", 12.0, 2.5)
+    car = M.spec_for_size("car", 5.0, 1.8)
+    assert bus.rear_steer_deg > 0 and car.rear_steer_deg == 0
+    w = _world(AgentClass.BUS, n=2)
+    pool = w.pool_for("bus", 12.0, 2.5)
+    s = w.allocate(["a", "b"], np.array([pool, pool]), np.array([0.0, 60.0]), np.zeros(2))
+    w.place(s, np.array([0.0, 60.0]), np.zeros(2), np.zeros(2), np.full(2, 3.0))
+    assert (w.tables.max_rsteer[s] > 0).all()
+    for _ in range(int(round(3.0 / DT))):
+        w.command_vehicles(s, np.full(2, 0.3), np.full(2, 3000.0), np.zeros(2), None, np.array([0.0, -0.3]))
+        w.step()
+    o = w.observe(s)
+    L = bus.wheelbase
+    for k, rear in enumerate((0.0, -0.3)):
+        expected = o.speed[k] * (math.tan(0.3) - math.tan(rear)) / L
+        assert o.yaw_rate[k] == pytest.approx(expected, rel=0.25), (k, o.yaw_rate, o.speed)
+    assert o.yaw_rate[1] > 1.6 * o.yaw_rate[0]
+
+
+def test_pedestrian_body_is_sumo_footprint():
+    """A pedestrian's body is SUMO's footprint (0.215 m deep, 0.478 m wide by default), not a
+    disc of the width: a capsule stood 0.13 m into passing vehicles."""
+    import mujoco
+
+    spec = M.spec_for_size("pedestrian", 0.215, 0.478)
+    m = M.template(spec).compile()
+    g = m.geom("chassis")
+    assert g.type[0] == mujoco.mjtGeom.mjGEOM_BOX
+    assert 2 * g.size[0] == pytest.approx(spec.length) and 2 * g.size[1] == pytest.approx(spec.width)
