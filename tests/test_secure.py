@@ -45,7 +45,7 @@ def test_certs_init_makes_a_ca_and_one_certificate_per_role(tmp_path):
     assert cli(["certs", "init", str(tmp_path), "--renderer", "ego", "--renderer", "car7", "--quiet"]) == 0
     ca = x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes())
     assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
-    for role in ("sumo", "physics", "viewer", "gateway", "renderer-ego", "renderer-car7"):
+    for role in ("sumo", "physics", "viewer", "gateway", "router", "renderer-ego", "renderer-car7"):
         cert = x509.load_pem_x509_certificate((tmp_path / f"{role}.pem").read_bytes())
         assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == role
         assert cert.issuer == ca.subject
@@ -84,8 +84,12 @@ def test_policy_denies_unless_allowed_and_grants_each_renderer_its_own_key_only(
     assert grants["renderer-a"] == {"receive", "read", "ego-a", "camera-renderer-a", "camera-token-renderer-a"}
     assert grants["gateway"] == {"receive", "read", "gateway-ego", "camera-gateway", "camera-token-gateway"}
     assert rules["ego-a"]["key_exprs"] == ["sumoco/*/ego/a"] and rules["ego-a"]["flows"] == ["ingress"]
+    # a router forwards what its clients may send under its own CN: it alone may send anything
+    assert grants["router"] == {"receive", "read", "router-forward"}
+    assert rules["router-forward"]["key_exprs"] == ["sumoco/**"] and rules["router-forward"]["flows"] == ["ingress"]
+    assert [p["id"] for p in acl["policies"] if "router-forward" in p["rules"]] == ["router"]
     put_keys = {k for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
-                for k in r["key_exprs"]}
+                and r["id"] != "router-forward" for k in r["key_exprs"]}
     assert put_keys == {"sumoco/*/sumo/step", "sumoco/*/physics/*/state", "sumoco/*/physics/*/ack",
                         "sumoco/*/ego/a", "sumoco/*/ego/b", "sumoco/*/ego/*", "sumoco/*/viewer/viewer/*/camera",
                         "sumoco/*/viewer/gateway/*/camera",

@@ -185,7 +185,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--verbose", action="store_true")
 
     p = sub.add_parser("router", help="a Zenoh router (Python session in router mode)")
-    p.add_argument("--listen", action="append", default=None)
+    p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None,
+                   help="run config whose [zenoh] table to use, with the secure profile's TLS and access "
+                        "control (the router presents the 'router' certificate) [env SUMOCO_CONFIG]")
+    p.add_argument("--listen", action="append", default=None,
+                   help="zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:7447) "
+                        "[env SUMOCO_LISTEN, comma-separated]")
+    p.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                   help="another router to connect to (repeatable): routers form a mesh "
+                        "[env SUMOCO_CONNECT, comma-separated]")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")
     return ap

@@ -29,7 +29,9 @@ log = logging.getLogger(__name__)
 
 #: Roles with one certificate each (CN = role); renderers have one per ego id. The gateway
 #: relays engines that have no Zenoh binding; it checks its WebSocket clients' token itself.
-ROLES = ("sumo", "physics", "viewer", "gateway")
+#: ``router`` is ``sumoco router``: access control applies per link by the CN of the peer
+#: at its other end, so what a router forwards carries the router's CN, not its sender's.
+ROLES = ("sumo", "physics", "viewer", "gateway", "router")
 
 #: Every message kind Zenoh's access control knows (Zenoh >= 1.0 names).
 _ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -51,6 +53,9 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
     for any id (it relays engines that hold its token, SPEC 10); ``viewer``, ``gateway`` and every
     ``renderer-<id>`` may put cameras and hold camera tokens under their own role only
     (``viewer/<role>/*/camera``, ``viewer/<role>/*/alive``, SPEC 3.7).
+    ``router`` may send everything under the root: a router applies this same policy to
+    what its own clients send it (by their CN) and then forwards under its own CN, so the
+    check happens at the first hop; router-to-router links of a mesh pass it on as it is.
     Egress is open to every authenticated role: anyone with a certificate may read.
     """
     r = root
@@ -69,9 +74,10 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
         rule("physics-put", "ingress", ("put", "delete"), [f"{r}/*/physics/*/state", f"{r}/*/physics/*/ack"]),
         rule("physics-token", "ingress", ("liveliness_token",), [f"{r}/*/physics/*/alive"]),
         rule("gateway-ego", "ingress", ("put", "delete"), [f"{r}/*/ego/*"]),
+        rule("router-forward", "ingress", _ALL_MESSAGES, [f"{r}/**"]),
     ]
     grants = {"sumo": ["sumo-put", "sumo-serve", "sumo-token"], "physics": ["physics-put", "physics-token"],
-              "viewer": [], "gateway": ["gateway-ego"]}
+              "viewer": [], "gateway": ["gateway-ego"], "router": ["router-forward"]}
     for ego in sec.renderers:
         rules.append(rule(f"ego-{ego}", "ingress", ("put", "delete"), [f"{r}/*/ego/{ego}"]))
         grants[renderer_role(ego)] = [f"ego-{ego}"]
