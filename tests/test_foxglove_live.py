@@ -1,4 +1,5 @@
-"""``sumoco foxglove``: the live scene through foxglove-sdk's WebSocket server, read by a real client."""
+"""``sumoco foxglove`` and ``sumoco view --foxglove``: the live scene through foxglove-sdk's
+WebSocket server, read by a real client."""
 
 from __future__ import annotations
 
@@ -17,11 +18,12 @@ from tests.harness import Daemon, endpoint, wait_until
 pytestmark = pytest.mark.integration
 
 
-def test_live_scene_reaches_a_foxglove_websocket_client(tmp_path):
+@pytest.mark.parametrize("command", [["foxglove"], ["view", "--foxglove"]], ids=["foxglove", "view-foxglove"])
+def test_live_scene_reaches_a_foxglove_websocket_client(tmp_path, command):
     ep = endpoint()
     session = open_session(ZenohConfig(listen=(ep,)))
     pub = FakePublisher(session, FakeRun(grid=1, n=12, run="fox"), instances=("main",)).start()
-    fox = Daemon("foxglove", ["foxglove", "--run", "fox", "--connect", ep, "--listen", endpoint(),
+    fox = Daemon("foxglove", [*command, "--run", "fox", "--connect", ep, "--listen", endpoint(),
                               "--port", "0"], tmp_path)
     try:
         line = wait_until(lambda: next((ln for ln in fox.tail(50).splitlines() if ln.startswith('{"url"')), None),
@@ -49,3 +51,14 @@ def test_live_scene_reaches_a_foxglove_websocket_client(tmp_path):
         code = fox.terminate(5)
         session.close()
     assert code == 0, fox.tail()
+
+
+def test_view_foxglove_runs_the_foxglove_command_and_plain_view_stays_the_browser_view():
+    from sumoco.app.cli import _COMMANDS, build_parser
+
+    p = build_parser()
+    fox = p.parse_args(["view", "--foxglove", "--port", "0", "--scene-hz", "2"])
+    assert (fox.cmd, fox.port, fox.scene_hz) == ("foxglove", 0, 2.0)
+    assert _COMMANDS[fox.cmd] == _COMMANDS["foxglove"] == "sumoco.app.foxglove_live:cli_main"
+    assert p.parse_args(["view", "--max-hz", "5"]).cmd == "view"
+    assert p.parse_args(["foxglove"]).cmd == "foxglove"

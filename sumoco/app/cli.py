@@ -162,6 +162,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", help="address to serve the page on (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port of the page and its WebSocket (default 8765)")
     p.add_argument("--max-hz", dest="max_hz", type=float, help="frames per second to each browser at most")
+    # `view --foxglove` is `sumoco foxglove`: the flag swaps the command that runs (args.cmd; argparse
+    # copies the sub-parser's values over the parent's), so both share one code path and one exit path.
+    p.add_argument("--foxglove", dest="cmd", action="store_const", const="foxglove", default="view",
+                   help="serve the live 3D scene to the Foxglove app instead (foxglove-sdk WebSocket server, "
+                        "the same as `sumoco foxglove`; needs the foxglove extra); --port then defaults to 8767")
+    p.add_argument("--scene-hz", dest="scene_hz", type=float,
+                   help="with --foxglove: scene updates per key at most [Hz of simulated time], 0 = all (default 10)")
 
     p = sub.add_parser("map", help="the road network as a file for renderers and game engines")
     msub = p.add_subparsers(dest="map_cmd", required=True)

@@ -1,4 +1,5 @@
-"""``sumoco foxglove``: a live run as a 3D scene in the Foxglove app (foxglove-sdk server).
+"""``sumoco foxglove`` (also ``sumoco view --foxglove``): a live run as a 3D scene in the
+Foxglove app (foxglove-sdk server).
 
 The same scene code as recordings (``scene.ScenePublisher``), logged on a context whose
 sink is ``foxglove.start_server`` instead of an MCAP writer. Zenoh's callback only hands
@@ -87,7 +88,8 @@ class LiveScene:
 
 
 def cli_main(args) -> int:
-    """``sumoco foxglove``: serve the live scene until Ctrl-C (or --duration seconds)."""
+    """``sumoco foxglove`` / ``sumoco view --foxglove``: serve the live scene until Ctrl-C (or
+    --duration seconds). ``view``'s own options (``--max-hz``) do not apply here."""
     import json
     import signal
 
