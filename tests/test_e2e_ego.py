@@ -4,6 +4,7 @@ the physics side shows the ego as EXTERNAL without controlling it."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 
@@ -44,14 +45,17 @@ preset = "default"
     client = None
     try:
         wait_until(lambda: probe.last_physics() is not None, 60, "both daemons up", procs=[sumo, phys])
-        # Stand at 60 m along the lane, stop publishing from 7 s to 12 s of the client's run.
-        client = subprocess.Popen(
-            [sys.executable, str(ROOT / "examples" / "python_client" / "client.py"),
-             "--connect", sumo_ep, "--run", "egorun", "--duration", "16", "--ego-id", "ego",
-             "--ego-lane", EGO_LANE, "--ego-start", "60", "--ego-speed", "0",
-             "--ego-pause", "7", "12", "--ego-rate", "20"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )
+        # Stand at 60 m along the lane. The poses stop when the test ends this client (not at a
+        # wall-clock time of the client's: under load SUMO's realtime pacing lags, and a pause
+        # at a fixed wall time could come before v0 had reached the ego).
+        def start_client(duration_s: float) -> subprocess.Popen:
+            return subprocess.Popen(
+                [sys.executable, str(ROOT / "examples" / "python_client" / "client.py"),
+                 "--connect", sumo_ep, "--run", "egorun", "--duration", str(duration_s), "--ego-id", "ego",
+                 "--ego-lane", EGO_LANE, "--ego-start", "60", "--ego-speed", "0", "--ego-rate", "20"],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            )
+        client = start_client(120)
         step_has_ego = lambda: (m := probe.last_step()) is not None and "ego" in m.agents.ids  # noqa: E731
         wait_until(step_has_ego, 20, "the ego in SUMO's steps", procs=[sumo])
         m = probe.last_step()
@@ -80,11 +84,14 @@ preset = "default"
         gap = ego_x - float(m.agents.x[k]) - 5.0  # ego length 5 m (SUMO default type)
         assert 0.0 < gap < 5.0, f"v0 stopped {gap:.2f} m behind the ego's rear"
 
-        # Publishing pauses: held, then removed after ego_timeout_s, with a log line.
+        # Publishing stops: held, then removed after ego_timeout_s, with a log line.
+        client.terminate()
+        assert client.wait(10) == -signal.SIGTERM
         wait_until(lambda: (m := probe.last_step()) is not None and "ego" not in m.agents.ids, 12,
                    "the ego to be removed after the timeout", procs=[sumo])
         assert "ego" in sumo.log.read_text() and "remov" in sumo.log.read_text().lower()
-        # Publishing resumes: the ego comes back.
+        # Publishing resumes (a new client, the same ego id): the ego comes back.
+        client = start_client(6)
         wait_until(step_has_ego, 12, "the ego to come back when poses resume", procs=[sumo])
         out, err = client.communicate(timeout=30)
         assert client.returncode == 0, err
