@@ -9,6 +9,7 @@ from the rightful role does arrive, so a test cannot pass because nothing arrive
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import stat
 import time
@@ -23,7 +24,7 @@ from cryptography.x509.oid import NameOID
 from protocol.codec import decode, encode
 from protocol.errors import ConfigError
 from protocol.keys import Keys
-from protocol.messages import CameraPose, EgoPose, StepAck
+from protocol.messages import CameraPose, EgoPose, PhysicsState, StepAck
 from sumoco.app.certs import init_certs
 from sumoco.app.cli import main as cli
 from sumoco.common.config import SecurityConfig, ZenohConfig, load_common
@@ -207,6 +208,14 @@ class SecureRun:
         wait_until(lambda: list(s.info.peers_zid()), 10, f"the {role} client to connect")
         return s
 
+    def linked_client(self, role: str) -> zenoh.Session:
+        """A client of ``role`` with a link of its own to the viewer probe (peers find each
+        other by gossip): what it sends reaches the probe directly, not through a daemon."""
+        s = self.client(role)
+        probe = str(self.viewer.session.info.zid())
+        wait_until(lambda: probe in {str(z) for z in s.info.peers_zid()}, 10, f"the {role} client's link to the viewer")
+        return s
+
     def status(self) -> dict:
         for r in self.viewer.session.get(self.keys.sumo_status, timeout=3.0):
             if r.ok is not None:
@@ -382,3 +391,140 @@ def test_gateway_role_relays_egos_of_any_id(run):
         wait_until(sent_and_counted, 20, "the gateway's ego poses at the SUMO side", poll_s=0.05)
     finally:
         gateway.close()
+
+
+# ------------------------------------------------- rules no other test attacks: serve, state, tokens
+#
+# Each attack comes from a certificate of a lesser role (renderer or viewer) with its own link to
+# the victim (the viewer probe). After the forged message the same session sends something its
+# role may (its own camera or camera token, on the same link, in order): once that is in, the
+# forged one would have been too. A control from the rightful role shows the same message arrives.
+
+LESSER = ["renderer-ego", "viewer"]
+
+
+def _sentinel_camera(run, session, role: str, got: list, client: str = "s1") -> None:
+    """Put ``role``'s own camera until the probe's subscriber (``got``) has it."""
+    own = run.keys.viewer_camera(role, client)
+
+    def sent_and_seen():
+        session.put(own, encode(CameraPose(client, 1.0, 2.0)))
+        return own in got
+    wait_until(sent_and_seen, 20, f"{role}'s own camera at the viewer", poll_s=0.05)
+
+
+@pytest.mark.parametrize("what", ["static", "sumo_map"])
+@pytest.mark.parametrize("role", LESSER)
+def test_lesser_role_cannot_serve_static_data_or_the_map_and_sumo_can(run, role, what):
+    """The SUMO side's queryables (static data, the glTF map): a lesser role's queryable on
+    the same key is never asked, a sumo certificate's is, next to the real SUMO side's."""
+    key = getattr(run.keys, what)
+
+    def answers() -> list[bytes]:  # every reply, not consolidated: two answers on one key both count
+        return [r.ok.payload.to_bytes() for r in run.viewer.session.get(
+            key, consolidation=zenoh.ConsolidationMode.NONE, timeout=3.0) if r.ok is not None]
+    real = wait_until(answers, 30, f"the SUMO side's {what} reply at the viewer")
+    assert len(real) == 1 and len(real[0]) > 1000
+    got_cameras: list[str] = []
+    cam_sub = run.viewer.session.declare_subscriber(run.keys.viewer_camera_all,
+                                                    lambda s: got_cameras.append(str(s.key_expr)))
+    attacker = run.linked_client(role)
+    forged_q = attacker.declare_queryable(key, lambda q: q.reply(key, b"forged"))
+    control = q = None
+    try:
+        _sentinel_camera(run, attacker, role, got_cameras)  # a put after the declaration, on the same link
+        seen = [answers() for _ in range(3)]
+        # control: a sumo certificate serving the same key is answered next to the real SUMO side
+        control = run.linked_client("sumo")
+        q = control.declare_queryable(key, lambda q: q.reply(key, b"control"))
+
+        def with_control():
+            a = answers()
+            return a if b"control" in a else None
+        both = wait_until(with_control, 20, f"the sumo role's {what} reply at the viewer")
+    finally:
+        forged_q.undeclare()
+        attacker.close()
+        cam_sub.undeclare()
+        if q is not None:
+            q.undeclare()
+        if control is not None:
+            control.close()
+    for a in seen:  # only the real SUMO side answered
+        assert len(a) == 1 and b"forged" not in a and len(a[0]) > 1000, [x[:20] for x in a]
+    if what == "static":
+        assert len(decode(seen[-1][0]).lanes.ids) > 10
+    assert b"forged" not in both and len(both) == 2, [x[:20] for x in both]
+
+
+@pytest.mark.parametrize("role", LESSER)
+def test_lesser_role_cannot_put_a_physics_state_and_physics_can(run, role):
+    got_cameras: list[str] = []
+    cam_sub = run.viewer.session.declare_subscriber(run.keys.viewer_camera_all,
+                                                    lambda s: got_cameras.append(str(s.key_expr)))
+    real: PhysicsState = run.viewer.last_physics()
+    forged = encode(dataclasses.replace(real, sumo_step=FORGED_STEP, tick=FORGED_STEP))
+    main, other = run.keys.physics_state, Keys("sumoco", "sec", "forged").physics_state
+    attacker = run.linked_client(role)
+    try:
+        for _ in range(10):
+            attacker.put(main, forged)  # on the real instance's key: the viewer would draw it
+            attacker.put(other, forged)  # and as a physics instance of its own
+        _sentinel_camera(run, attacker, role, got_cameras)
+    finally:
+        attacker.close()
+        cam_sub.undeclare()
+    with run.viewer.lock:
+        states = {k: list(v) for k, v in run.viewer.physics.items()}
+    assert "forged" not in states, sorted(states)
+    assert max(st.sumo_step for st in states["main"]) < FORGED_STEP
+    assert max(st.tick for st in states["main"]) < FORGED_STEP
+    control = run.linked_client("physics")  # the same state from the physics role does arrive
+    try:
+        key = Keys("sumoco", "sec", "intruder").physics_state
+
+        def sent_and_seen():
+            control.put(key, forged)
+            return run.viewer.last_physics("intruder")
+        assert wait_until(sent_and_seen, 20, "the physics role's state at the viewer", poll_s=0.05).tick == FORGED_STEP
+    finally:
+        control.close()
+
+
+@pytest.mark.parametrize("role", LESSER)
+def test_lesser_role_cannot_hold_a_physics_or_sumo_token_and_the_rightful_roles_can(run, role):
+    ghost = Keys("sumoco", "ghost")  # a run without a SUMO side: a sumo token there is forged for sure
+    forged = [Keys("sumoco", "sec", "forged").physics_alive, ghost.sumo_alive, ghost.physics_alive]
+    seen: list[tuple[str, str]] = []
+    sub = run.viewer.session.liveliness().declare_subscriber(
+        "sumoco/**", lambda s: seen.append((str(s.key_expr), str(s.kind))), history=True)
+
+    def alive_now() -> set[str]:
+        return {str(r.ok.key_expr) for r in run.viewer.session.liveliness().get("sumoco/**", timeout=3.0)
+                if r.ok is not None}
+    attacker = run.linked_client(role)
+    tokens, rightful = [], []
+    control: list[zenoh.Session] = []
+    try:
+        tokens = [attacker.liveliness().declare_token(k) for k in forged]
+        # the attacker's own camera token, declared after them on the same link
+        own = run.keys.viewer_alive(role, "t1")
+        tokens.append(attacker.liveliness().declare_token(own))
+        wait_until(lambda: own in {k for k, _ in seen}, 20, f"{role}'s own camera token at the viewer")
+        listed = alive_now()
+        assert own in listed and run.keys.sumo_alive in listed, listed
+        assert not set(forged) & (listed | {k for k, _ in seen}), (listed, seen)
+        # control: the rightful roles' tokens on the same keys do show up
+        control = [run.linked_client("physics"), run.linked_client("sumo")]
+        rightful = [control[0].liveliness().declare_token(forged[0]),
+                    control[1].liveliness().declare_token(ghost.sumo_alive)]
+        wait_until(lambda: {forged[0], ghost.sumo_alive} <= {k for k, _ in seen}, 20,
+                   "the physics and sumo roles' tokens at the viewer")
+        assert ghost.physics_alive not in {k for k, _ in seen}
+    finally:
+        for t in (*tokens, *rightful):
+            t.undeclare()
+        attacker.close()
+        for c in control:
+            c.close()
+        sub.undeclare()

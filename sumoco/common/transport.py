@@ -47,7 +47,7 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
     """The role policy as Zenoh's ``access_control`` table (deny unless allowed).
 
     Ingress rules say what a peer of a role may send us: every role may subscribe and
-    query; only ``sumo`` may put steps, serve static data and status and hold the SUMO
+    query; only ``sumo`` may put steps, serve static data, the map and status and hold the SUMO
     liveliness token; only ``physics`` may put states and acks and hold physics tokens;
     ``renderer-<id>`` may put ego poses on ``ego/<id>`` alone; ``gateway`` may put ego poses
     for any id (it relays engines that hold its token, SPEC 10); ``viewer``, ``gateway`` and every
@@ -69,7 +69,8 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
         rule("read", "ingress", ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query",
                                  "query"), [f"{r}/**"]),
         rule("sumo-put", "ingress", ("put", "delete"), [f"{r}/*/sumo/step"]),
-        rule("sumo-serve", "ingress", ("declare_queryable", "reply"), [f"{r}/*/sumo/static", f"{r}/*/sumo/status"]),
+        rule("sumo-serve", "ingress", ("declare_queryable", "reply"),
+             [f"{r}/*/sumo/static", f"{r}/*/sumo/map", f"{r}/*/sumo/status"]),
         rule("sumo-token", "ingress", ("liveliness_token",), [f"{r}/*/sumo/alive"]),
         rule("physics-put", "ingress", ("put", "delete"), [f"{r}/*/physics/*/state", f"{r}/*/physics/*/ack"]),
         rule("physics-token", "ingress", ("liveliness_token",), [f"{r}/*/physics/*/alive"]),
