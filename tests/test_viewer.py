@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import dataclasses
 import json
 import math
 import os
@@ -21,9 +22,12 @@ import urllib.request
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 
+from protocol.codec import decode, encode
 from protocol.keys import Keys
+from protocol.messages import StaticData, StepMessage, TlsLinks, VType
 from sumoco.common.config import ZenohConfig
 from sumoco.common.transport import free_tcp_port, open_session
 from sumoco.app.viewer.server import LatestStore, Mailbox, ViewerConfig, ViewerServer
@@ -301,6 +305,117 @@ class LiveRun:
         self.session.close()
 
 
+class VersionedRun(FakeRun):
+    """A ``FakeRun`` whose static tables change mid-run like a real SUMO side's (SPEC 3.2):
+    ``bump()`` moves the steps to static version 1 (a new vType that the buses now use, half
+    of the tls links), the step that changes ``sv`` carries ``vtypes`` and no other does;
+    ``static(1)`` is the static data of that version."""
+
+    NEW_VTYPE = VType("coach_v1", "bus")
+
+    def __init__(self, *a, **k) -> None:
+        super().__init__(*a, **k)
+        self.sv = 0
+        self._sent_sv: int | None = None
+
+    def bump(self) -> None:
+        self.sv = 1
+
+    def static(self, version: int = 0) -> StaticData:
+        st = super().static()
+        if version == 0:
+            return st
+        half = len(st.tls_links.tls) // 2
+        links = TlsLinks(*(getattr(st.tls_links, f)[:half].copy()
+                           for f in ("tls", "link", "from_lane", "to_lane", "via_lane")))
+        return dataclasses.replace(
+            st, version=version, vtypes=[*st.vtypes, self.NEW_VTYPE],
+            vtype_length=np.append(st.vtype_length, np.float32(13.5)),
+            vtype_width=np.append(st.vtype_width, np.float32(2.55)), tls_links=links)
+
+    def step(self, k: int) -> StepMessage:
+        m = super().step(k)
+        sv = self.sv
+        table = None
+        if sv != self._sent_sv:  # only the step whose sv differs from the previous one's
+            table = [*m.vtypes, self.NEW_VTYPE] if sv else list(m.vtypes)
+        self._sent_sv = sv
+        vtype = m.agents.vtype.copy()
+        if sv:
+            vtype[m.agents.cls == 2] = len(m.vtypes)  # the buses are coaches now
+        return dataclasses.replace(m, static_version=sv, vtypes=table,
+                                   agents=dataclasses.replace(m.agents, vtype=vtype))
+
+
+def _static_of(env: dict) -> StaticData:
+    from protocol.codec import decode_as
+
+    return decode_as(env["static"], StaticData)
+
+
+def _ws_until(ws, cond, timeout: float, what: str):
+    """Read the viewer's WebSocket until ``cond(envelope)`` holds (bounded)."""
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            env = msgpack.unpackb(ws.recv(timeout=left))
+        except TimeoutError:
+            break
+        if cond(env):
+            return env
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def test_viewer_serves_the_new_static_data_when_the_steps_static_version_changes(tmp_path):
+    """SPEC 3.2: a step whose ``sv`` differs from the viewer's static data makes ``sumoco view``
+    query again (until the SUMO side, which re-encodes at most once a second, serves the new
+    version) and send the new tables to every page; a page that connects later gets them on
+    connect. Bounded: one query at a time, none once the versions agree."""
+    from websockets.sync.client import connect
+
+    fake = VersionedRun(grid=1, n=30, run="viewer-sv")
+    live = LiveRun(tmp_path, fake, physics_hz=5.0)
+    url = f"ws://127.0.0.1:{live.port}/ws?token={TOKEN}"
+    try:
+        live.wait_ready()
+        assert live.status()["static_sv"] == 0
+        with connect(url, max_size=None, compression=None) as early:
+            first = _static_of(_ws_until(early, lambda e: e["type"] == "static", 10.0, "the static data on connect"))
+            assert first.version == 0 and VersionedRun.NEW_VTYPE not in first.vtypes
+            n_links = len(first.tls_links.tls)
+            time.sleep(1.2)  # past the viewer's pause between fetch rounds (1 s)
+            asked = live.pub.static_queries
+            fake.bump()  # steps of version 1 from now on ...
+            time.sleep(0.8)  # ... while the SUMO side still serves version 0 for a while (SPEC 3.2)
+            lagging = live.pub.static_queries - asked
+            live.pub.static_bytes = encode(fake.static(1))
+            new = _static_of(_ws_until(early, lambda e: e["type"] == "static", 15.0,
+                                       "the static data of version 1 on the open WebSocket"))
+        assert new.version == 1
+        assert new.vtypes[-1] == VersionedRun.NEW_VTYPE and len(new.vtypes) == len(first.vtypes) + 1
+        assert len(new.tls_links.tls) == n_links // 2  # the tls links of version 1 too
+        st = wait_for(lambda: (s := live.status()) and s["static_sv"] == 1 and s, 15.0, "status static_sv 1")
+        # the viewer asked again while the replies were behind, but not in a storm
+        after = live.pub.static_queries
+        assert lagging >= 1 and after - asked <= 6, (asked, lagging, after)
+        # a page that joins now, after the one step that carried the new vtypes, gets them on connect
+        with connect(url, max_size=None, compression=None) as late:
+            late_static = _static_of(_ws_until(late, lambda e: e["type"] == "static", 10.0,
+                                               "the static data for a late page"))
+            assert late_static.version == 1 and VersionedRun.NEW_VTYPE in late_static.vtypes
+            frame = _ws_until(late, lambda e: e["type"] == "frame" and e["step"], 10.0, "a frame with a step")
+            step = decode(frame["step"])
+            assert step.static_version == 1 and step.vtypes is None  # the step alone would not tell
+        time.sleep(2.5)  # versions agree: steps ask nothing more
+        assert live.pub.static_queries == after, (after, live.pub.static_queries)
+        assert live.status()["static_queries"] == st["static_queries"]
+        log = live.log()
+        assert "refers to static version 1" in log and "static data version 1 received" in log, log
+        assert "map built from the static data" in log and log.count("map built from the static data") == 1, log
+    finally:
+        live.close()
+
+
 def _viewer_stats(driver) -> dict:
     return driver.execute_script(
         "const s = window.sumocoViewer; if (!s) return null;"
@@ -431,6 +546,46 @@ def test_browser_keeps_up_with_1000_agents(browser, tmp_path):
         assert live.pub.steps_sent - 1 - page["step"] <= 30, (live.pub.steps_sent, page["step"])
         SHOTS.mkdir(parents=True, exist_ok=True)
         browser.save_screenshot(str(SHOTS / "screenshot_1000.png"))
+    finally:
+        live.close()
+
+
+def test_page_takes_vtypes_and_tls_links_from_the_static_data_of_each_version(browser, tmp_path):
+    """Steps carry ``vtypes`` only when ``sv`` changes (SPEC 3.1): a page that joined after that
+    step names an agent's vType from the static data, and after a change mid-run it shows the
+    new vType and the new signal links (``tls_links``) without a reload; so does a page that
+    loads after the change."""
+    fake = VersionedRun(grid=1, n=30, run="viewer-sv-page")
+    live = LiveRun(tmp_path, fake, physics_hz=5.0)
+    bus = next(i for i, c in zip(fake.ids, fake.cls) if c == 2)
+
+    def page(sv: int, vtype: list[str], heads: int):
+        def ok():
+            st = _viewer_stats(browser)
+            if st and st["decodeErrors"]:
+                raise AssertionError(f"page failed to decode: {st['lastError']}")
+            got = browser.execute_script("return window.sumocoViewer.vtypeOf(arguments[0]);", bus)
+            return st if st and st["staticSv"] == sv and got == vtype and st["tlsDrawn"] == heads else None
+
+        try:
+            return wait_for(ok, 15.0, f"the page at static version {sv}: {bus} a {vtype}, {heads} signal heads", 0.2)
+        except AssertionError:
+            print("page stats:", _viewer_stats(browser), "\nviewer log:\n", live.log())
+            raise
+
+    try:
+        live.wait_ready()
+        wait_for(lambda: live.pub.steps_sent > 3, 5.0, "steps past the first (the one with vtypes)")
+        browser.get(live.url)
+        page(0, ["bus", "bus"], 8)  # joined late: the vType comes from the static data
+        fake.bump()
+        time.sleep(0.5)  # the SUMO side serves the new version a little later (SPEC 3.2)
+        live.pub.static_bytes = encode(fake.static(1))
+        st = page(1, [VersionedRun.NEW_VTYPE.id, "bus"], 4)
+        assert st["staticReceived"] == 2, st
+        browser.get(live.url)  # a page that loads after the change
+        st = page(1, [VersionedRun.NEW_VTYPE.id, "bus"], 4)
+        assert st["staticReceived"] == 1, st
     finally:
         live.close()
 

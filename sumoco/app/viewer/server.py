@@ -5,7 +5,11 @@ One process, three parts:
 - ``ZenohFeed`` subscribes to the SUMO step key and to every physics instance's state
   key and keeps only the **newest** payload per key (``LatestStore``). It fetches the
   static data with one query at start-up, again whenever a SUMO liveliness token
-  appears (SUMO (re)started) and when steps arrive but no static data is known yet.
+  appears (SUMO (re)started), when steps arrive but no static data is known yet, and when
+  a step's static version ``sv`` differs from the held static data's (SPEC 3.2: a vType
+  change, new tls links) or its step index goes back (a SUMO side restarted under the same
+  run id): one query at a time on one worker thread, asked again until the versions agree
+  (the SUMO side re-encodes at most once a second), rounds at most once a second.
 - ``ViewerServer`` serves the page (``static/``) over plain HTTP and a WebSocket on
   ``/ws`` from the same port (websockets' ``process_request`` answers the non-upgrade
   GETs), on 127.0.0.1 by default.
@@ -23,8 +27,10 @@ Protocol messages are forwarded **as their raw msgpack bytes** inside a ``bin`` 
 server never decodes the hot path; the page decodes them with its own msgpack reader:
 
 - ``{"type": "hello", "run", "root", "max_hz"}`` once on connect;
-- ``{"type": "static", "static": bin}``: the static-data message (SPEC 3.2), on connect
-  when known and again when it changes;
+- ``{"type": "static", "static": bin, "map": sha256}``: the static-data message (SPEC 3.2),
+  on connect when known and again when it changes (a new ``sv``: the page takes its vType
+  table and tls links from here, so a page that joined after the step that carried
+  ``vtypes`` still knows them);
 - ``{"type": "frame", "seq": int, "wall": float [s, server clock], "sumo_alive": bool|nil,
   "step": bin|nil (SPEC 3.1), "physics": {instance: bin (SPEC 3.3)}}``.
 
@@ -50,6 +56,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import msgpack
+import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
@@ -102,6 +109,38 @@ class ViewerConfig:
 # --------------------------------------------------------------------------- newest-only state
 
 
+_HEAD_BYTES = 4096  # the keys before ``agents`` (kind, run, step, t, dt, sv) fit in this with any sane run id
+
+
+def peek_head(payload: bytes, names: tuple[str, ...]) -> dict[str, int]:
+    """Top-level integers ``names`` of a msgpack map (a step's ``step`` and ``sv``, static
+    data's ``sv``) without decoding the rest: the encoder writes them before ``agents``, so
+    only the first few hundred bytes are parsed; a value that is absent, not an integer or
+    undecodable is left out. Lengths are bounded by the default limits while msgpack parses."""
+    want = set(names)
+    out: dict[str, int] = {}
+    for chunk in ((payload[:_HEAD_BYTES], payload) if len(payload) > _HEAD_BYTES else (payload,)):
+        u = msgpack.Unpacker(raw=False, max_buffer_size=max(len(chunk), 1), **DEFAULT_LIMITS.unpack_kwargs())
+        u.feed(chunk)
+        try:
+            for _ in range(u.read_map_header()):
+                k = u.unpack()
+                if k in want:
+                    v = u.unpack()
+                    if isinstance(v, int) and not isinstance(v, bool):
+                        out[k] = v
+                    if len(out) == len(want):
+                        return out
+                else:
+                    u.skip()
+            return out  # the whole map read: what is missing is absent
+        except msgpack.OutOfData:
+            continue  # cut off inside the head: read the whole payload
+        except Exception:  # msgpack raises a zoo of types for corrupt or oversized input
+            return out
+    return out
+
+
 class LatestStore:
     """Newest payload per key, written from Zenoh's threads, read by the asyncio loop.
 
@@ -118,6 +157,7 @@ class LatestStore:
         # back, because a state sample can overtake the token's DELETE (different priorities).
         self.departed: set[str] = set()
         self.static: bytes | None = None
+        self.static_sv: int | None = None  # the ``sv`` of ``static`` (SPEC 3.2), None while unknown
         self.map_glb: bytes | None = None  # the network as glTF (SPEC 9), for the 3D page
         self.map_sha256 = ""
         self.map_source = ""  # "sumo": served by the SUMO side; "static": built here from static data
@@ -126,6 +166,7 @@ class LatestStore:
         self.static_version = 0
         self.steps_received = 0
         self.physics_received = 0
+        self.static_queries = 0  # static-data queries sent (by the feed's one worker)
         self._listeners: list[Callable[[], None]] = []
 
     def add_listener(self, fn: Callable[[], None]) -> None:
@@ -166,10 +207,12 @@ class LatestStore:
         self._changed()
 
     def put_static(self, payload: bytes) -> None:
+        sv = int(peek_head(payload, ("sv",)).get("sv", 0))  # absent: a 1.1 sender, version 0
         with self._lock:
             if payload == self.static:
                 return
             self.static = payload
+            self.static_sv = sv
             self.static_version += 1
             self.version += 1
         self._changed()
@@ -344,6 +387,8 @@ class ViewerServer:
             "frames_dropped": sum(c.dropped for c in self.clients),
             "max_pending": max((c.max_pending for c in self.clients), default=0),
             "static": self.store.static is not None,
+            "static_sv": self.store.static_sv,
+            "static_queries": self.store.static_queries,
             "steps_received": self.store.steps_received,
             "physics_received": self.store.physics_received,
             "physics_instances": sorted(self.store.physics),
@@ -531,6 +576,9 @@ def _response(status: int, body: bytes, content_type: str) -> Response:
 # --------------------------------------------------------------------------- Zenoh side
 
 
+STATIC_RETRY_S = 1.0  # [s] at least this long between static-data fetch rounds started by steps
+
+
 class ZenohFeed:
     """Fills a ``LatestStore`` from a Zenoh session (callbacks keep only the newest)."""
 
@@ -539,6 +587,10 @@ class ZenohFeed:
         self._want_static = threading.Event()
         self._stop = threading.Event()
         self._last_step_idx: int | None = None
+        self._step_sv: int | None = None  # ``sv`` of the newest step
+        self._restarted = False  # a step index went back: a new SUMO side under the same run id
+        self._fetching = False  # the worker is in a fetch round (it asks until the versions agree)
+        self._network_hash = ""  # lanes + junctions of the held static data (the map depends on them only)
         self._last_static_ask = 0.0
         self._handles: list[Any] = []
         self._thread = threading.Thread(target=self._static_worker, name="viewer-static", daemon=True)
@@ -571,8 +623,24 @@ class ZenohFeed:
     def _on_step(self, sample: Any) -> None:
         payload = sample.payload.to_bytes()
         self.store.put_step(payload)
-        if self.store.static is None and time.monotonic() - self._last_static_ask > 2.0:
-            self._ask_static()  # steps flow but we missed the static data: ask again
+        head = peek_head(payload, ("step", "sv"))  # the first bytes only: the agents stay undecoded
+        sv, idx = head.get("sv", 0), head.get("step")
+        if idx is not None and self._last_step_idx is not None and idx < self._last_step_idx:
+            self._restarted = True  # its static versions start again, its network may differ
+        self._last_step_idx = idx
+        self._step_sv = sv
+        since = time.monotonic() - self._last_static_ask
+        if self.store.static is None:
+            if since > 2.0:
+                self._ask_static()  # steps flow but we missed the static data: ask again
+        elif (sv != self.store.static_sv or self._restarted) and not self._fetching and since > STATIC_RETRY_S:
+            if self._restarted:
+                log.info("step index back to %s (a SUMO side restarted under this run id): fetching the "
+                         "static data", idx)
+            else:  # SPEC 3.2: the step refers to other vType / tls-link tables than we hold
+                log.info("step %s refers to static version %d (held: %s): fetching the static data", idx, sv,
+                         self.store.static_sv)
+            self._ask_static()
 
     def _on_physics(self, sample: Any) -> None:
         inst = Keys.instance_of(str(sample.key_expr))
@@ -584,6 +652,7 @@ class ZenohFeed:
 
         alive = sample.kind == zenoh.SampleKind.PUT
         self.store.set_sumo_alive(alive)
+        self._last_step_idx = None  # a new SUMO side's steps start at 0: its token (here) fetches already
         if alive:
             log.info("SUMO side is up: fetching static data")
             self._ask_static()
@@ -606,19 +675,34 @@ class ZenohFeed:
         self._last_static_ask = time.monotonic()
         self._want_static.set()
 
-    def _query_static(self) -> bytes | None:
+    def _query_static(self) -> tuple[bytes, StaticData] | None:
+        self.store.static_queries += 1
         for reply in self.session.get(self.keys.static, timeout=self.cfg.static_timeout_s):
             if reply.ok is None:
                 continue
             data = reply.ok.payload.to_bytes()
             try:  # validate once here so a broken reply is reported in our log, not the page's
                 # static tables are not agents: the default limits, bounded while msgpack parses
-                decode_as(data, StaticData, DEFAULT_LIMITS)
+                msg = decode_as(data, StaticData, DEFAULT_LIMITS)
             except ProtocolError as e:
                 log.warning("ignoring invalid static data: %s", e)
                 continue
-            return data
+            return data, msg
         return None
+
+    @staticmethod
+    def _network_of(st: StaticData) -> str:
+        """A hash of the network (lanes, junctions): a new static version with the same network
+        (a vType or tls-link change) needs no new map."""
+        h = hashlib.sha256()
+        for part in (st.lanes.ids, st.junctions.ids):
+            h.update("\0".join(part).encode())
+            h.update(b"\1")
+        for arr in (st.lanes.width, st.lanes.shape_offsets, st.lanes.shape_xy, st.junctions.shape_offsets,
+                    st.junctions.shape_xy):
+            h.update(np.ascontiguousarray(arr).data)
+        h.update(repr((st.net_offset, st.projection, st.bounds)).encode())
+        return h.hexdigest()
 
     def _query_map(self) -> tuple[bytes, str] | None:
         """The SUMO side's GLB (SPEC 9), asking with the hash we hold so it is sent once."""
@@ -668,32 +752,60 @@ class ZenohFeed:
         self.store.put_map(mesh.glb, mesh.sha256, "static")
 
     def _static_worker(self) -> None:
+        # The only place that queries: one query outstanding at most, however often steps ask.
         while not self._stop.is_set():
             if not self._want_static.wait(timeout=1.0):
                 continue
             self._want_static.clear()
-            for attempt in range(1, self.cfg.static_attempts + 1):
-                if self._stop.is_set():
-                    return
-                try:
-                    data = self._query_static()
-                except Exception as e:  # zenoh raises on a closing session
-                    log.debug("static query failed: %s", e)
-                    data = None
-                if data is not None:
-                    fresh = data != self.store.static
-                    if fresh or self.store.map_glb is None:
+            self._fetching = True
+            try:
+                self._fetch_round()
+            finally:
+                self._fetching = False
+                self._last_static_ask = time.monotonic()  # the next round at least STATIC_RETRY_S later
+
+    def _fetch_round(self) -> None:
+        """Query until static data arrives whose ``sv`` is the newest step's (or newer), at most
+        ``static_attempts`` times with a growing pause."""
+        self._restarted = False
+        got = False
+        for attempt in range(1, self.cfg.static_attempts + 1):
+            if self._stop.is_set():
+                return
+            try:
+                reply = self._query_static()
+            except Exception as e:  # zenoh raises on a closing session
+                log.debug("static query failed: %s", e)
+                reply = None
+            if reply is not None:
+                got = True
+                data, msg = reply
+                fresh = data != self.store.static
+                if fresh:
+                    network = self._network_of(msg)
+                    if network != self._network_hash or self.store.map_glb is None:
                         self._fetch_map(data)
+                        self._network_hash = network
                     self.store.put_static(data)
-                    if fresh:
-                        log.info("static data received (%d bytes, attempt %d)", len(data), attempt)
-                    break
-                if self._stop.wait(min(0.2 * attempt, 1.0)):
+                    log.info("static data version %d received (%d bytes, %d vTypes, attempt %d)", msg.version,
+                             len(data), len(msg.vtypes), attempt)
+                elif self.store.map_glb is None:
+                    self._fetch_map(data)
+                want = self._step_sv
+                if want is None or msg.version >= want:
                     return
-            else:
-                log.warning("no static data on %s after %d queries; drawing agents without the "
-                            "network until the SUMO side (re)appears", self.keys.static,
-                            self.cfg.static_attempts)
+                # the SUMO side re-encodes its static data at most once a second: ask again shortly
+                log.debug("static data version %d, the steps' is %d: asking again", msg.version, want)
+            if self._stop.wait(min(0.2 * attempt, 1.0)):
+                return
+        if got:
+            log.warning("static data on %s still at version %s after %d queries, the steps' is %s; asking "
+                        "again on a later step", self.keys.static, self.store.static_sv, self.cfg.static_attempts,
+                        self._step_sv)
+        else:
+            log.warning("no static data on %s after %d queries; drawing agents without the "
+                        "network until the SUMO side (re)appears", self.keys.static,
+                        self.cfg.static_attempts)
 
 
 # --------------------------------------------------------------------------- entry point

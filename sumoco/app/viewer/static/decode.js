@@ -1,6 +1,7 @@
 // sumoco wire decoding for the browser pages (2D and 3D): a msgpack reader for the subset
 // the protocol uses and column readers that turn bins into typed arrays (SPEC.md 3).
-// Exposed as window.sumocoDecode = {unpack, column, polyline, readStep, readPhysics}.
+// Exposed as window.sumocoDecode = {unpack, column, polyline, readStep, readPhysics, setStatic,
+// vtypeTable, staticSv}.
 (() => {
   'use strict';
   // ------------------------------------------------------------------ msgpack subset
@@ -142,8 +143,34 @@
     return { off, xy: column(p.xy, Float32Array, -1, name + '.xy') };
   }
 
-  // The vType table travels only in steps where it changes (protocol 1.2): keep the last.
-  let lastVtypes = [];
+  // vType tables by static version sv (SPEC 3.1, 3.2). Since protocol 1.2 a step carries its
+  // table only when sv changes: a page that joined later takes it from the static data
+  // (setStatic), which the server sends on connect and again for every new version.
+  const vtypeTables = new Map(); // sv -> [[vType id, vClass], ...]
+  const MAX_TABLES = 16; // a few versions are in flight at once; forget the oldest
+  function remember(sv, table) {
+    vtypeTables.delete(sv);
+    vtypeTables.set(sv, table);
+    while (vtypeTables.size > MAX_TABLES) vtypeTables.delete(vtypeTables.keys().next().value);
+  }
+  let staticSv = null;
+  // The static data's vType table (a map of id / vclass arrays) under its sv.
+  function setStatic(d) {
+    if (d.kind !== 'static') throw new Error('expected static data, got ' + d.kind);
+    const V = d.vtypes;
+    const sv = d.sv | 0; // absent: a 1.1 sender, version 0
+    if (V && Array.isArray(V.id)) {
+      const vc = Array.isArray(V.vclass) ? V.vclass : [];
+      remember(sv, V.id.map((id, i) => [id, vc[i] || '']));
+    }
+    staticSv = sv;
+    return sv;
+  }
+  // The table of version sv, or null while it is unknown (the step's own cls, length and
+  // width still draw the agents).
+  function vtypeTable(sv) {
+    return vtypeTables.get(sv | 0) || null;
+  }
 
   // Look-ahead point: x + la_dx (1.2) or the absolute float32 la_x (1.1).
   function lookAhead(a, n, base, key, c) {
@@ -160,10 +187,11 @@
     const a = d.agents;
     const n = a.n | 0;
     const c = (k, T) => column(a[k], T, n, 'agents.' + k);
-    if (d.vtypes) lastVtypes = d.vtypes;
+    const sv = d.sv | 0;
+    if (Array.isArray(d.vtypes)) remember(sv, d.vtypes);
     const x = c('x', Float64Array), y = c('y', Float64Array);
     const s = {
-      step: d.step, t: d.t, dt: d.dt, vtypes: lastVtypes, n, id: a.id,
+      step: d.step, t: d.t, dt: d.dt, sv, vtypes: vtypeTable(sv) || [], n, id: a.id,
       cls: c('cls', Uint8Array), vtype: c('vtype', Uint16Array),
       x, y, angle: c('angle', Float32Array),
       speed: c('speed', Float32Array), accel: c('accel', Float32Array),
@@ -193,5 +221,8 @@
     };
   }
 
-  window.sumocoDecode = { unpack, column, polyline, readStep, readPhysics };
+  window.sumocoDecode = {
+    unpack, column, polyline, readStep, readPhysics, setStatic, vtypeTable,
+    get staticSv() { return staticSv; },
+  };
 })();

@@ -8,7 +8,7 @@
 (() => {
   'use strict';
 
-  const { unpack, column, polyline, readStep, readPhysics } = window.sumocoDecode;
+  const { unpack, column, polyline, readStep, readPhysics, setStatic, vtypeTable } = window.sumocoDecode;
 
   // ------------------------------------------------------------------ network layers
   const LANE_STYLE = {
@@ -120,7 +120,8 @@
   const DEG = Math.PI / 180;
 
   const stats = {
-    connected: false, hello: null, staticLoaded: false, framesReceived: 0, framesDrawn: 0,
+    connected: false, hello: null, staticLoaded: false, staticSv: null, staticReceived: 0,
+    framesReceived: 0, framesDrawn: 0,
     draws: 0, decodeErrors: 0, lastError: '', agentsDrawn: 0, physicsDrawn: 0,
     lookaheadDrawn: 0, lanesDrawn: 0, junctionsDrawn: 0, tlsDrawn: 0,
     step: -1, simTime: NaN, stepHz: 0, frameHz: 0, drawMs: 0, sumoAlive: null,
@@ -215,12 +216,20 @@
         stats.framesReceived++;
         pendingFrame = env; // replaces an undrawn one: only the newest is ever decoded
       } else if (env.type === 'static') {
+        // Sent on connect and again for every new static version (a vType change, new tls
+        // links): the vType table and the signal heads are rebuilt from it.
         try {
-          net = buildNetwork(unpack(env.static));
+          const d = unpack(env.static);
+          const next = buildNetwork(d);
+          stats.staticSv = setStatic(d);
+          const moved = !net || String(net.bounds) !== String(next.bounds);
+          net = next;
           stats.staticLoaded = true;
+          stats.staticReceived++;
           stats.lanesDrawn = net.lanesDrawn;
           stats.junctionsDrawn = net.junctionsDrawn;
-          if (!view.user) fit();
+          if (moved && !view.user) fit(); // the same network under a new version keeps the view
+          hoverDirty = true;
           dirty = true;
         } catch (e) {
           fail(e);
@@ -518,6 +527,14 @@
   const f1 = (v) => (Number.isFinite(v) ? v.toFixed(1) : '–');
   const f2 = (v) => (Number.isFinite(v) ? v.toFixed(2) : '–');
 
+  // [vType id, vClass] of agent i of the newest step, from the table of the step's static
+  // version (the static data may have brought it after the step was decoded), else undefined.
+  function vtypeOf(i) {
+    const table = vtypeTable(step.sv) || step.vtypes;
+    const vt = table[step.vtype[i]];
+    return vt && vt[0] ? vt : undefined; // a dropped row is ["", ""]
+  }
+
   function hoverText(h) {
     let id, cls;
     if (h.kind === 'sumo') { id = step.id[h.i]; cls = step.cls[h.i]; } else {
@@ -528,7 +545,7 @@
     const si = step ? (step.index || (step.index = new Map(step.id.map((k, i) => [k, i])))).get(id) : undefined;
     let type = CLASS_NAMES[cls] || 'other';
     if (si !== undefined) {
-      const vt = step.vtypes[step.vtype[si]];
+      const vt = vtypeOf(si);
       if (vt) type = `${vt[0]} (${vt[1]})`;
     }
     lines.push(`${id}`);
@@ -703,6 +720,11 @@
   stats.fit = () => { view.user = false; fit(); };
   stats.view = view;
   stats.decode = { unpack, readStep, readPhysics, buildNetwork };
+  stats.vtypeOf = (id) => { // for tests: the vType row of agent `id` in the newest step, or null
+    if (!step) return null;
+    const i = step.id.indexOf(id);
+    return i < 0 ? null : vtypeOf(i) || null;
+  };
   // CSS-pixel position of an agent's body centre (front bumper minus length/2), or null.
   stats.screenOf = (id) => {
     const i = step ? step.id.indexOf(id) : -1;

@@ -10,7 +10,7 @@ import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
-const { unpack, readStep, readPhysics } = window.sumocoDecode;
+const { unpack, readStep, readPhysics, setStatic } = window.sumocoDecode;
 const DEG = Math.PI / 180;
 const $ = (id) => document.getElementById(id);
 const token = new URLSearchParams(location.search).get('token') || '';
@@ -27,7 +27,7 @@ const TLS_COLOURS = {
 const SIG_RIGHT = 1, SIG_LEFT = 2, SIG_EMERGENCY = 4, SIG_BRAKE = 8; // SUMO signal bits
 
 const stats = {
-  connected: false, hello: null, staticLoaded: false, mapLoaded: false, mapMeshes: 0, mapSha: '',
+  connected: false, hello: null, staticLoaded: false, staticSv: null, mapLoaded: false, mapMeshes: 0, mapSha: '',
   tlsHeads: 0, framesReceived: 0, framesDrawn: 0, renders: 0, errors: 0, lastError: '',
   agents: 0, physicsAgents: 0, ghosts: 0, instances: {}, drawCalls: 0, triangles: 0, fps: 0,
   step: -1, simTime: NaN, rtf: 0, follow: null, instance: null, renderMs: 0, updateMs: 0,
@@ -250,6 +250,9 @@ function connect() {
       stats.framesReceived++;
       pendingFrame = env;
     } else if (env.type === 'static') {
+      // On connect and for every new static version: its vType table is the one steps
+      // without `vtypes` refer to (SPEC 3.2); the map reloads only when its hash changed.
+      try { stats.staticSv = setStatic(unpack(env.static)); } catch (e) { fail(e); }
       stats.staticLoaded = true;
       loadMap(env.map);
     } else if (env.type === 'hello') {
