@@ -1,6 +1,8 @@
 """The 3D page in a real headless Chromium (WebGL through SwiftShader): map meshes from the
 GLB, N agents as instances, traffic-light heads, no console error, pixels that change where
-a car is, click-to-follow, and draw calls that do not grow with the number of agents.
+a car is, click-to-follow, draw calls that do not grow with the number of agents, and, read
+from the scene graph's instance matrices and colours, bodies' roll and pitch, steered and
+spinning wheels, leaning bicycles, walking legs and signal heads in their state.
 
 Runs against a real ``sumoco view`` subprocess fed by a synthetic run over loopback Zenoh
 (``tests/test_viewer.py``'s ``LiveRun``); never skips in CI (the ``browser`` fixture fails).
@@ -8,9 +10,12 @@ Runs against a real ``sumoco view`` subprocess fed by a synthetic run over loopb
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import time
 
+import numpy as np
 import zenoh
 
 from protocol.codec import decode
@@ -230,6 +235,274 @@ def test_3d_page_draw_calls_do_not_grow_with_the_agents(browser, tmp_path):  # n
         assert s["errors"] == 0 and _console_errors(browser) == []
     finally:
         browser.set_window_size(size["width"], size["height"])
+        live.close()
+
+
+# --------------------------------------------------------------------------- poses in the scene graph
+
+# The scene graph without a hook in the page: three.js announces every Scene it builds to
+# window.__THREE_DEVTOOLS__ (its devtools protocol) when that object exists before it loads.
+_DEVTOOLS_HOOK = """
+window.__THREE_DEVTOOLS__ = new EventTarget();
+window.__THREE_DEVTOOLS__.addEventListener('observe', (e) => {
+  if (e.detail && e.detail.isScene) (window.__sumocoTestScenes = window.__sumocoTestScenes || []).push(e.detail);
+});
+"""
+
+# One animation frame's instances (every array written by the same update()): matrices of the
+# named instanced meshes, and the signal lamps' colours with the map's head nodes (tls, link, matrix).
+_SCENE = """
+const sc = (window.__sumocoTestScenes || []).find((x) => x.getObjectByName('wheels'));
+if (!sc) return null;
+const s = window.sumoco3d;
+const out = {renders: s.renders, step: s.step, instance: s.instance, mats: {}, lampRgb: [], heads: []};
+for (const name of arguments[0]) {
+  const m = sc.getObjectByName(name);
+  out.mats[name] = m ? Array.from(m.instanceMatrix.array.subarray(0, m.count * 16)) : null;
+}
+const lamps = sc.getObjectByName('tls_lamps');
+if (lamps) {
+  const c = new sc.background.constructor();  // a THREE.Color: getHex() gives sRGB, as the page set it
+  for (let k = 0; k < lamps.count; k++) { lamps.getColorAt(k, c); out.lampRgb.push(c.getHex()); }
+}
+sc.traverse((o) => {
+  const x = o.userData || {};
+  if (typeof x.tls === 'string' && Number.isInteger(x.link)) out.heads.push([x.tls, x.link, Array.from(o.matrixWorld.elements)]);
+});
+return out;
+"""
+
+_MODEL = {0: "car", 1: "car", 2: "bus", 3: "bicycle", 4: "pedestrian", 5: "car"}
+_WHEEL_R = {0: 0.32, 1: 0.32, 2: 0.5, 3: 0.34, 5: 0.45}  # [m] the page's wheel radii
+_ROLLS, _PITCHES, _STEERS = (0.0, 7.0, -5.0, 12.0), (0.0, -4.0, 6.0), (0.0, 18.0, -12.0, 25.0)  # [deg], by rank
+_TLS_A, _TLS_B, _TLS_STEPS = "rGyrGyrG", "GyrGyrGy", 30  # every head changes letter between the two
+_TLS_HEX = {"r": 0xFF1A1A, "y": 0xFFB300, "G": 0x00FF66}  # SUMO's letters as the page colours them
+
+
+class _PosedRun(FakeRun):
+    """The synthetic run with known attitudes: per model class, agent k (in order) has roll
+    _ROLLS[k % 4], pitch _PITCHES[k % 3], steering _STEERS[k % 4] (SPEC 2: roll + = right side
+    down, pitch + = nose up, steer + = left) and its track's heading; every third stands still
+    (speed 0), the others move slowly enough (0.4 m/s; walkers 1.3 m/s) that the wheel turns less
+    than half a revolution between two looks. Signal heads: _TLS_A and _TLS_B alternate every
+    _TLS_STEPS steps."""
+
+    def __init__(self, **kw) -> None:
+        super().__init__(**kw)
+        rank = np.zeros(self.n, int)
+        seen: dict[str, int] = {}
+        for i, c in enumerate(self.cls):
+            m = _MODEL[int(c)]
+            rank[i] = seen.get(m, 0)
+            seen[m] = rank[i] + 1
+        self.rank = rank
+        self.roll = np.array(_ROLLS, np.float32)[rank % 4]
+        self.pitch = np.array(_PITCHES, np.float32)[rank % 3]
+        self.steer = np.array(_STEERS, np.float32)[rank % 4]
+        self.pspeed = np.where(rank % 3 == 0, 0.0, np.where(self.cls == 4, 1.3, 0.4)).astype(np.float32)
+
+    def tls_letters(self, k: int) -> str:
+        return _TLS_A if (k // _TLS_STEPS) % 2 == 0 else _TLS_B
+
+    def step(self, k: int):
+        m = super().step(k)
+        return dataclasses.replace(m, tls=dataclasses.replace(m.tls, state=[self.tls_letters(k)] * len(m.tls.ids)))
+
+    def physics(self, tick: int, t: float, sumo_step: int, gain: float = 1.0):
+        m = super().physics(tick, t, sumo_step, gain)
+        heading = self._pose(t)[1].astype(np.float32)
+        a = dataclasses.replace(m.agents, roll=self.roll, pitch=self.pitch, steer=self.steer, speed=self.pspeed,
+                                heading=heading)
+        return dataclasses.replace(m, agents=a)
+
+
+def _mats(flat) -> np.ndarray:
+    """three.js instance matrices (column-major, 16 floats each) -> (n, 4, 4) row-major."""
+    return np.asarray(flat, float).reshape(-1, 4, 4).transpose(0, 2, 1)
+
+
+def _rot(m: np.ndarray) -> np.ndarray:
+    """The rotation of a rotate-then-scale matrix: its 3 x 3 block with unit columns."""
+    r = m[:3, :3]
+    return r / np.linalg.norm(r, axis=0)
+
+
+def _attitude(m: np.ndarray) -> tuple[float, float, float]:
+    """Roll (+ = right side down), pitch (+ = nose up), heading (deg cw from north) of a body
+    instance; page frame: X east, Y up, Z south, bodies face -Z, their right is +X."""
+    r = _rot(m)
+    right, up, fwd = r[:, 0], r[:, 1], -r[:, 2]
+    return (math.degrees(math.atan2(-right[1], up[1])), math.degrees(math.asin(np.clip(fwd[1], -1, 1))),
+            math.degrees(math.atan2(fwd[0], -fwd[2])) % 360.0)
+
+
+def _wheel(body: np.ndarray, wheel: np.ndarray) -> tuple[float, float]:
+    """A wheel in its body's frame: (steering [deg, + = pointing left], spin [rad, growing as
+    it rolls forward: the spoke that was on top turns towards the front])."""
+    rel = _rot(body).T @ _rot(wheel)
+    fwd = np.cross([0.0, 1.0, 0.0], rel[:, 0])  # rolling direction: perpendicular to the axle
+    steer = math.degrees(math.atan2(-fwd[0], -fwd[2]))
+    spoke = rel[:, 1]
+    return steer, math.atan2(float(spoke @ fwd), float(spoke[1]))
+
+
+def _leg(body: np.ndarray, leg: np.ndarray) -> float:
+    """How far a leg swings forward of straight down in its body's frame [rad]."""
+    foot = -(_rot(body).T @ _rot(leg))[:, 1]
+    return math.atan2(-foot[2], -foot[1])
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _wrap_deg(a):
+    return (np.asarray(a) + 180.0) % 360.0 - 180.0
+
+
+def _look(driver, after: int | None = None) -> dict:
+    """The scene of a frame rendered after frame ``after`` (or now)."""
+    if after is not None:
+        _next_render(driver, after)
+    return driver.execute_script(_SCENE, ["car", "bus", "bicycle", "pedestrian", "wheels", "legs", "tls_lamps"])
+
+
+def _held(driver) -> dict:
+    """Pause the page and return its scene with the step it holds: ``stats.step`` is refreshed
+    at most every 250 ms, so wait for a frame drawn more than 300 ms after the pause."""
+    t0 = driver.execute_script("window.sumoco3d.pause(true); return performance.now();")
+    wait_for(lambda: driver.execute_script("return performance.now();") > t0 + 300, 5.0, "300 ms of page time", 0.05)
+    return _look(driver, _stats(driver)["renders"])
+
+
+def test_3d_page_shows_attitude_steering_wheel_spin_lean_walking_and_signal_states(browser, tmp_path):  # noqa: F811
+    """Reads the page's scene graph (instance matrices and colours) against physics states
+    with known roll, pitch, steering and speed: bodies carry their roll and pitch, front wheels
+    their steering angle (left positive, zero when straight), wheels spin forward in proportion
+    to speed / radius and not at all when standing, bicycles lean, walkers' legs swing in
+    opposition and a standing walker's hang still, and each signal head takes the colour of its
+    link's letter in the held step, changing with it."""
+    n = 60
+    fake = _PosedRun(grid=1, n=n, run="viewer-3d-poses")
+    models = [_MODEL[int(c)] for c in fake.cls]
+    assert all(models.count(m) >= 3 for m in ("car", "bus", "bicycle", "pedestrian"))
+    browser.get("about:blank")  # an earlier test's page, reconnecting to its closed viewer, logs errors
+    browser.get_log("browser")
+    hook = browser.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {"source": _DEVTOOLS_HOOK})
+    live = LiveRun(tmp_path, fake)
+    try:
+        live.wait_ready()
+        _open_3d(browser, live, n)
+        looks = [_look(browser)]
+        assert looks[0] is not None, "no three.js scene announced to the devtools hook"
+        for _ in range(4):
+            looks.append(_look(browser, looks[-1]["renders"]))
+
+        def bodies(look) -> list[np.ndarray]:
+            """Body matrix of agent i (instances per model, in the physics message's order)."""
+            per = {m: _mats(look["mats"][m]) for m in ("car", "bus", "bicycle", "pedestrian")}
+            return [per[models[i]][fake.rank[i]] for i in range(n)]
+
+        def wheels_of(look) -> list[list[np.ndarray]]:
+            w, out, k = _mats(look["mats"]["wheels"]), [], 0
+            for i in range(n):
+                c = 0 if models[i] == "pedestrian" else 2 if models[i] == "bicycle" else 4
+                out.append(list(w[k:k + c]))
+                k += c
+            assert k == len(w), (k, len(w))
+            return out
+
+        # Roll and pitch (and heading) of every body, bicycles' lean among them.
+        b0 = bodies(looks[0])
+        got = np.array([_attitude(b) for b in b0])
+        heading = fake._pose(0.0)[1]  # straight tracks: constant
+        assert np.abs(got[:, 0] - fake.roll).max() < 0.05, list(zip(models, got[:, 0], fake.roll))
+        assert np.abs(got[:, 1] - fake.pitch).max() < 0.05, list(zip(models, got[:, 1], fake.pitch))
+        assert np.abs(_wrap_deg(got[:, 2] - heading)).max() < 0.05
+        bikes = np.array(models) == "bicycle"
+        assert (np.abs(got[bikes, 0]) > 4).sum() >= 2 and (fake.roll[bikes] == 0).any()  # leaning and upright
+
+        # Steering: front wheels follow the angle and its sign (left +), rear ones never steer.
+        w0 = wheels_of(looks[0])
+        for i in range(n):
+            if not w0[i]:
+                continue
+            st = [_wheel(b0[i], w)[0] for w in w0[i]]
+            front = st[:2] if len(st) == 4 else st[:1]
+            rear = st[2:] if len(st) == 4 else st[1:]
+            assert all(abs(s - fake.steer[i]) < 0.05 for s in front), (fake.ids[i], fake.steer[i], st)
+            assert all(abs(s) < 0.05 for s in rear), (fake.ids[i], st)
+        assert {float(np.sign(s)) for s in fake.steer[np.array(models) != "pedestrian"]} == {-1.0, 0.0, 1.0}
+
+        # Spin: between two frames every moving wheel turns forward by speed * dt / radius (the
+        # same dt for all), a standing one not at all.
+        rolled = []
+        for a, b in zip(looks, looks[1:]):
+            wa, wb, ba, bb = wheels_of(a), wheels_of(b), bodies(a), bodies(b)
+            for i in range(n):
+                for x, y in zip(wa[i], wb[i]):
+                    d = _wrap(_wheel(bb[i], y)[1] - _wheel(ba[i], x)[1])
+                    if fake.pspeed[i] == 0:
+                        assert abs(d) < 1e-3, (fake.ids[i], d)
+                    else:
+                        rolled.append((a["renders"], d * _WHEEL_R[int(fake.cls[i])] / fake.pspeed[i]))
+        dts = {}
+        for r, dt in rolled:
+            dts.setdefault(r, []).append(dt)
+        for r, v in dts.items():  # per pair of looks: one dt [s] for every moving wheel
+            assert min(v) > 0 and max(v) - min(v) < 1e-3, (r, min(v), max(v))
+        assert len(dts) == len(looks) - 1
+
+        # Walking: legs swing in opposition while the walker moves, hang straight when it stands.
+        peds = [i for i in range(n) if models[i] == "pedestrian"]
+        swings = {i: [] for i in peds}
+        for look in looks:
+            legs, bs = _mats(look["mats"]["legs"]), bodies(look)
+            assert len(legs) == 2 * len(peds)
+            for j, i in enumerate(peds):
+                left, right = _leg(bs[i], legs[2 * j]), _leg(bs[i], legs[2 * j + 1])
+                assert abs(left + right) < 1e-3 and abs(right) <= 1.3 * 0.35 + 1e-3, (fake.ids[i], left, right)
+                swings[i].append(right)
+        for i in peds:
+            if fake.pspeed[i] == 0:
+                assert max(map(abs, swings[i])) < 1e-3, (fake.ids[i], swings[i])
+            else:
+                assert max(swings[i]) - min(swings[i]) > 0.02, (fake.ids[i], swings[i])
+
+        # Signal heads: each lamp sits on a head of the map and has its link's letter's colour.
+        seen = set()
+
+        def heads_match(look) -> str:
+            letters = fake.tls_letters(look["step"])
+            lamps = _mats(look["mats"]["tls_lamps"])[:, :3, 3]
+            heads = [(tls, link, _mats(m)[0] @ np.array([0.0, 0.0, 0.2, 1.0])) for tls, link, m in look["heads"]]
+            assert len(lamps) == len(look["lampRgb"]) == len(heads) == 8
+            for p, rgb in zip(lamps, look["lampRgb"]):
+                tls, link, _ = min(heads, key=lambda h: np.linalg.norm(h[2][:3] - p))
+                assert tls == "J0_0" and min(np.linalg.norm(h[2][:3] - p) for h in heads) < 1e-3
+                want = _TLS_HEX[letters[link]]
+                assert all(abs((rgb >> s & 255) - (want >> s & 255)) <= 2 for s in (0, 8, 16)), (
+                    look["step"], link, letters, hex(rgb), hex(want))
+            return letters
+
+        held_steps: list[int] = []
+
+        def both_states():
+            look = _held(browser)
+            browser.execute_script("window.sumoco3d.pause(false);")
+            held_steps.append(look["step"])
+            seen.add(heads_match(look))
+            return seen == {_TLS_A, _TLS_B}
+
+        try:
+            wait_for(both_states, 60.0, "the signal heads in both states", 0.5)
+        except AssertionError:
+            print("held steps:", held_steps, "\npage:", json.dumps(_stats(browser))[:2000], "\nviewer log:\n", live.log())
+            raise
+        assert _stats(browser)["errors"] == 0 and _console_errors(browser) == []
+    finally:
+        browser.execute_cdp_cmd("Page.removeScriptToEvaluateOnNewDocument", {"identifier": hook["identifier"]})
+        browser.get("about:blank")
         live.close()
 
 
