@@ -293,16 +293,19 @@ class LiveRun:
         return self.log_path.read_text(errors="replace")
 
     def close(self) -> None:
+        """Stop the viewer (SIGTERM: it stops serving and exits 0, README "Exit codes") and
+        the feed; fails when the viewer exited with anything else."""
         if self.proc.poll() is None:
             self.proc.terminate()
             try:
-                self.proc.wait(timeout=10)
+                self.proc.wait(timeout=20)  # a busy machine; the code is asserted below
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(timeout=5)
         self._log.close()
         self.pub.stop()
         self.session.close()
+        assert self.proc.returncode == 0, f"sumoco view exited with {self.proc.returncode}:\n{self.log()}"
 
 
 class VersionedRun(FakeRun):
@@ -389,7 +392,7 @@ def test_viewer_serves_the_new_static_data_when_the_steps_static_version_changes
             time.sleep(0.8)  # ... while the SUMO side still serves version 0 for a while (SPEC 3.2)
             lagging = live.pub.static_queries - asked
             live.pub.static_bytes = encode(fake.static(1))
-            new = _static_of(_ws_until(early, lambda e: e["type"] == "static", 15.0,
+            new = _static_of(_ws_until(early, lambda e: e["type"] == "static" and _static_of(e).version == 1, 15.0,
                                        "the static data of version 1 on the open WebSocket"))
         assert new.version == 1
         assert new.vtypes[-1] == VersionedRun.NEW_VTYPE and len(new.vtypes) == len(first.vtypes) + 1

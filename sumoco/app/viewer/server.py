@@ -80,6 +80,9 @@ _CONTENT_TYPES = {
 }
 
 
+CLOSE_TIMEOUT_S = 2.0  # [s] wait for a page's closing handshake, then drop its connection
+
+
 @dataclass(frozen=True)
 class ViewerConfig:
     """``[viewer]`` table of a run config."""
@@ -255,6 +258,7 @@ class Mailbox:
         self._frame: bytes | None = None
         self._static: bytes | None = None
         self._event = asyncio.Event()
+        self.static_version = -1  # the store's static_version this client was given (-1: none)
         self.offered = 0
         self.dropped = 0
         self.taken = 0
@@ -459,8 +463,11 @@ class ViewerServer:
         peer = ws.remote_address
         await ws.send(msgpack.packb({"type": "hello", "run": self.run_id, "root": self.root,
                                      "max_hz": self.cfg.max_hz}, use_bin_type=True))
-        if self.store.static is not None:
-            box.put_static(pack_static(self.store.static, self.store.map_sha256))
+        version = self.store.static_version  # before the data: a change in between is sent again, never missed
+        static = self.store.static
+        if static is not None:
+            box.static_version = version
+            box.put_static(pack_static(static, self.store.map_sha256))
         self.clients.add(box)
         self.clients_total += 1
         log.info("browser connected from %s (%d connected)", peer, len(self.clients))
@@ -521,7 +528,9 @@ class ViewerServer:
                 static_version = self.store.static_version
                 msg = pack_static(self.store.static, self.store.map_sha256)
                 for box in self.clients:
-                    box.put_static(msg)
+                    if box.static_version != static_version:  # not given on connect already
+                        box.static_version = static_version
+                        box.put_static(msg)
             version, step, physics, alive = self.store.snapshot()
             if version == self._last_version or not self.clients:
                 continue
@@ -543,7 +552,10 @@ class ViewerServer:
                          process_request=self._process_request,
                          compression=None,  # binary columns barely compress; save the CPU
                          max_size=1 << 16,  # the page only ever sends tiny messages
-                         ping_interval=20, ping_timeout=20) as server:
+                         ping_interval=20, ping_timeout=20,
+                         # On shutdown a page that does not read (busy drawing, its socket
+                         # buffer full) must not hold the exit for websockets' default 10 s.
+                         close_timeout=CLOSE_TIMEOUT_S) as server:
             self.port = next(iter(server.sockets)).getsockname()[1]
             log.info("viewer for run %r at %s", self.run_id, self.url)
             if ready is not None:
