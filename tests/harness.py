@@ -111,6 +111,18 @@ class Daemon:
             self.proc.wait(5)
 
 
+def assert_exit_codes(daemons, codes: dict[str, int] | None = None) -> None:
+    """Every daemon ended with its expected exit code (README "Exit codes"): ``codes[name]``
+    when given, -9 for one the test killed itself (``Daemon.kill``), else 0 (a clean end,
+    also after SIGTERM). Call after they ended (``terminate``/``leave``); names them all."""
+    wrong = []
+    for d in daemons:
+        want = (codes or {}).get(d.name, -9 if d.killed else 0)
+        if d.returncode != want:
+            wrong.append(f"{d.name} exited with {d.returncode}, expected {want}; its log ends:\n{d.tail()}")
+    assert not wrong, "\n".join(wrong)
+
+
 class Probe:
     """A Zenoh session in the test that decodes and keeps everything of one run."""
 

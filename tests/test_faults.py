@@ -30,7 +30,7 @@ from protocol.codec import decode
 from protocol.keys import Keys
 from protocol.messages import AgentFlag, AgentMode
 from sumoco.app.record import open_recording
-from tests.harness import PAPER_CFG, Daemon, Probe, endpoint, wait_until
+from tests.harness import PAPER_CFG, Daemon, Probe, assert_exit_codes, endpoint, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -83,14 +83,19 @@ class Run:
                 return msgpack.unpackb(r.ok.payload.to_bytes(), raw=False)["counters"]
         return None
 
-    def close(self) -> None:
-        for d in self.daemons:
+    def stop(self) -> None:
+        """SIGTERM to every daemon still running, SUMO sides first (in lockstep a SUMO side
+        would otherwise wait for the acknowledgements of a physics instance that is gone)."""
+        for d in sorted(self.daemons, key=lambda d: not d.name.startswith("sumo")):
             if d.poll() is None:
                 try:
                     os.kill(d.proc.pid, signal.SIGCONT)  # a stopped process cannot handle SIGTERM
                 except ProcessLookupError:
                     pass
-            d.terminate(10)
+            d.terminate(15)
+
+    def close(self) -> None:
+        self.stop()
         self.probe.close()
 
 
@@ -119,8 +124,7 @@ def test_a_killed_physics_instance_restarts_rejoins_and_catches_up(tmp_path, run
     p = r.probe
     wait_until(lambda: p.last_physics().agents.n > 3 and p.last_step().step > 30, 60,
                "physics with agents", procs=[r.physics])
-    r.physics.proc.kill()  # SIGKILL: no goodbye
-    r.physics.proc.wait(5)
+    r.physics.kill()  # SIGKILL: no goodbye
     k_kill = p.last_step().step
     # lockstep holds: SUMO waits for its instance instead of running on or giving up
     wait_until(lambda: r.keys.physics_alive not in p.alive, 10, "the killed instance's token to go")
@@ -145,6 +149,8 @@ def test_a_killed_physics_instance_restarts_rejoins_and_catches_up(tmp_path, run
     with p.lock:
         seen = {m.step for m in p.steps}
     assert seen >= set(range(min(seen), max(seen) + 1)), "a step index was skipped"
+    r.stop()
+    assert_exit_codes(r.daemons)  # sumo and the restarted instance 0 after SIGTERM, the killed one -9
 
 
 def test_b_killed_sumo_side_physics_holds_then_resumes_with_a_new_one(tmp_path, runs):
@@ -152,8 +158,7 @@ def test_b_killed_sumo_side_physics_holds_then_resumes_with_a_new_one(tmp_path, 
     p = r.probe
     wait_until(lambda: (st := p.last_physics()) is not None and (st.agents.speed > 2).sum() >= 2, 60,
                "moving physics agents", procs=[r.physics])
-    r.sumo.proc.kill()
-    r.sumo.proc.wait(5)
+    r.sumo.kill()
     wait_until(lambda: r.keys.sumo_alive not in p.alive, 10, "the SUMO token to go")
 
     def all_stopping():
@@ -176,6 +181,8 @@ def test_b_killed_sumo_side_physics_holds_then_resumes_with_a_new_one(tmp_path, 
                and bool(np.all(st.agents.mode != AgentMode.STOPPING)), 30, "physics to follow the new run",
                procs=[r.physics])
     assert p.last_physics().counters["rejected"] == 0
+    r.stop()
+    assert_exit_codes(r.daemons)  # physics and the new SUMO side 0 after SIGTERM, the killed one -9
 
 
 def test_c_a_stopped_peer_ends_the_run_cleanly_and_the_recording_is_complete(tmp_path, runs):

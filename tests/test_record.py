@@ -15,7 +15,7 @@ from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepMessage
 from sumoco.app.record import kind_of_topic, read_recording
-from tests.harness import PAPER_CFG, ROOT, Daemon, endpoint
+from tests.harness import PAPER_CFG, ROOT, Daemon, assert_exit_codes, endpoint
 
 pytestmark = pytest.mark.integration
 
@@ -36,8 +36,9 @@ def test_record_live_run_to_mcap(tmp_path):
         )
         assert r.returncode == 0, r.stderr
     finally:
-        sumo.terminate(5)
-        phys.terminate(5)
+        sumo.terminate(15)
+        phys.terminate(15)
+    assert_exit_codes([sumo, phys])  # both stopped by SIGTERM: a clean end
     res = read_recording(out)
     assert not res.truncated
     keys = Keys("sumoco", "rec")
