@@ -441,6 +441,13 @@ class Fleet:
         was_carried = np.zeros(len(ids), bool)
         if len(self.carry) and (prev >= 0).any():
             was_carried = (prev >= 0) & self.carry[np.maximum(prev, 0)]
+        if slow.any():
+            # a slide starts only when the sample moves off its lane's centre line: a vehicle
+            # pulling away into a junction turn moves its bumper sideways of its old heading
+            # along the lane (0.008 m at 0.26 m/s in the first 0.1 s step) and was carried, i.e.
+            # placed in the steady-turn pose of the lane's sharpest bend, 60 deg off SUMO's
+            # angle; a slide under way continues through the step where the lane switches
+            carry &= was_carried | (np.abs(side_rate) > 0.05)
         jumped |= carry & ~was_carried
         self.carry = carry
         flip = math.radians(self.cfg.flip_deg)
