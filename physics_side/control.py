@@ -218,6 +218,12 @@ def drive_grip_torque(drive_grip: np.ndarray, r_wheel: np.ndarray) -> np.ndarray
     return np.where(finite, DRIVE_GRIP_USE * np.where(finite, drive_grip, 0.0) * r_wheel, np.inf)
 
 
+def steer_limit(speed: np.ndarray, wheelbase: np.ndarray, a_lat: np.ndarray, max_steer: np.ndarray) -> np.ndarray:
+    """Largest steering angle [rad] at ``speed`` [m/s]: the friction circle's atan(L * a_lat / v^2)
+    (v at least 0.1 m/s) or ``max_steer`` [rad], whichever is smaller (``friction_steer_limit``)."""
+    return np.minimum(max_steer, np.arctan(wheelbase * a_lat / np.maximum(speed, 0.1) ** 2))
+
+
 def friction_steer_limit(
     steer: np.ndarray, speed: np.ndarray, wheelbase: np.ndarray, a_lat: np.ndarray, max_steer: np.ndarray,
 ) -> np.ndarray:
@@ -225,7 +231,7 @@ def friction_steer_limit(
     |delta| <= atan(L * a_lat / v^2) (wheelbase L [m], lateral acceleration ``a_lat``
     [m/s^2]; v at least 0.1 m/s), and to ``max_steer`` [rad] (like the Unity car
     controller's speed-dependent steering limit)."""
-    lim = np.minimum(max_steer, np.arctan(wheelbase * a_lat / np.maximum(speed, 0.1) ** 2))
+    lim = steer_limit(speed, wheelbase, a_lat, max_steer)
     return np.minimum(np.maximum(steer, -lim), lim)
 
 
@@ -503,5 +509,6 @@ __all__ = [
     "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
     "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
+    "steer_limit",
     "rear_axle_steer", "saturation_speed_cut", "steered_roll_stabiliser", "traction_limit",
 ]

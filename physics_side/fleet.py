@@ -48,6 +48,7 @@ BIKE_MAX_LEAN_DEG = 35.0  # [deg] bicycles (a rider's lean; motorcycles take the
 MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next sample (bounded)
 MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
+GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
 
 def _stack_batches(a, b):
@@ -760,12 +761,12 @@ class Fleet:
                 p.max_steer[ri], self._max_rear[ri], a_lat=self._a_lat[ri],
             )
         # vehicle properties, whatever the controller asked for
+        lim_f = C.steer_limit(obs.speed, p.wheelbase, self._a_lat, p.max_steer)
         if rear is None:
-            steer = C.friction_steer_limit(steer, obs.speed, p.wheelbase, self._a_lat, p.max_steer)
+            steer = np.clip(steer, -lim_f, lim_f)
         else:  # (both axles steered: MuJoCo's tyres and the curve speed cut keep the grip)
             fixed = self._max_rear <= 0
-            steer = np.where(fixed, C.friction_steer_limit(steer, obs.speed, p.wheelbase, self._a_lat, p.max_steer),
-                             steer)
+            steer = np.where(fixed, np.clip(steer, -lim_f, lim_f), steer)
         if self._any_grip:
             drive = C.traction_limit(drive, obs.speed, obs.yaw_rate, self._grip_torque)
         if g.any_default and not self.stopping:
@@ -773,8 +774,17 @@ class Fleet:
             kap = np.abs(ref.path.at(self.s_act + v * C.CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
             v_ref = ref.at(tau).speed
             drive = C.curve_speed_cut(drive, obs.speed, kap, v_ref, self._a_lat, g.use_default)
-            drive, brake = C.saturation_speed_cut(drive, brake, steer, p.max_steer, obs.speed,
-                                                  np.where(g.use_default, v_ref, np.inf), p.m_eff, p.r_wheel)
+            # steering at its mechanical limit and faster than the reference: no drive, brakes ...
+            vr = np.where(g.use_default, v_ref, np.inf)
+            drive, brake = C.saturation_speed_cut(drive, brake, steer, p.max_steer, obs.speed, vr, p.m_eff, p.r_wheel)
+            # ... and no drive at the tyres' limit (fixed rear axle) while faster than the reference
+            # and off the path: at 1 s steps SUMO turns cars through 45-65 deg within a step; running
+            # wide, they fell behind along the path and sped up to catch up (16.5 m/s behind SUMO's
+            # 13.9), which widened the turn further until they were placed 6 m off
+            grip_sat = np.abs(steer) >= C.STEER_SAT_SHARE * lim_f
+            if rear is not None:
+                grip_sat &= fixed
+            drive = np.where(grip_sat & (obs.speed > vr) & (np.abs(self.err_lat) > GRIP_SAT_LAT_M), 0.0, drive)
         vi = g.veh_idx
         stab = None
         if len(vi) and self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)

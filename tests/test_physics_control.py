@@ -292,3 +292,18 @@ def test_rear_axle_steer_puts_the_body_on_the_chord_of_a_circle():
     front, rear = rear_axle_steer(np.array([1.2]), np.zeros(1), np.array([v]), np.zeros(1), np.zeros(1),
                                   np.array([L]), np.array([d]), np.array([0.6]), np.array([0.7]))
     assert front[0] == pytest.approx(0.6) and rear[0] < 0.0
+
+
+def test_steer_limit_is_the_friction_circle_or_the_mechanical_limit():
+    """``steer_limit`` is what ``friction_steer_limit`` clips to: atan(L a / v^2) at speed, the
+    mechanical limit when slow (a car of 2.7 m at 11.7 m/s^2: 10.6 deg at 13 m/s, 35 deg at 3)."""
+    from physics_side.control import friction_steer_limit, steer_limit
+
+    v = np.array([3.0, 13.0, 20.0])
+    L, a, mx = np.full(3, 2.7), np.full(3, 11.7), np.full(3, np.radians(35.0))
+    lim = steer_limit(v, L, a, mx)
+    assert np.degrees(lim[0]) == pytest.approx(35.0)
+    assert np.degrees(lim[1]) == pytest.approx(np.degrees(np.arctan(2.7 * 11.7 / 169.0)))
+    assert np.all(np.diff(lim) < 0)
+    assert np.allclose(friction_steer_limit(np.full(3, 1.0), v, L, a, mx), lim)
+    assert np.allclose(friction_steer_limit(np.full(3, -1.0), v, L, a, mx), -lim)
