@@ -159,20 +159,31 @@ if (!gwUrl) {
 } else {
   const ws = new WebSocket(gwUrl);
   ws.binaryType = "arraybuffer";
+  // The map is asked for until it arrives: the run's publisher may not answer yet when the page
+  // connects (it starts later, or is slow to declare its queryable), and one lost answer must
+  // not leave the page without a map for good.
+  let mapAsked = false;
+  const askMap = () => {
+    if (ws.readyState !== WebSocket.OPEN || mapAsked || state.mapMeshes > 0) return;
+    mapAsked = true;
+    ws.send(JSON.stringify({ op: "get", key: "sumo/map" }));
+  };
+  setInterval(askMap, 2000);
   ws.onopen = () => {
     for (const key of ["sumo/step", "physics/*/state"]) ws.send(JSON.stringify({ op: "subscribe", key }));
-    ws.send(JSON.stringify({ op: "get", key: "sumo/map" }));
+    askMap();
   };
   ws.onmessage = (ev) => {
     if (typeof ev.data === "string") {
       const m = JSON.parse(ev.data);
       if (m.op === "error") state.error = m.error;
+      if (m.op === "error" && String(m.key).endsWith("sumo/map")) mapAsked = false; // no answer: ask again
       return;
     }
     const { key, payload } = unpackFrame(ev.data);
     const msg = unpack(payload);
     if (key.endsWith("/sumo/map")) {
-      if (msg.glb) loadMap(msg);
+      if (msg.glb) { state.error = ""; loadMap(msg); } else mapAsked = false;
     } else if (key.endsWith("/sumo/step")) {
       const a = msg.agents, len = f32(a.length), wid = f32(a.width);
       sizes.clear();
