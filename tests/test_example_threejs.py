@@ -60,9 +60,13 @@ def test_example_page_shows_the_map_and_moving_agents(tmp_path, browser):  # noq
         page = (f"http://127.0.0.1:{http.server_address[1]}/examples/threejs_replay/index.html?gw="
                 + urllib.parse.quote(url, safe=""))
         browser.get(page)
-        st = wait_until(lambda: browser.execute_script(
-            "const s = window.sumocoExample; return s && s.mapMeshes > 0 && s.agents > 0 && s;"),
-            30.0, "the map and the agents in the page", procs=[gw, replay])
+        try:
+            st = wait_until(lambda: browser.execute_script(
+                "const s = window.sumocoExample; return s && s.mapMeshes > 0 && s.agents > 0 && s;"),
+                30.0, "the map and the agents in the page", procs=[gw, replay])
+        except AssertionError as e:  # say what the page had got so far
+            raise AssertionError(f"{e}; page state: {browser.execute_script('return window.sumocoExample')}; "
+                                 f"gateway log: {gw.tail(20)}") from None
         assert st["error"] == "" and st["mapMeshes"] >= 3 and st["agents"] == AGENTS
         count = browser.execute_script("return window.sumocoExample.agents")
         assert count == AGENTS
