@@ -910,3 +910,37 @@ def decode_as(data: bytes, cls: type, limits: DecodeLimits = DEFAULT_LIMITS) -> 
     if not isinstance(msg, cls):
         raise ProtocolError(f"expected a {cls.__name__} message, got {type(msg).__name__}", "kind")
     return msg
+
+
+_PEEK_HEAD_BYTES = 4096  # the encoder writes kind, run, step, t, dt, sv before the agent columns
+
+
+def peek(data: bytes, names: tuple[str, ...], limits: DecodeLimits = DEFAULT_LIMITS) -> dict[str, int | float]:
+    """Top-level numbers ``names`` of a message (``step``, ``t``, ``sv``) without building the
+    agent arrays: the first bytes are parsed first (the encoder writes these keys before the
+    columns), other values are skipped, every length bounded by ``limits`` while msgpack
+    parses. A name that is absent, not a number, or in an undecodable message is left out."""
+    want = set(names)
+    out: dict[str, int | float] = {}
+    if len(data) > limits.max_bytes:
+        return out
+    for chunk in ((data[:_PEEK_HEAD_BYTES], data) if len(data) > _PEEK_HEAD_BYTES else (data,)):
+        u = msgpack.Unpacker(raw=False, max_buffer_size=max(len(chunk), 1), **limits.unpack_kwargs())
+        u.feed(chunk)
+        try:
+            for _ in range(u.read_map_header()):
+                k = u.unpack()
+                if k not in want:
+                    u.skip()
+                    continue
+                v = u.unpack()
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    out[k] = v
+                if len(out) == len(want):
+                    break
+            return out  # the map read (or all names found): what is missing is absent
+        except msgpack.OutOfData:
+            continue  # cut off inside the head: read the whole message
+        except Exception:  # msgpack raises a zoo of types for corrupt or oversized input
+            return out
+    return out

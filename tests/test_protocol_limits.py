@@ -111,7 +111,11 @@ class _NoFile:
 
 
 def test_recorder_peeks_and_compacts_within_the_run_limits():
-    from sumoco.app.record import LiveRecorder, RecordConfig, _peek
+    from protocol.codec import peek
+    from sumoco.app.record import LiveRecorder, RecordConfig
+
+    def _peek(payload, key, limits=DEFAULT_LIMITS):  # one number, or None
+        return peek(payload, (key,), limits).get(key)
 
     lim = RunConfig(max_agents=50).decode_limits
     step = encode(synthetic_step(5, step=7))
@@ -182,3 +186,15 @@ def test_viewer_map_reply_decoded_within_limits():
     assert feed._query_map() is None  # refused while msgpack parses, no exception
     replies[:] = [hostile, good]
     assert feed._query_map() == (glb, hashlib.sha256(glb).hexdigest())
+
+
+def test_peek_reads_top_level_numbers_from_the_head_or_the_whole_message():
+    from protocol.codec import peek
+
+    step = encode(synthetic_step(3000, step=42))  # well over the 4 KiB head
+    assert len(step) > 4096
+    got = peek(step, ("step", "sv", "t"))
+    assert got["step"] == 42 and got["sv"] == 0 and got["t"] == decode(step).time
+    late = msgpack.packb({"pad": b"x" * 10_000, "sv": 3, "flag": True, "name": "x"})  # past the head
+    assert peek(late, ("sv", "flag", "name", "absent")) == {"sv": 3}  # no bools, strings or absent keys
+    assert peek(b"\x93\x01\x02", ("sv",)) == {} and peek(b"\xc1", ("sv",)) == {}  # not a map; corrupt

@@ -32,7 +32,7 @@ import zenoh
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
-from protocol.codec import DEFAULT_LIMITS, MAX_AGENTS, DecodeLimits, decode, encode
+from protocol.codec import DEFAULT_LIMITS, MAX_AGENTS, DecodeLimits, decode, encode, peek
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
 from sumoco.app import record_codec as rc
@@ -185,24 +185,6 @@ class McapRecorder:
                 "up to there")
 
 
-def _peek(payload: bytes, key: str, limits: DecodeLimits = DEFAULT_LIMITS) -> float | None:
-    """One top-level number of a msgpack message (``t``, ``sv``), without building the agent
-    arrays: the other values are skipped, every length bounded by ``limits`` while msgpack parses."""
-    if len(payload) > limits.max_bytes:
-        return None
-    try:
-        u = msgpack.Unpacker(raw=False, max_buffer_size=max(len(payload), 1), **limits.unpack_kwargs())
-        u.feed(payload)
-        for _ in range(u.read_map_header()):
-            if u.unpack() == key:
-                v = u.unpack()
-                return v if isinstance(v, (int, float)) and not isinstance(v, bool) else None
-            u.skip()
-        return None
-    except Exception:  # undecodable or over the limits: recorded as it came, the reader reports it
-        return None
-
-
 class LiveRecorder:
     """Subscribes to every key of a run and records it (use ``start``/``stop``).
 
@@ -280,7 +262,7 @@ class LiveRecorder:
     def _keep(self, topic: str, payload: bytes) -> bool:
         if not self._period or not topic.endswith("/state"):
             return True
-        t = _peek(payload, "t", self.limits)
+        t = peek(payload, ("t",), self.limits).get("t")
         if t is None:
             return True
         last = self._last_t.get(topic)
@@ -351,11 +333,11 @@ class LiveRecorder:
     def _track_static_version(self, topic: str, payload: bytes) -> None:
         """Record every static-data version the steps refer to (SPEC 3.2: tables change in a run)."""
         if topic == self.keys.static:
-            self._static_sv = int(_peek(payload, "sv") or 0)  # static data: the default limits
+            self._static_sv = int(peek(payload, ("sv",)).get("sv", 0))  # static data: the default limits
             self._static_bytes = payload
         elif topic == self.keys.step and self._static_sv is not None:
-            sv = int(_peek(payload, "sv", self.limits) or 0)
-            step = _peek(payload, "step", self.limits)
+            head = peek(payload, ("sv", "step"), self.limits)
+            sv, step = int(head.get("sv", 0)), head.get("step")
             # A step index that goes back is a new SUMO side under the same run id: its static
             # versions start again, and its network may differ although the version is the same.
             restarted = step is not None and self._last_step is not None and step < self._last_step
@@ -376,7 +358,7 @@ class LiveRecorder:
                 except zenoh.ZError:
                     return
                 for data in replies:
-                    if int(_peek(data, "sv") or 0) >= sv:
+                    if int(peek(data, ("sv",)).get("sv", 0)) >= sv:
                         if data == self._static_bytes:  # the same network again (a restart): on record
                             return
                         with self._bytes_lock:

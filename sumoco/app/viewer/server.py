@@ -62,7 +62,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from protocol.codec import COORD_LIMIT, DEFAULT_LIMITS, decode_as
+from protocol.codec import COORD_LIMIT, DEFAULT_LIMITS, decode_as, peek
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import StaticData
@@ -110,38 +110,6 @@ class ViewerConfig:
 
 
 # --------------------------------------------------------------------------- newest-only state
-
-
-_HEAD_BYTES = 4096  # the keys before ``agents`` (kind, run, step, t, dt, sv) fit in this with any sane run id
-
-
-def peek_head(payload: bytes, names: tuple[str, ...]) -> dict[str, int]:
-    """Top-level integers ``names`` of a msgpack map (a step's ``step`` and ``sv``, static
-    data's ``sv``) without decoding the rest: the encoder writes them before ``agents``, so
-    only the first few hundred bytes are parsed; a value that is absent, not an integer or
-    undecodable is left out. Lengths are bounded by the default limits while msgpack parses."""
-    want = set(names)
-    out: dict[str, int] = {}
-    for chunk in ((payload[:_HEAD_BYTES], payload) if len(payload) > _HEAD_BYTES else (payload,)):
-        u = msgpack.Unpacker(raw=False, max_buffer_size=max(len(chunk), 1), **DEFAULT_LIMITS.unpack_kwargs())
-        u.feed(chunk)
-        try:
-            for _ in range(u.read_map_header()):
-                k = u.unpack()
-                if k in want:
-                    v = u.unpack()
-                    if isinstance(v, int) and not isinstance(v, bool):
-                        out[k] = v
-                    if len(out) == len(want):
-                        return out
-                else:
-                    u.skip()
-            return out  # the whole map read: what is missing is absent
-        except msgpack.OutOfData:
-            continue  # cut off inside the head: read the whole payload
-        except Exception:  # msgpack raises a zoo of types for corrupt or oversized input
-            return out
-    return out
 
 
 class LatestStore:
@@ -210,7 +178,7 @@ class LatestStore:
         self._changed()
 
     def put_static(self, payload: bytes) -> None:
-        sv = int(peek_head(payload, ("sv",)).get("sv", 0))  # absent: a 1.1 sender, version 0
+        sv = int(peek(payload, ("sv",)).get("sv", 0))  # absent: a 1.1 sender, version 0
         with self._lock:
             if payload == self.static:
                 return
@@ -635,8 +603,8 @@ class ZenohFeed:
     def _on_step(self, sample: Any) -> None:
         payload = sample.payload.to_bytes()
         self.store.put_step(payload)
-        head = peek_head(payload, ("step", "sv"))  # the first bytes only: the agents stay undecoded
-        sv, idx = head.get("sv", 0), head.get("step")
+        head = peek(payload, ("step", "sv"))  # the first bytes only: the agents stay undecoded
+        sv, idx = int(head.get("sv", 0)), head.get("step")
         if idx is not None and self._last_step_idx is not None and idx < self._last_step_idx:
             self._restarted = True  # its static versions start again, its network may differ
         self._last_step_idx = idx
