@@ -11,6 +11,7 @@ matplotlib.use("Agg")  # files only, no display needed
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from protocol.frames import wrap_pi  # noqa: E402
 from sumoco.app.analysis import FigureData, internal_lane_mask  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -79,7 +80,7 @@ def make_figures(data: FigureData, ref_id: str, out: Path, lad_sweep: bool = Tru
                     {k: v for k, v in row.items() if not isinstance(v, np.ndarray)} for row in sweep
                 ]
             fig, axes = plt.subplots(1, len(sweep), figsize=(4 * len(sweep), 4), sharey=True)
-            inside = track["internal"]
+            inside = turn_passage(track)  # centre the plots on the turn
             cx = track["x"][inside].mean() if inside.any() else track["x"].mean()
             cy = track["y"][inside].mean() if inside.any() else track["y"].mean()
             for ax, row in zip(np.atleast_1d(axes), sweep):
@@ -123,18 +124,50 @@ def make_figures(data: FigureData, ref_id: str, out: Path, lad_sweep: bool = Tru
     return names
 
 
+def turn_passage(track: dict, approach_m: float = 3.0) -> np.ndarray:
+    """Mask of the samples on the junction passage where the track turns the most.
+
+    ``track["internal"]`` marks every junction lane the car crosses; the figure is about
+    the turn, so a junction taken straight (or stood at, waiting) does not count: each
+    contiguous run of internal samples is scored by the heading change between the
+    ``approach_m`` of travel before it and after it, and the largest wins.
+    """
+    internal = np.asarray(track.get("internal", np.zeros(len(track["t"]), bool)), bool)
+    if not internal.any():
+        return internal
+    xy = np.c_[np.asarray(track["x"], np.float64), np.asarray(track["y"], np.float64)]
+    dist = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], internal.astype(np.int8), [0]))))
+    best, best_turn = None, -1.0
+    for i0, i1 in zip(edges[::2], edges[1::2] - 1):  # a few passages per track
+        a0 = np.searchsorted(dist, dist[i0] - approach_m, side="right") - 1
+        b1 = np.searchsorted(dist, dist[i1] + approach_m)
+        a0, b1 = max(a0, 0), min(b1, len(dist) - 1)
+        before, after = xy[i0] - xy[a0], xy[b1] - xy[i1]
+        if np.hypot(*before) < 1e-6 or np.hypot(*after) < 1e-6:
+            continue
+        turn = abs(float(wrap_pi(np.arctan2(after[1], after[0]) - np.arctan2(before[1], before[0]))))
+        if turn > best_turn:
+            best, best_turn = (i0, i1), turn
+    out = np.zeros(len(internal), bool)
+    if best is not None:
+        out[best[0]:best[1] + 1] = True
+    return out
+
+
 def lad_min_sweep(track: dict, lad_mins=(5.0, 6.0, 7.0, 8.0)) -> list[dict]:
     """Replay the reference car alone under the paper preset for several LAD_min (Fig. 9).
 
     ``track`` holds the car's SUMO samples and ``internal`` (True on junction lanes);
-    the lateral error is taken over the time the reference spends in the junction.
+    the lateral error is taken over the time the reference spends in its sharpest turn
+    (``turn_passage``), from 1 s before to 1 s after.
     """
     from physics_side.experiments import Trajectory, track_reference
     from protocol.messages import AgentClass
 
     traj = Trajectory.from_samples(track["t"], track["x"], track["y"], track["speed"], name="recorded")
     t0 = float(track["t"][0])
-    inside = track["t"][np.asarray(track.get("internal", np.zeros(len(track["t"]), bool)))]
+    inside = track["t"][turn_passage(track)]
     rows = []
     fleet_log = logging.getLogger("physics_side.fleet")
     for lad in lad_mins:
