@@ -167,6 +167,8 @@ class DefaultControl:
     decel_max: float = 11.0  # [m/s^2] commanded deceleration limit (SUMO's motorcycles brake at 10)
     hold_speed: float = 0.2  # [m/s] below this reference speed a stopped agent holds its brakes
     hold_brake: float = 0.3  # [1] hold brake as a fraction of max brake torque
+    creep_back_m: float = 0.15  # [m] a vehicle standing this far past its standing reference rolls back to it (0 = never)
+    creep_speed: float = 0.5  # [m/s] the fastest such a roll back goes
     ped_omega: float = 6.0  # [rad/s] pedestrian position-loop natural frequency
     ped_zeta: float = 1.0  # [1] pedestrian position-loop damping ratio
     bike_roll_kp: float = 1500.0  # [N*m/rad] roll stabiliser stiffness (bicycles, every preset)

@@ -38,6 +38,9 @@ A_LAT_SHARE = 0.92  # [1] share of the tyres' grip (mu g) the steering limit all
 GRIP_LATERAL = 1.0  # [1] weight of the turn's lateral acceleration in the drive's friction circle
 CURVE_PREVIEW_S = np.array([0.0, 0.5, 1.0])  # [s] path curvature taken this far ahead at the current speed
 DRIVE_GRIP_USE = 0.9  # [1] share of the driven wheels' grip the drive may use (traction control)
+CREEP_ACCEL = 1.5  # [m/s^2] acceleration bound of a roll back to a standing reference
+CREEP_FROM_REST = 0.05  # [m/s] a roll back starts below this forward speed
+CREEP_DONE_M = 0.03  # [m] a roll back ends this close to the standing reference
 MAX_LEAD_STEP_S = 0.2  # [s] longest step taken for the mean-speed lead (a late or coalesced step is no step length)
 PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
 PED_YAW_KD = 15.0  # [N*m*s/rad]
@@ -476,6 +479,20 @@ def control_default(
     hold = (v_ref <= cfg.hold_speed) & (a_cmd <= 0.5)
     brake = np.where(hold, np.maximum(brake, cfg.hold_brake * p.max_brake), brake)
     drive = np.where(hold, 0.0, drive)
+    # SUMO's Euler steps stop a vehicle within one step from any speed (1 s steps: 3.3 m/s
+    # to rest in 0.2 m), which no brake can follow: a vehicle that came to rest past its
+    # standing reference rolls back to it, wheels straight, instead of standing there for
+    # the whole wait (0.8 m for 20 s behind a bus's stop)
+    # (only from rest: a vehicle still rolling forwards brakes as usual; one already rolling
+    # back goes on until it is within CREEP_DONE_M)
+    back = ((v_ref <= cfg.hold_speed)
+            & (((e_s < -cfg.creep_back_m) & (obs.speed < CREEP_FROM_REST)) | ((e_s < -CREEP_DONE_M) & (obs.speed < -0.01)))
+            if cfg.creep_back_m > 0 else None)
+    if back is not None and back.any():
+        v_back = -np.minimum(cfg.creep_speed, 0.5 * -e_s)
+        t_back = _clip(2.0 * (v_back - obs.speed), -CREEP_ACCEL, CREEP_ACCEL) * p.m_eff * p.r_wheel
+        drive = np.where(back, _clip(t_back, -p.max_drive, p.max_drive), drive)
+        brake = np.where(back, 0.0, brake)
 
     if cfg.lateral == "stanley":
         # heading of the path where the bumper will be after the steering lag
@@ -501,6 +518,8 @@ def control_default(
     # (vehicles that steer their rear axle keep the whole demand: ``rear_axle_steer`` splits it)
     lim = p.max_steer if p.max_rear is None else np.where(p.max_rear > 0, 1.5, p.max_steer)
     steer = _clip(steer, -lim, lim)
+    if back is not None and back.any():
+        steer = np.where(back, 0.0, steer)
     return VehicleCommand(steer, drive, brake, a_cmd)
 
 

@@ -163,3 +163,41 @@ def test_report_lad_min_sweep_shows_the_papers_trend():
     assert [r["lad_min_m"] for r in rows] == [5.0, 6.0, 7.0, 8.0]
     assert cut[0] < cut[1] < cut[2] < cut[3], cut
     assert cut[3] - cut[0] > 0.5, cut
+
+
+def _sumo_emergency_stop(v: float = 3.3, stop_at: float = 5.0, crawl_m: float = 0.2, duration: float = 30.0):
+    """SUMO at 1 s Euler steps: cruising at ``v``, then at rest ``crawl_m`` further one step
+    later (no brake can do that: 3.3 m/s to rest in 0.2 m is 27 m/s^2)."""
+    from physics_side.experiments import PATH_AHEAD_M, Trajectory
+
+    hz = 1000.0
+    t = np.arange(0.0, duration + 1e-9, 1.0 / hz)
+    s = np.where(t <= stop_at, v * t, v * stop_at + crawl_m * np.clip(t - stop_at, 0.0, 1.0))
+    vv = np.where(t <= stop_at, v, 0.0)
+    L = s[-1] + PATH_AHEAD_M + 40
+    xy = np.c_[100.0 + np.arange(0, L, 1.0), np.full(int(np.ceil(L)), 100.0)]
+    return Trajectory(xy, t, s, vv, np.gradient(vv, t), "emergency_stop")
+
+
+@pytest.mark.parametrize("cls", [AgentClass.PASSENGER, AgentClass.BUS])
+def test_a_vehicle_past_its_standing_reference_rolls_back_to_it(cls):
+    """SUMO stops a vehicle within one 1 s step from any speed; the vehicle brakes past the
+    spot, comes to rest, then rolls back to it (wheels straight, nothing placed) instead of
+    standing there for the whole wait. With the roll back off, it stays past."""
+    from dataclasses import replace
+
+    from physics_side.config import PhysicsSettings
+
+    base = PhysicsSettings()
+    traj = _sumo_emergency_stop()
+    phys = replace(base.physics, sumo_step_s=1.0)
+    on = PhysicsSettings(phys, base.control)
+    off = PhysicsSettings(phys, replace(base.control, default=replace(base.control.default, creep_back_m=0.0)))
+    r_on = track_reference("default", cls, traj, settings=on)
+    r_off = track_reference("default", cls, traj, settings=off)
+    late = r_on["t"] > 20.0
+    assert r_off["err"][late].min() > 0.3, r_off["err"][late].min()  # braking cannot follow SUMO's stop
+    assert r_on["err"][late].max() < 0.1, r_on["err"][late].max()
+    assert r_on["speed"].min() > -0.6  # a slow roll, never faster than creep_speed (+ margin)
+    assert np.abs(r_on["err_true_lat"][late]).max() < 0.1  # straight back along the lane
+    assert r_on["placements"][0] == 1  # the spawn only: driven back, not placed
