@@ -221,6 +221,19 @@ def drive_grip_torque(drive_grip: np.ndarray, r_wheel: np.ndarray) -> np.ndarray
     return np.where(finite, DRIVE_GRIP_USE * np.where(finite, drive_grip, 0.0) * r_wheel, np.inf)
 
 
+def bumper_curvature_limit(
+    wheelbase: np.ndarray, d_bumper: np.ndarray, max_steer: np.ndarray, max_rear: np.ndarray | None,
+) -> np.ndarray:
+    """Largest curvature [1/m] of the path a vehicle's front bumper can follow (at walking
+    pace, full lock): the turning centre lies wheelbase / (tan f + tan r) to the side, at
+    wheelbase tan r / (tan f + tan r) ahead of the rear axle (r: a steered rear axle's
+    limit, else 0); the bumper, ``d_bumper`` ahead of the rear axle, circles it."""
+    tf = np.tan(max_steer)
+    tr = np.zeros_like(tf) if max_rear is None else np.tan(np.maximum(max_rear, 0.0))
+    k = np.maximum(tf + tr, 1e-6)
+    return 1.0 / np.hypot(wheelbase / k, d_bumper - wheelbase * tr / k)
+
+
 def steer_limit(speed: np.ndarray, wheelbase: np.ndarray, a_lat: np.ndarray, max_steer: np.ndarray) -> np.ndarray:
     """Largest steering angle [rad] at ``speed`` [m/s]: the friction circle's atan(L * a_lat / v^2)
     (v at least 0.1 m/s) or ``max_steer`` [rad], whichever is smaller (``friction_steer_limit``)."""
@@ -527,7 +540,7 @@ __all__ = [
     "ControlState", "VehicleCommand", "VehicleObs", "VehicleParams", "accel_command", "accel_to_torques",
     "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
-    "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
+    "bumper_curvature_limit", "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
     "steer_limit",
     "rear_axle_steer", "saturation_speed_cut", "steered_roll_stabiliser", "traction_limit",
 ]

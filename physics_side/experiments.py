@@ -178,6 +178,21 @@ def paper_route(v_max: float = 8.0, x0: float = 100.0, y0: float = 100.0) -> Tra
     return Trajectory(xy, t, s, vv, a, "paper_route")
 
 
+def u_turn(radius: float = 3.0, v: float = 3.5, lead_in: float = 30.0, lead_out: float = 90.0,
+           x0: float = 100.0, y0: float = 100.0) -> Trajectory:
+    """Straight east, a U-turn to the left of ``radius`` (SUMO's turnaround lanes: ~3 m,
+    tighter than any car can steer), straight back west."""
+    ds = 0.25
+    a1 = np.c_[np.arange(0, lead_in, ds), np.zeros(int(round(lead_in / ds)))]
+    th = np.arange(ds / radius, np.pi, ds / radius)
+    arc = np.c_[lead_in + radius * np.sin(th), radius * (1 - np.cos(th))]
+    back = np.c_[lead_in - np.arange(0, lead_out, ds), np.full(int(round(lead_out / ds)), 2 * radius)]
+    xy = np.vstack([a1, arc, back]) + [x0, y0]
+    dur = (lead_in + np.pi * radius + lead_out - PATH_AHEAD_M - 5) / v
+    t, s, vv, a = _profile(dur, v)
+    return Trajectory(xy, t, s, vv, a, "u_turn")
+
+
 def _vtype_for(cls: AgentClass) -> str:
     return {AgentClass.PASSENGER: "passenger", AgentClass.TAXI: "taxi", AgentClass.BUS: "bus",
             AgentClass.BICYCLE: "bicycle", AgentClass.PEDESTRIAN: "pedestrian"}.get(cls, "truck")
@@ -225,7 +240,7 @@ def track_reference(
     (as published: vs the extrapolated reference), err_held (distance to the held
     sample), dist (distance travelled), speed, v_ref, steer_deg, steer_pct (of max
     steer), drive, brake [N*m], u (u_in for paper, commanded accel for default), roll,
-    pitch [deg], z [m]. ``max_steer_deg`` [deg, at most the model's]: the car's steering limit
+    pitch [deg], z [m], mode (``AgentMode``). ``max_steer_deg`` [deg, at most the model's]: the car's steering limit
     (what the paper preset's P_steer is a share of).
     """
     cls = AgentClass(int(agent_class))
@@ -247,7 +262,7 @@ def track_reference(
     lad_params = (ctl.paper.lad_min, ctl.paper.lad_max, ctl.paper.k_lad)
     rec: dict[str, list] = {k: [] for k in (
         "t", "x", "y", "held_x", "held_y", "err_lon", "err_lat", "speed", "v_ref", "steer_deg", "steer_pct",
-        "drive", "brake", "u", "roll", "pitch", "z")}
+        "drive", "brake", "u", "roll", "pitch", "z", "mode")}
     max_steer = np.rad2deg(world.tables.max_steer[0]) if len(world.tables.max_steer) else 35.0
     t = 0.0
     for msg in step_messages(traj, cls, length, spec.width, phys.sumo_step_s, lad_params):
@@ -275,6 +290,7 @@ def track_reference(
             rec["roll"].append(snap.roll[0])
             rec["pitch"].append(snap.pitch[0])
             rec["z"].append(snap.z[0])
+            rec["mode"].append(snap.mode[0])
     out = {k: np.asarray(v, np.float64) for k, v in rec.items()}
     exact = traj.at(out["t"])
     out["ref_x"], out["ref_y"], out["v_ref"] = exact["x"], exact["y"], exact["speed"]
@@ -291,6 +307,7 @@ def track_reference(
     for cause in ("spawn", "jump", "divergence", "flip"):
         out[f"placements_{cause}"] = np.array([fleet.counters[f"placements_{cause}"]])
     out["collisions"] = np.array([world.counters["collisions"]])
+    out["carries_infeasible"] = np.array([fleet.counters["carries_infeasible"]])
     return out
 
 
@@ -312,4 +329,4 @@ def steer_sweep(max_steers=(15.0, 20.0, 25.0, 30.0, 35.0), lad_min: float = 7.0,
 
 
 __all__ = ["Trajectory", "lad_sweep", "lane_change", "paper_route", "step_messages", "steer_sweep",
-           "straight", "track_reference", "turn90"]
+           "straight", "track_reference", "turn90", "u_turn"]

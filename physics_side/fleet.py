@@ -48,6 +48,15 @@ BIKE_MAX_LEAN_DEG = 35.0  # [deg] bicycles (a rider's lean; motorcycles take the
 MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next sample (bounded)
 MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
+# A manoeuvre no vehicle of the agent's size can drive (a U-turn on a turnaround lane, a
+# coach through a tight junction corner) is
+# shown as SUMO has it, kinematic, until it is over: driven, the vehicle ran metres wide
+# into its neighbours and was placed back (counted apart: ``carries_infeasible``)
+INFEASIBLE_WINDOW_M = 8.0  # [m] the path's heading change over this length gives its mean curvature (shorter: the corners of coarse lane shapes count)
+INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m] windows starting up to 1 s of travel ahead of the bumper are checked (within these)
+INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle can follow starts a carry ...
+INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within the vehicle's reach again
+INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] SUMO's body angle this close to the path's heading: straight again
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
 
@@ -167,7 +176,7 @@ class Fleet:
         self.counters: dict[str, int] = {
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
-            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_sumo_overlaps": 0, "retyped": 0,
+            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_sumo_overlaps": 0, "retyped": 0, "carries_infeasible": 0, "carried_infeasible_ms": 0,
         }
         self.wire_vtype = np.zeros(0, np.uint16)  # vType index per agent of the newest step
         self._empty()
@@ -195,6 +204,7 @@ class Fleet:
         self.sumo_wid = np.zeros(0)
         self.jump_t = np.zeros(0)
         self.carry = np.zeros(0, bool)
+        self.infeasible = np.zeros(0, bool)
         self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
         self._pending_collisions: list[str] = []
         self.tau = 0.0
@@ -413,6 +423,7 @@ class Fleet:
         self.state = self.state.take(prev)
         self.stopping = False
         self._params()
+        self._carry_infeasible(ref, prev)
 
         # placements: new agents, teleported agents, diverged or flipped physical agents
         obs = w.observe(slots)
@@ -631,6 +642,51 @@ class Fleet:
         self._any_bike = bool(np.any(self.kind == M.KIND_BIKE))
         self._gen = self.world.generation
         self._groups = None
+
+    def _infeasible_paths(self, ref: Reference, margin: float) -> np.ndarray:
+        """Vehicles whose path ahead turns tighter than ``margin`` times what their steering
+        geometry can follow (``bumper_curvature_limit``). Grip is left out: a carry for a turn
+        too fast for the tyres (at 1 s steps) put the carried vehicle, exact on SUMO's path,
+        into a neighbour running slightly wide beside it."""
+        grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + 1e-9, 1.0)[:, None]  # (k, 1) [m] ahead of the bumper
+        s = np.broadcast_to(grid, (len(grid), self.n))
+        h0 = ref.path.at(s).heading
+        h1 = ref.path.at(s + INFEASIBLE_WINDOW_M).heading
+        kappa = np.abs(wrap_pi(h1 - h0)) / INFEASIBLE_WINDOW_M
+        p = self.params
+        v = np.maximum(ref.speed, 0.0)
+        reach = C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, p.max_rear)
+        ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
+        return ((kappa > margin * reach) & (grid <= ahead)).any(axis=0)
+
+    def _carry_infeasible(self, ref: Reference, prev: np.ndarray) -> None:
+        """Agents (physical vehicles) on a manoeuvre they cannot drive become kinematic until
+        it is over (see INFEASIBLE_*); counted in episodes and agent-seconds."""
+        was = np.zeros(self.n, bool)
+        if len(self.infeasible) and (prev >= 0).any():
+            was = (prev >= 0) & self.infeasible[np.maximum(prev, 0)]
+        cand = (self.mode == AgentMode.PHYSICAL) & (self.kind != M.KIND_PED)
+        now = np.zeros(self.n, bool)
+        # (not between samples of long steps: there the switches fall 1 s apart and SUMO's motion
+        # between its samples is a guess anyway)
+        if self.cfg.carry_infeasible and not self.interpolating and cand.any():
+            start = self._infeasible_paths(ref, INFEASIBLE_MARGIN)
+            keep = np.zeros(self.n, bool)
+            if was.any():  # over once the path ahead is in reach and the body is straight on it (a
+                # long vehicle's rear is still in the turn when its bumper is out: SUMO's chord angle)
+                h = ref.path.at(np.zeros(self.n)).heading
+                keep = (self._infeasible_paths(ref, INFEASIBLE_RELEASE)
+                        | (np.abs(wrap_pi(ref.yaw - h)) > math.radians(INFEASIBLE_STRAIGHT_DEG)))
+            now = cand & (start | (was & keep))
+        self.infeasible = now
+        if now.any():
+            self.mode = np.where(now, AgentMode.KINEMATIC, self.mode).astype(np.uint8)
+            began = now & ~was
+            self.counters["carries_infeasible"] += int(began.sum())
+            self.counters["carried_infeasible_ms"] += int(round(1e3 * self.step_length * now.sum()))
+            if began.any():
+                log.info("t=%.2f s: %s on a manoeuvre beyond their steering: shown kinematic until it is over",
+                         ref.t_k, [self.ids[i] for i in np.flatnonzero(began)][:10])
 
     def _build_groups(self) -> _Groups:
         veh = self.kind != M.KIND_PED

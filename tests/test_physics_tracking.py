@@ -201,3 +201,44 @@ def test_a_vehicle_past_its_standing_reference_rolls_back_to_it(cls):
     assert r_on["speed"].min() > -0.6  # a slow roll, never faster than creep_speed (+ margin)
     assert np.abs(r_on["err_true_lat"][late]).max() < 0.1  # straight back along the lane
     assert r_on["placements"][0] == 1  # the spawn only: driven back, not placed
+
+
+def test_bumper_curvature_limit_is_the_steering_geometrys():
+    from physics_side.control import bumper_curvature_limit
+
+    # fixed rear axle: the bumper circles the turning centre at hypot(L / tan(max), d)
+    k = bumper_curvature_limit(np.array([2.7]), np.array([3.6]), np.radians([35.0]), None)
+    assert 1.0 / k[0] == pytest.approx(np.hypot(2.7 / np.tan(np.radians(35.0)), 3.6), rel=1e-9)
+    # a steered rear axle turns tighter
+    k4 = bumper_curvature_limit(np.array([2.7]), np.array([3.6]), np.radians([35.0]), np.radians([10.0]))
+    assert k4[0] > k[0]
+
+
+@pytest.mark.parametrize("cls", [AgentClass.PASSENGER, AgentClass.BUS])
+def test_a_u_turn_beyond_the_steering_is_shown_kinematic_then_driven_again(cls):
+    """SUMO turns vehicles round on turnaround lanes of ~3 m radius, tighter than any car's
+    steering: driven, they ran metres wide and were placed back. The vehicle is shown as
+    SUMO has it (kinematic) through the U-turn only, counted, and driven before and after."""
+    from dataclasses import replace
+
+    from physics_side.config import PhysicsSettings
+    from physics_side.experiments import u_turn
+    from protocol.messages import AgentMode
+
+    traj = u_turn()
+    r = track_reference("default", cls, traj)
+    kin = r["mode"] == AgentMode.KINEMATIC
+    assert r["carries_infeasible"][0] == 1
+    assert kin.any() and (r["mode"][:20] == AgentMode.PHYSICAL).all() and r["mode"][-1] == AgentMode.PHYSICAL
+    # the kinematic part covers the U-turn (heading reversed between its start and end) and no more than it needs
+    heading = np.arctan2(np.gradient(r["ref_y"]), np.gradient(r["ref_x"]))
+    i0, i1 = np.flatnonzero(kin)[[0, -1]]
+    assert np.cos(heading[i0] - heading[i1]) < -0.9
+    assert kin.mean() < 0.5
+    assert r["placements"][0] == 1  # the spawn only: nothing diverged
+    assert r["err"].max() < 1.0, r["err"].max()
+    # driven all the way (carry off), it cannot follow the U-turn
+    base = PhysicsSettings()
+    off = PhysicsSettings(replace(base.physics, carry_infeasible=False), base.control)
+    r_off = track_reference("default", cls, traj, settings=off)
+    assert r_off["err"].max() > 2.0 or r_off["placements_divergence"][0] > 0

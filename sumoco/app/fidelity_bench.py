@@ -114,6 +114,7 @@ def run_one(
             "collisions_physics_only": e.get("collisions_physics_only"),
             "collisions_sumo_reported": e.get("collisions_sumo_reported"),
             "placements": e.get("placements_by_cause"),
+            "carries_infeasible": e.get("carries_infeasible"),
             "physics_wall_s": round(wall[p], 3),
         })
     return rows

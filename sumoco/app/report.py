@@ -59,18 +59,21 @@ def render_markdown(summary: dict, recording) -> str:
         "Front-bumper position error against SUMO at the same time [m], mean / p95 / max:",
         "",
         "| preset | all agents | reference car | ref straight | ref turn | lane changes: count, p95 / max "
-        "| collisions (physics only) | placements (spawn / jump / divergence / flip) |",
-        "|---|---|---|---|---|---|---|---|",
+        "| collisions (physics only) | placements (spawn / jump / divergence / flip) "
+        "| kinematic through a manoeuvre beyond steering: count, agent-s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for inst, p in summary["presets"].items():
         rc = p.get("reference_car", {})
         pc = p.get("placements_by_cause", {})
+        ci = p.get("carries_infeasible", {})
         causes = " / ".join(str(pc.get(c, 0)) for c in ("spawn", "jump", "divergence", "flip"))
         lines.append(
             f"| {inst} | {_fmt(p['error_m']['overall'])} | {_fmt(rc.get('overall'))} | "
             f"{_fmt(rc.get('straight'))} | {_fmt(rc.get('turn'))} | {_fmt_lc(p.get('lane_changes'))} | "
             f"{p['collisions']} "
-            f"({p.get('collisions_physics_only', 0)}) | {p['placements']} ({causes}) |"
+            f"({p.get('collisions_physics_only', 0)}) | {p['placements']} ({causes}) | "
+            f"{ci.get('count', 0)}, {ci.get('agent_s', 0):g} |"
         )
     lines += [
         "",

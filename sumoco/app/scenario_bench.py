@@ -78,8 +78,9 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
         at = p["error_m"].get("at_samples", {}).get("overall", {})
         row[inst] = {"p50_m": e.get("p50"), "p95_m": e.get("p95"), "max_m": e.get("max"),
                      "at_samples_p95_m": at.get("p95"),
-                     "collisions": p.get("collisions"), "placements": p.get("placements"),
-                     "rejected": p.get("rejected")}
+                     "collisions": p.get("collisions"), "collisions_physics_only": p.get("collisions_physics_only"),
+                     "placements": p.get("placements"), "placements_by_cause": p.get("placements_by_cause"),
+                     "carries_infeasible": p.get("carries_infeasible"), "rejected": p.get("rejected")}
     return row
 
 
