@@ -56,6 +56,9 @@ INFEASIBLE_WINDOW_M = 8.0  # [m] the path's heading change over this length give
 INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m] windows starting up to 1 s of travel ahead of the bumper are checked (within these)
 INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle can follow starts a carry ...
 INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within the vehicle's reach again
+INFEASIBLE_RATE_MARGIN = 1.5  # [1] (SUMO's body angle is the chord back to front: it turns faster than the bumper's path entering a bend)
+INFEASIBLE_OFF_M = 0.5  # [m] ... and the vehicle is this far off already
+INFEASIBLE_MIN_SPEED = 1.0  # [m/s] SUMO turning a vehicle moving faster than this quicker than its full lock does starts a carry too
 INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] SUMO's body angle this close to the path's heading: straight again
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
@@ -423,7 +426,6 @@ class Fleet:
         self.state = self.state.take(prev)
         self.stopping = False
         self._params()
-        self._carry_infeasible(ref, prev)
 
         # placements: new agents, teleported agents, diverged or flipped physical agents
         obs = w.observe(slots)
@@ -431,6 +433,7 @@ class Fleet:
                 else ref.held())
         e_lon, e_lat = tracking_error(obs.fx, obs.fy, held)
         dist = np.hypot(e_lon, e_lat)
+        self._carry_infeasible(ref, prev, yaw_rate, dist)
         physical = self.mode == AgentMode.PHYSICAL
         is_new = np.zeros(len(ids), bool)
         is_new[new] = True
@@ -597,11 +600,14 @@ class Fleet:
             log.info("%d collision(s) of the last interval were SUMO's: its footprints overlap at t=%.2f s",
                      moved, self._sample_ref.t_k)
 
-    def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True) -> None:
-        """Place agents ``idx`` at reference point ``at`` (full-length arrays)."""
+    def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True,
+               yaw: np.ndarray | None = None) -> None:
+        """Place agents ``idx`` at reference point ``at`` (full-length arrays); ``yaw``
+        (full length) replaces ``at.yaw`` as the body angle of a kinematic placement."""
         # physical placements: the steady-turn pose for the path tangent; kinematic ones:
         # SUMO's own body angle (the direct representation)
-        yaw = at.tangent if steady_turn else at.yaw
+        if yaw is None:
+            yaw = at.tangent if steady_turn else at.yaw
         if steady_turn and len(self._rear_idx):
             # a vehicle that steers its rear axle is placed on SUMO's chord, as it drives
             rear = self._max_rear[idx] > 0
@@ -659,9 +665,13 @@ class Fleet:
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         return ((kappa > margin * reach) & (grid <= ahead)).any(axis=0)
 
-    def _carry_infeasible(self, ref: Reference, prev: np.ndarray) -> None:
+    def _carry_infeasible(self, ref: Reference, prev: np.ndarray, yaw_rate: np.ndarray, dist: np.ndarray) -> None:
         """Agents (physical vehicles) on a manoeuvre they cannot drive become kinematic until
-        it is over (see INFEASIBLE_*); counted in episodes and agent-seconds."""
+        it is over (see INFEASIBLE_*); counted in episodes and agent-seconds. Seen on the path
+        ahead, or in SUMO's own turn rate (``yaw_rate`` [rad/s] between its last samples; a
+        turnaround at a dead end is not on the path until the vehicle is on it) once the
+        vehicle is ``dist`` > INFEASIBLE_OFF_M off its reference (SUMO's angle also jumps
+        where a lane meets a junction: a one-step rate of 3 rad/s in an ordinary turn)."""
         was = np.zeros(self.n, bool)
         if len(self.infeasible) and (prev >= 0).any():
             was = (prev >= 0) & self.infeasible[np.maximum(prev, 0)]
@@ -671,6 +681,10 @@ class Fleet:
         # between its samples is a guess anyway)
         if self.cfg.carry_infeasible and not self.interpolating and cand.any():
             start = self._infeasible_paths(ref, INFEASIBLE_MARGIN)
+            p = self.params
+            reach = C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, p.max_rear)
+            start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
+                      & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * reach))
             keep = np.zeros(self.n, bool)
             if was.any():  # over once the path ahead is in reach and the body is straight on it (a
                 # long vehicle's rear is still in the turn when its bumper is out: SUMO's chord angle)
@@ -861,7 +875,12 @@ class Fleet:
         w = self.world
         g = self._groups
         if len(g.kin_idx):
-            self._place(g.kin_idx, u.at, count=False, steady_turn=False)
+            # the body turns at SUMO's own rate between its samples, not with the path's
+            # heading at the bumper: a corner of a coarse lane shape right at the bumper swung
+            # a carried car's body 19 deg off SUMO's angle for one step, into its neighbours
+            ref = self.ref
+            yaw = wrap_pi(ref.yaw + ref.yaw_rate * min(self.tau, self.step_length))
+            self._place(g.kin_idx, u.at, count=False, steady_turn=False, yaw=yaw)
         if u.carry is not None:
             self._place(u.carry, u.at, count=False)
         vi = g.veh_idx

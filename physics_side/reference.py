@@ -279,6 +279,8 @@ class Reference:
         self.n = n
         if yaw_rate is None:
             yaw_rate = np.zeros(n)
+        self.yaw_rate = np.asarray(yaw_rate, np.float64)
+        """SUMO's turn rate between its last two samples [rad/s] (0: unknown)."""
         with np.errstate(divide="ignore", invalid="ignore"):
             kappa0 = np.where(self.speed > 0.5, yaw_rate / np.maximum(self.speed, 0.5), 0.0)
         self.path = PathSet.concat_fallback(path_offsets, path_xy, self.x, self.y, self.yaw, kappa0)
