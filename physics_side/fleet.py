@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -59,6 +59,7 @@ INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within th
 INFEASIBLE_RATE_MARGIN = 1.5  # [1] (SUMO's body angle is the chord back to front: it turns faster than the bumper's path entering a bend)
 INFEASIBLE_OFF_M = 0.5  # [m] ... and the vehicle is this far off already
 INFEASIBLE_MIN_SPEED = 1.0  # [m/s] SUMO turning a vehicle moving faster than this quicker than its full lock does starts a carry too
+KIN_BLEND_S = 0.4  # [s] time constant of a carried body's glide from its driven pose onto SUMO's
 INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] SUMO's body angle this close to the path's heading: straight again
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
@@ -208,6 +209,8 @@ class Fleet:
         self.jump_t = np.zeros(0)
         self.carry = np.zeros(0, bool)
         self.infeasible = np.zeros(0, bool)
+        self.kin_off = np.zeros((0, 3))  # carried agents' pose offset from SUMO's at the carry's start (x, y [m], yaw [rad])
+        self.kin_age = np.zeros(0)  # [s] since the carry started
         self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
         self._pending_collisions: list[str] = []
         self.tau = 0.0
@@ -433,7 +436,7 @@ class Fleet:
                 else ref.held())
         e_lon, e_lat = tracking_error(obs.fx, obs.fy, held)
         dist = np.hypot(e_lon, e_lat)
-        self._carry_infeasible(ref, prev, yaw_rate, dist)
+        self._carry_infeasible(ref, prev, yaw_rate, dist, obs, held)
         physical = self.mode == AgentMode.PHYSICAL
         is_new = np.zeros(len(ids), bool)
         is_new[new] = True
@@ -665,7 +668,8 @@ class Fleet:
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         return ((kappa > margin * reach) & (grid <= ahead)).any(axis=0)
 
-    def _carry_infeasible(self, ref: Reference, prev: np.ndarray, yaw_rate: np.ndarray, dist: np.ndarray) -> None:
+    def _carry_infeasible(self, ref: Reference, prev: np.ndarray, yaw_rate: np.ndarray, dist: np.ndarray,
+                          obs, held) -> None:
         """Agents (physical vehicles) on a manoeuvre they cannot drive become kinematic until
         it is over (see INFEASIBLE_*); counted in episodes and agent-seconds. Seen on the path
         ahead, or in SUMO's own turn rate (``yaw_rate`` [rad/s] between its last samples; a
@@ -693,9 +697,19 @@ class Fleet:
                         | (np.abs(wrap_pi(ref.yaw - h)) > math.radians(INFEASIBLE_STRAIGHT_DEG)))
             now = cand & (start | (was & keep))
         self.infeasible = now
+        # a carry glides from the body's pose onto SUMO's (KIN_BLEND_S): switched at once, a
+        # long body's yaw jumped from its driven pose to SUMO's chord, its rear ~1 m sideways
+        off, age = np.zeros((self.n, 3)), np.full(self.n, np.inf)
+        if was.any():
+            off[was], age[was] = self.kin_off[prev[was]], self.kin_age[prev[was]]
+        began = now & ~was
+        if began.any():
+            yaw0 = ref.yaw + ref.yaw_rate * min(self.tau, self.step_length)
+            off[began] = np.c_[obs.fx - held.x, obs.fy - held.y, wrap_pi(obs.yaw - yaw0)][began]
+            age[began] = 0.0
+        self.kin_off, self.kin_age = off, age
         if now.any():
             self.mode = np.where(now, AgentMode.KINEMATIC, self.mode).astype(np.uint8)
-            began = now & ~was
             self.counters["carries_infeasible"] += int(began.sum())
             self.counters["carried_infeasible_ms"] += int(round(1e3 * self.step_length * now.sum()))
             if began.any():
@@ -880,7 +894,13 @@ class Fleet:
             # a carried car's body 19 deg off SUMO's angle for one step, into its neighbours
             ref = self.ref
             yaw = wrap_pi(ref.yaw + ref.yaw_rate * min(self.tau, self.step_length))
-            self._place(g.kin_idx, u.at, count=False, steady_turn=False, yaw=yaw)
+            at = u.at
+            if len(self.kin_age) == self.n and np.isfinite(self.kin_age).any():
+                f = np.exp(-self.kin_age / KIN_BLEND_S)  # 0 for agents kinematic by preset (age inf)
+                at = replace(at, x=at.x + f * self.kin_off[:, 0], y=at.y + f * self.kin_off[:, 1])
+                yaw = yaw + f * self.kin_off[:, 2]
+                self.kin_age = self.kin_age + self.dt
+            self._place(g.kin_idx, at, count=False, steady_turn=False, yaw=yaw)
         if u.carry is not None:
             self._place(u.carry, u.at, count=False)
         vi = g.veh_idx
