@@ -652,6 +652,14 @@ class Fleet:
         self._gen = self.world.generation
         self._groups = None
 
+    def _reach(self) -> np.ndarray:
+        """Tightest path curvature [1/m] each vehicle's bumper follows when driven: its front
+        steering's (``bumper_curvature_limit``); a steered rear axle keeps a long body on
+        SUMO's chord rather than turning it tighter (a truck released at 75 % of its
+        four-wheel-steered limit ran 6 m wide)."""
+        p = self.params
+        return C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, None)
+
     def _infeasible_paths(self, ref: Reference, margin: float) -> np.ndarray:
         """Vehicles whose path ahead turns tighter than ``margin`` times what their steering
         geometry can follow (``bumper_curvature_limit``). Grip is left out: a carry for a turn
@@ -664,7 +672,7 @@ class Fleet:
         kappa = np.abs(wrap_pi(h1 - h0)) / INFEASIBLE_WINDOW_M
         p = self.params
         v = np.maximum(ref.speed, 0.0)
-        reach = C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, p.max_rear)
+        reach = self._reach()
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         return ((kappa > margin * reach) & (grid <= ahead)).any(axis=0)
 
@@ -686,7 +694,7 @@ class Fleet:
         if self.cfg.carry_infeasible and not self.interpolating and cand.any():
             start = self._infeasible_paths(ref, INFEASIBLE_MARGIN)
             p = self.params
-            reach = C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, p.max_rear)
+            reach = self._reach()
             start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
                       & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * reach))
             keep = np.zeros(self.n, bool)
