@@ -49,18 +49,23 @@ MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next s
 MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
 # A manoeuvre no vehicle of the agent's size can drive (a U-turn on a turnaround lane, a
-# coach through a tight junction corner) is
-# shown as SUMO has it, kinematic, until it is over: driven, the vehicle ran metres wide
-# into its neighbours and was placed back (counted apart: ``carries_infeasible``)
-INFEASIBLE_WINDOW_M = 8.0  # [m] the path's heading change over this length gives its mean curvature (shorter: the corners of coarse lane shapes count)
-INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m] windows starting up to 1 s of travel ahead of the bumper are checked (within these)
-INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle can follow starts a carry ...
-INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within the vehicle's reach again
-INFEASIBLE_RATE_MARGIN = 1.5  # [1] (SUMO's body angle is the chord back to front: it turns faster than the bumper's path entering a bend)
-INFEASIBLE_OFF_M = 0.5  # [m] ... and the vehicle is this far off already
-INFEASIBLE_MIN_SPEED = 1.0  # [m/s] SUMO turning a vehicle moving faster than this quicker than its full lock does starts a carry too
+# coach through a tight junction corner) is shown as SUMO has it, kinematic, until it is
+# over: driven, the vehicle ran metres wide into its neighbours and was placed back
+# (counted apart: ``carries_infeasible``). Seen on the path ahead: the heading change over
+# INFEASIBLE_WINDOW_M (shorter windows take the corners of coarse lane shapes for curves no
+# car can follow), for windows starting up to 1 s of travel ahead (within INFEASIBLE_AHEAD_M)
+INFEASIBLE_WINDOW_M = 8.0  # [m]
+INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m]
+INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle's reach starts a carry ...
+INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within this share of it
+INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] ... and SUMO's body angle is this close to the path's heading
+# Or seen in SUMO's turn rate: faster than INFEASIBLE_RATE_MARGIN x full lock at its speed
+# (SUMO's angle is the chord back to front, which turns faster than the bumper's path
+# entering a bend), moving faster than INFEASIBLE_MIN_SPEED [m/s], INFEASIBLE_OFF_M [m] off
+INFEASIBLE_RATE_MARGIN = 1.5
+INFEASIBLE_MIN_SPEED = 1.0
+INFEASIBLE_OFF_M = 0.5
 KIN_BLEND_S = 0.4  # [s] time constant of a carried body's glide from its driven pose onto SUMO's
-INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] SUMO's body angle this close to the path's heading: straight again
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
 
@@ -180,7 +185,8 @@ class Fleet:
         self.counters: dict[str, int] = {
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
-            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_sumo_overlaps": 0, "retyped": 0, "carries_infeasible": 0, "carried_infeasible_ms": 0,
+            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_sumo_overlaps": 0,
+            "retyped": 0, "carries_infeasible": 0, "carried_infeasible_ms": 0,
         }
         self.wire_vtype = np.zeros(0, np.uint16)  # vType index per agent of the newest step
         self._empty()
@@ -209,7 +215,7 @@ class Fleet:
         self.jump_t = np.zeros(0)
         self.carry = np.zeros(0, bool)
         self.infeasible = np.zeros(0, bool)
-        self.kin_off = np.zeros((0, 3))  # carried agents' pose offset from SUMO's at the carry's start (x, y [m], yaw [rad])
+        self.kin_off = np.zeros((0, 3))  # carried agents' offset from SUMO's pose at the start (x, y [m], yaw [rad])
         self.kin_age = np.zeros(0)  # [s] since the carry started
         self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
         self._pending_collisions: list[str] = []
