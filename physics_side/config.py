@@ -172,8 +172,8 @@ class DefaultControl:
     creep_speed: float = 0.5  # [m/s] the fastest such a roll back goes
     ped_omega: float = 6.0  # [rad/s] pedestrian position-loop natural frequency
     ped_zeta: float = 1.0  # [1] pedestrian position-loop damping ratio
-    bike_roll_kp: float = 1500.0  # [N*m/rad] roll stabiliser stiffness (bicycles, every preset)
-    bike_roll_kd: float = 250.0  # [N*m*s/rad] roll stabiliser damping
+    bike_roll_kp: float = 1500.0  # [N*m/rad] roll stabiliser stiffness of SUMO's default bicycle (every preset; other two-wheelers in proportion to their m g h)
+    bike_roll_kd: float = 250.0  # [N*m*s/rad] roll stabiliser damping (the same)
 
     def validate(self) -> None:
         if self.pos_omega <= 0 or self.pos_zeta <= 0:

@@ -140,27 +140,29 @@ def accel_to_torques(
 
 
 def roll_stabiliser(
-    roll: np.ndarray, roll_rate: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, kp: float, kd: float,
-    limit: np.ndarray,
+    roll: np.ndarray, roll_rate: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, kp, kd,
+    limit: np.ndarray, max_lean_tan=0.6,
 ) -> np.ndarray:
     """Bicycle stabiliser torque about the frame's forward axis [N*m].
 
     Target lean: the steady-turn equilibrium tan(phi) = v * r / g, into the turn (a left
-    turn, r > 0, needs the left side down, i.e. negative roll about +x).
+    turn, r > 0, needs the left side down, i.e. negative roll about +x), up to
+    ``max_lean_tan`` [1]. ``kp`` [N*m/rad], ``kd`` [N*m*s/rad] and ``max_lean_tan`` may be
+    per agent.
     """
-    target = -np.arctan(_clip(speed * yaw_rate / G, -0.6, 0.6))
+    target = -np.arctan(_clip(speed * yaw_rate / G, -max_lean_tan, max_lean_tan))
     return _clip(-kp * (roll - target) - kd * roll_rate, -limit, limit)
 
 
 def steered_roll_stabiliser(
     roll: np.ndarray, roll_rate: np.ndarray, speed: np.ndarray, steer: np.ndarray, wheelbase: np.ndarray,
-    kp: float, kd: float, limit: np.ndarray,
+    kp, kd, limit: np.ndarray, max_lean_tan=0.6,
 ) -> np.ndarray:
     """``roll_stabiliser`` [N*m] leaning for the turn the steering asks for: yaw rate
     r = v tan(delta) / L of a kinematic bicycle (speed [m/s], steer [rad], wheelbase [m]),
     not the measured one, which feeds lean transients back into the target."""
     r_cmd = speed * np.tan(steer) / wheelbase
-    return roll_stabiliser(roll, roll_rate, speed, r_cmd, kp, kd, limit)
+    return roll_stabiliser(roll, roll_rate, speed, r_cmd, kp, kd, limit, max_lean_tan)
 
 
 def planar_force(

@@ -17,9 +17,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from physics_side import control as C
-from physics_side.config import PhysicsSettings, check_rates
+from physics_side.config import PhysicsSettings, check_rates, ticks_to
 from physics_side.fleet import Fleet
-from physics_side.models import default_spec
+from physics_side.models import default_spec, family_for, spec_for_size
 from physics_side.reference import PathSet
 from physics_side.world import PhysicsWorld
 from protocol.frames import yaw_to_sumo_angle
@@ -199,8 +199,9 @@ def _vtype_for(cls: AgentClass) -> str:
 
 
 def step_messages(traj: Trajectory, cls: AgentClass, length: float, width: float, step_s: float = 0.1,
-                  lad_params=(7.0, 10.0, 1.0), agent_id: str = "a0"):
-    """SUMO-like StepMessages of one agent following ``traj`` (look-ahead by the paper's LAD)."""
+                  lad_params=(7.0, 10.0, 1.0), agent_id: str = "a0", vclass: str | None = None):
+    """SUMO-like StepMessages of one agent following ``traj`` (look-ahead by the paper's LAD);
+    ``vclass``: its vType's vClass (default: the wire class's)."""
     # the last step's ticks run to its time + step_s: stay inside the trajectory
     n = int(np.floor(traj.duration / step_s + 1e-9))
     times = np.arange(n) * step_s
@@ -211,7 +212,7 @@ def step_messages(traj: Trajectory, cls: AgentClass, length: float, width: float
     # lane's tangent at the front (they differ in turns by ~asin(length / 2R))
     back = ps.at(ref["s"] - length)
     ref["yaw"] = np.where(ref["s"] >= length, np.arctan2(ref["y"] - back.y, ref["x"] - back.x), ref["yaw"])
-    vt = [VType("t0", _vtype_for(cls))]
+    vt = [VType("t0", vclass or _vtype_for(cls))]
     for k in range(n):
         s0 = ref["s"][k]
         pts = _resample(traj.path_xy, s0, PATH_AHEAD_M, PATH_STEP_M).astype(np.float32)
@@ -231,7 +232,7 @@ def step_messages(traj: Trajectory, cls: AgentClass, length: float, width: float
 def track_reference(
     preset: str, agent_class: AgentClass | int, traj: Trajectory, *, settings: PhysicsSettings | None = None,
     lad_min: float | None = None, length: float | None = None, lateral: str | None = None,
-    max_steer_deg: float | None = None,
+    max_steer_deg: float | None = None, vclass: str | None = None, width: float | None = None,
 ) -> dict[str, np.ndarray]:
     """Run one agent of ``agent_class`` under ``preset`` along ``traj``; time series at the control rate.
 
@@ -240,8 +241,10 @@ def track_reference(
     (as published: vs the extrapolated reference), err_held (distance to the held
     sample), dist (distance travelled), speed, v_ref, steer_deg, steer_pct (of max
     steer), drive, brake [N*m], u (u_in for paper, commanded accel for default), roll,
-    pitch [deg], z [m], mode (``AgentMode``). ``max_steer_deg`` [deg, at most the model's]: the car's steering limit
-    (what the paper preset's P_steer is a share of).
+    pitch [deg], z [m], mode (``AgentMode``). ``max_steer_deg`` [deg, at most the model's]: the car's
+    steering limit (what the paper preset's P_steer is a share of). ``vclass`` (with ``agent_class``
+    OTHER, as SUMO's motorcycles and mopeds travel): the model family of that SUMO vClass, at
+    ``length`` and ``width`` [m] (SUMO's vType size; default: the family's at the wire class's size).
     """
     cls = AgentClass(int(agent_class))
     settings = settings or PhysicsSettings()
@@ -253,9 +256,17 @@ def track_reference(
         ctl = replace(ctl, default=replace(ctl.default, lateral=lateral))
     settings = PhysicsSettings(phys, ctl)
     rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
-    spec = default_spec(cls if cls != AgentClass.OTHER else AgentClass.PASSENGER)
+    if vclass is None:
+        spec = default_spec(cls if cls != AgentClass.OTHER else AgentClass.PASSENGER)
+        initial = {cls if cls != AgentClass.OTHER else AgentClass.PASSENGER: 1}
+    else:  # the family's pool is made at the first spawn
+        base = default_spec(cls if cls != AgentClass.OTHER else AgentClass.PASSENGER)
+        L, W = length or base.length, width or base.width
+        spec = spec_for_size(family_for(cls, vclass, L), L, W)
+        initial = {}
     length = spec.length if length is None else length
-    world = PhysicsWorld(phys.timestep_s, rates.substeps, shards=1, initial={cls if cls != AgentClass.OTHER else AgentClass.PASSENGER: 1})
+    width = spec.width if width is None else width
+    world = PhysicsWorld(phys.timestep_s, rates.substeps, shards=1, initial=initial)
     if max_steer_deg is not None:  # the model's steering joints allow up to their own limit
         world.tables.max_steer[:] = np.minimum(world.tables.max_steer, np.radians(max_steer_deg))
     fleet = Fleet(world, settings, rates)
@@ -263,12 +274,18 @@ def track_reference(
     rec: dict[str, list] = {k: [] for k in (
         "t", "x", "y", "held_x", "held_y", "err_lon", "err_lat", "speed", "v_ref", "steer_deg", "steer_pct",
         "drive", "brake", "u", "roll", "pitch", "z", "mode")}
-    max_steer = np.rad2deg(world.tables.max_steer[0]) if len(world.tables.max_steer) else 35.0
-    t = 0.0
-    for msg in step_messages(traj, cls, length, spec.width, phys.sumo_step_s, lad_params):
-        fleet.apply_step(msg)
-        t = msg.time - fleet.lag  # interpolating, physics covers (previous step, this step]
-        for _ in range(rates.ticks_per_step):
+    max_steer = np.rad2deg(world.tables.max_steer[0]) if len(world.tables.max_steer) else spec.max_steer_deg
+    t = None
+    for msg in step_messages(traj, cls, length, width, phys.sumo_step_s, lad_params, vclass=vclass):
+        # physics time and ticks as the daemon keeps them in lockstep (``ticks_to``: a step
+        # length that is no whole number of control periods, e.g. SUMO's 0.05 s at 50 Hz, too);
+        # interpolating, physics covers (previous step, this step]
+        start = msg.time - (msg.step_length if fleet.interpolates(msg.step_length) else 0.0)
+        ahead = 0.0 if t is None else t - start
+        restart = t is None or not -rates.control_dt <= ahead <= phys.max_extrapolation_steps * msg.step_length
+        fleet.apply_step(msg, tau=0.0 if restart else ahead)
+        t = start if restart else t
+        for _ in range(ticks_to(t, msg.time + msg.step_length - fleet.lag, rates.control_dt)):
             fleet.tick()
             t += rates.control_dt
             if t < -1e-9:  # interpolating, the first step covers the time before the reference starts

@@ -44,10 +44,12 @@ _TYPE_NAME = {
 GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
 CARRY_SPEED = 0.5  # [m/s] below this SUMO speed a sideways slide is carried, not driven
-BIKE_MAX_LEAN_DEG = 35.0  # [deg] bicycles (a rider's lean; motorcycles take their tyres' grip, ~48 deg)
+BIKE_MAX_LEAN_DEG = 35.0  # [deg] bicycles (a rider's lean)
+MOTORCYCLE_MAX_LEAN_DEG = 42.0  # [deg] motorcycles and mopeds: at their tyres' ~48 deg a lean transient reached 60
 MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next sample (bounded)
 MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
+_BICYCLE_ROLL_STIFFNESS = M.default_spec(AgentClass.BICYCLE).roll_stiffness  # [N*m/rad] the stabiliser gains' reference
 # A manoeuvre no vehicle of the agent's size can drive (a U-turn on a turnaround lane, a
 # coach through a tight junction corner) is shown as SUMO has it, kinematic, until it is
 # over: driven, the vehicle ran metres wide into its neighbours and was placed back
@@ -643,14 +645,18 @@ class Fleet:
         )
         self.mass = t.mass[s]
         self.stab_max = t.stab_max[s]
+        # the configured stabiliser gains are the default bicycle's: a heavier or lower
+        # two-wheeler gets them in proportion to gravity's toppling stiffness (280 kg
+        # motorcycles were hardly stiffer than gravity and fell out of turns)
+        self._stab_gain = t.roll_stiffness[s] / _BICYCLE_ROLL_STIFFNESS
         self._max_rear = t.max_rsteer[s]
         self._rear_idx = np.flatnonzero(self._max_rear > 0)
         # [m/s^2] lateral acceleration the tyres carry; two-wheelers also lean no further than
-        # BIKE_MAX_LEAN_DEG (SUMO's bicycles take junction turns at 5-6 m/s: at the tyres' limit
-        # the stabiliser asked for 50-65 deg of lean and they fell)
+        # BIKE_MAX_LEAN_DEG / MOTORCYCLE_MAX_LEAN_DEG (SUMO's bicycles take junction turns at
+        # 5-6 m/s: at the tyres' limit the stabiliser asked for 50-65 deg of lean and they fell)
         a_lat = C.lateral_accel_limit(t.tyre_mu[s])
-        bicycle = (self.kind == M.KIND_BIKE) & (t.mass[s] < MOTORCYCLE_MASS_KG)
-        self._a_lat = np.where(bicycle, np.minimum(a_lat, C.G * math.tan(math.radians(BIKE_MAX_LEAN_DEG))), a_lat)
+        lean = np.radians(np.where(t.mass[s] < MOTORCYCLE_MASS_KG, BIKE_MAX_LEAN_DEG, MOTORCYCLE_MAX_LEAN_DEG))
+        self._a_lat = np.where(self.kind == M.KIND_BIKE, np.minimum(a_lat, C.G * np.tan(lean)), a_lat)
         # drive torque the driven wheels carry (four-wheeled vehicles; inf for the others)
         self._grip_torque = C.drive_grip_torque(t.drive_grip[s], t.r_wheel[s])
         self._any_grip = bool(np.isfinite(self._grip_torque).any())
@@ -886,9 +892,11 @@ class Fleet:
         vi = g.veh_idx
         stab = None
         if len(vi) and self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
+            gain = self._stab_gain[vi]  # (leaning up to the steering limit's lateral acceleration)
             stab = C.steered_roll_stabiliser(
                 obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], steer[vi], p.wheelbase[vi],
-                self.ctl.default.bike_roll_kp, self.ctl.default.bike_roll_kd, self.stab_max[vi],
+                self.ctl.default.bike_roll_kp * gain, self.ctl.default.bike_roll_kd * gain, self.stab_max[vi],
+                self._a_lat[vi] / C.G,
             )
         ped = None
         if len(g.ped_idx):

@@ -233,6 +233,8 @@ class SlotTables:
     tyre_mu: np.ndarray
     """Tyre-road friction [1] (``AgentSpec.tyre_mu``)."""
     stab_max: np.ndarray
+    roll_stiffness: np.ndarray
+    """Gravity's toppling moment per radian of lean [N*m/rad] (``AgentSpec.roll_stiffness``)."""
     rest_z: np.ndarray
     """Settled body height on flat ground [m]."""
     rest_pitch: np.ndarray
@@ -410,7 +412,8 @@ def _build_tables(
             max_steer=full(math.radians(spec.max_steer_deg)), rsteer_q=rsteer_q, rsteer_u=rsteer_u,
             max_rsteer=full(math.radians(spec.rear_steer_deg) if rear else 0.0),
             max_drive=full(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force),
-            max_brake=full(spec.max_brake), drive_grip=full(spec.drive_grip), tyre_mu=full(spec.tyre_mu), stab_max=full(spec.stab_max), rest_z=full(rest.z),
+            max_brake=full(spec.max_brake), drive_grip=full(spec.drive_grip), tyre_mu=full(spec.tyre_mu), stab_max=full(spec.stab_max),
+            roll_stiffness=full(spec.roll_stiffness), rest_z=full(rest.z),
             rest_pitch=full(rest.pitch),
         )
         for k, v in part.items():
@@ -422,7 +425,8 @@ def _build_tables(
 _WIDTH = {"steer_q": 2, "steer_u": 2, "rsteer_q": 2, "rsteer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4}
 _FLOAT = {
     "brake_share", "park_x", "park_y", "length", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
-    "mass", "max_steer", "max_rsteer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "rest_z", "rest_pitch",
+    "mass", "max_steer", "max_rsteer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "roll_stiffness", "rest_z",
+    "rest_pitch",
 }
 
 

@@ -145,17 +145,24 @@ class AgentSpec:
 
     @property
     def drive_grip(self) -> float:
-        """Force the driven wheels of a four-wheeled vehicle carry when pulling away [N]: tyre
-        mu times the driven axles' load. The axles sit symmetric about the body, so a rear
-        axle carries half the weight at rest, plus the load that accelerating moves onto it
-        (COM height / wheelbase): at the grip limit ``a = mu g / 2 / (1 - mu h / L)``.
-        Infinite for the other kinds (their drive limits are tuned on their own)."""
-        if self.kind != KIND_CAR:
+        """Force the driven wheels of a vehicle carry when pulling away [N]: tyre mu times the
+        driven axles' load. The axles sit symmetric about the body, so a rear axle (a
+        two-wheeler's rear wheel) carries half the weight at rest, plus the load that
+        accelerating moves onto it (COM height / wheelbase): at the grip limit
+        ``a = mu g / 2 / (1 - mu h / L)``. Infinite for pedestrians."""
+        if self.kind == KIND_PED:
             return math.inf
         if self.awd:
             return self.tyre_mu * 9.81 * self.total_mass
         share = min(0.5 / max(1.0 - self.tyre_mu * self.com_height / self.wheelbase, 0.5), 1.0)
         return self.tyre_mu * 9.81 * self.total_mass * share
+
+    @property
+    def roll_stiffness(self) -> float:
+        """Gravity's toppling moment per radian of lean about the ground line [N*m/rad]
+        (total mass * g * COM height, small angles): a roll stabiliser must be stiffer."""
+        h = (self.mass * self.com_height + self.n_wheels * self.wheel_mass * self.wheel_radius) / self.total_mass
+        return self.total_mass * 9.81 * h
 
     @property
     def effective_mass(self) -> float:
@@ -222,9 +229,11 @@ def _moto(length: float, width: float, name: str) -> AgentSpec:
         max_steer_deg=35.0,
         # SUMO's motorcycle accelerates at 6 and decelerates at 10 m/s^2 (moped 1.1 / 7): with
         # 4 / 6 m/s^2 they overshot SUMO's stops by ~6 m. ~8 m/s^2 of drive and ~12 m/s^2 of
-        # braking, mostly on the front wheel (at 10 m/s^2 the rear keeps ~10 % of the load);
-        # sport tyres (mu 1.2) carry it, and a stoppie needs g * wheelbase / 2 / COM ~ 12.7.
-        max_drive=8.0 * 280.0 * 0.32, max_brake=12.0 * 280.0 * 0.32, brake_front=0.85, tyre_mu=1.2,
+        # braking; a stoppie needs g * wheelbase / 2 / COM ~ 13. At 10 m/s^2 the rear keeps
+        # ~12 % of the load: 85 % front on mu 1.2 tyres locked the rear from 9.8 m/s^2, which
+        # slid sideways and the motorcycle fell; 90 % front on mu 1.3 keeps both wheels
+        # rolling to ~10.9 m/s^2 (95 % stopped ~1 m longer where SUMO stops it in a turn).
+        max_drive=8.0 * 280.0 * 0.32, max_brake=12.0 * 280.0 * 0.32, brake_front=0.9, tyre_mu=CAR_TYRE_MU,
         steer_kp=800.0, steer_kv=40.0, stab_max=4000.0,
     )
 
