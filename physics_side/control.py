@@ -454,6 +454,7 @@ def control_default(
     obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, dt: float, cfg: DefaultControl,
     state: ControlState, stopping: np.ndarray | None = None, stop_decel: float = 3.0,
     stop_speed: np.ndarray | None = None, s_guess: np.ndarray | None = None, proj=None,
+    rolls_back: np.ndarray | None = None,
 ) -> VehicleCommand:
     """Ours: extrapolated reference, front-bumper lateral law, damped longitudinal loop.
 
@@ -461,6 +462,9 @@ def control_default(
     (``stop_speed`` [m/s] is their target speed now) while still following the path.
     ``s_guess`` is where the bumper was along the path [m] (for the projection);
     ``proj`` = (s, lateral offset, path point) of the bumper when already known.
+    ``rolls_back`` (bool mask, default all): who may roll back to a standing reference it
+    came to rest past (not riders: a motorcycle rolled back into the bicycle queued beside
+    and behind it under the sublane model).
     """
     if proj is None and s_guess is not None:  # one path evaluation for both
         r, proj = ref.at_and_project(tau, obs.fx, obs.fy, s_guess)
@@ -503,6 +507,8 @@ def control_default(
     back = ((v_ref <= cfg.hold_speed)
             & (((e_s < -cfg.creep_back_m) & (obs.speed < CREEP_FROM_REST)) | ((e_s < -CREEP_DONE_M) & (obs.speed < -0.01)))
             if cfg.creep_back_m > 0 else None)
+    if back is not None and rolls_back is not None:
+        back &= rolls_back
     if back is not None and back.any():
         v_back = -np.minimum(cfg.creep_speed, 0.5 * -e_s)
         t_back = _clip(2.0 * (v_back - obs.speed), -CREEP_ACCEL, CREEP_ACCEL) * p.m_eff * p.r_wheel

@@ -823,7 +823,7 @@ class Fleet:
         if g.any_default:
             cmd = C.control_default(
                 vobs, p, ref, tau, self.dt, self.ctl.default, self.state, stopping, self.cfg.stop_decel,
-                stop_speed, s_guess=self.s_act, proj=proj,
+                stop_speed, s_guess=self.s_act, proj=proj, rolls_back=self.kind != M.KIND_BIKE,
             )
             cmds.append((g.all_default, g.use_default, cmd))
         if g.any_paper:
