@@ -57,6 +57,7 @@ _BICYCLE_ROLL_STIFFNESS = M.default_spec(AgentClass.BICYCLE).roll_stiffness  # [
 # INFEASIBLE_WINDOW_M (shorter windows take the corners of coarse lane shapes for curves no
 # car can follow), for windows starting up to 1 s of travel ahead (within INFEASIBLE_AHEAD_M)
 INFEASIBLE_WINDOW_M = 8.0  # [m]
+INFEASIBLE_GRID_M = 2.0  # [m] spacing of the windows' starts
 INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m]
 INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle's reach starts a carry ...
 INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within this share of it
@@ -672,21 +673,19 @@ class Fleet:
         p = self.params
         return C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, None)
 
-    def _infeasible_paths(self, ref: Reference, margin: float) -> np.ndarray:
-        """Vehicles whose path ahead turns tighter than ``margin`` times what their steering
-        geometry can follow (``bumper_curvature_limit``). Grip is left out: a carry for a turn
-        too fast for the tyres (at 1 s steps) put the carried vehicle, exact on SUMO's path,
-        into a neighbour running slightly wide beside it."""
-        grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + 1e-9, 1.0)[:, None]  # (k, 1) [m] ahead of the bumper
-        s = np.broadcast_to(grid, (len(grid), self.n))
-        h0 = ref.path.at(s).heading
-        h1 = ref.path.at(s + INFEASIBLE_WINDOW_M).heading
-        kappa = np.abs(wrap_pi(h1 - h0)) / INFEASIBLE_WINDOW_M
-        p = self.params
-        v = np.maximum(ref.speed, 0.0)
-        reach = self._reach()
-        ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
-        return ((kappa > margin * reach) & (grid <= ahead)).any(axis=0)
+    def _path_tightness(self, ref: Reference) -> np.ndarray:
+        """Each vehicle's tightest path ahead as a share of its reach (``_reach``): the mean
+        curvature of 8 m windows starting up to 1 s of travel ahead. Grip is left out: a carry
+        for a turn too fast for the tyres (at 1 s steps) put the carried vehicle, exact on
+        SUMO's path, into a neighbour running slightly wide beside it. One path evaluation
+        per SUMO step: headings every INFEASIBLE_GRID_M, windows by index offset."""
+        k = int(round(INFEASIBLE_WINDOW_M / INFEASIBLE_GRID_M))
+        grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + INFEASIBLE_WINDOW_M + 1e-9, INFEASIBLE_GRID_M)[:, None]
+        h = ref.path.at(np.broadcast_to(grid, (len(grid), self.n))).heading
+        kappa = np.abs(wrap_pi(h[k:] - h[:-k])) / INFEASIBLE_WINDOW_M
+        ahead = np.clip(np.maximum(ref.speed, 0.0), *INFEASIBLE_AHEAD_M)
+        kappa = np.where(grid[:-k] <= ahead, kappa, 0.0)
+        return kappa.max(axis=0) / self._reach()
 
     def _carry_infeasible(self, ref: Reference, prev: np.ndarray, yaw_rate: np.ndarray, dist: np.ndarray,
                           obs, held) -> None:
@@ -704,17 +703,14 @@ class Fleet:
         # (not between samples of long steps: there the switches fall 1 s apart and SUMO's motion
         # between its samples is a guess anyway)
         if self.cfg.carry_infeasible and not self.interpolating and cand.any():
-            start = self._infeasible_paths(ref, INFEASIBLE_MARGIN)
-            p = self.params
-            reach = self._reach()
-            start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
-                      & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * reach))
-            keep = np.zeros(self.n, bool)
-            if was.any():  # over once the path ahead is in reach and the body is straight on it (a
-                # long vehicle's rear is still in the turn when its bumper is out: SUMO's chord angle)
-                h = ref.path.at(np.zeros(self.n)).heading
-                keep = (self._infeasible_paths(ref, INFEASIBLE_RELEASE)
-                        | (np.abs(wrap_pi(ref.yaw - h)) > math.radians(INFEASIBLE_STRAIGHT_DEG)))
+            tight = self._path_tightness(ref)
+            start = (tight > INFEASIBLE_MARGIN) | (
+                (ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
+                & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * self._reach()))
+            # over once the path ahead is in reach and the body is straight on it (a long
+            # vehicle's rear is still in the turn when its bumper is out: SUMO's chord angle)
+            keep = (tight > INFEASIBLE_RELEASE) | (
+                np.abs(wrap_pi(ref.yaw - ref.start_heading)) > math.radians(INFEASIBLE_STRAIGHT_DEG))
             now = cand & (start | (was & keep))
         self.infeasible = now
         # a carry glides from the body's pose onto SUMO's (KIN_BLEND_S): switched at once, a

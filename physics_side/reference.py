@@ -438,6 +438,11 @@ class Reference:
         sl, _ = stopping_distance(self.speed, self.accel, lead)
         return s1 - sl - s0, v1 - v0
 
+    @property
+    def start_heading(self) -> np.ndarray:
+        """The path's heading at its start (the sample's bumper) [rad]."""
+        return self._h0
+
     def held(self) -> ReferencePoint:
         """The sample itself (zero-order hold)."""
         return ReferencePoint(self.x, self.y, self.yaw, self.speed, self.accel, self._k0, np.zeros(self.n), self._h0)
