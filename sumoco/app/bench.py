@@ -1,4 +1,4 @@
-"""``sumoco bench {sumo,physics,e2e,codec,fidelity,scenarios,viewer,...} --json``: benchmark rows as JSON on stdout.
+"""``sumoco bench {sumo,physics,e2e,codec,fidelity,scenarios,generated,viewer,...} --json``: benchmark rows as JSON on stdout.
 
 Benchmarks measure speed; tests check correctness. Each area owns its benchmark
 function (``sumo_side.bench``, ``physics_side.bench``, ``sumoco.app.e2e_bench``); this module
@@ -149,6 +149,11 @@ def cli_main(args) -> int:
 
         rows = run_scenario_bench(getattr(args, "pack", None), getattr(args, "duration", None) or 60.0,
                                   quick=quick, out_root=getattr(args, "out", None))
+    elif args.what == "generated":
+        from sumoco.app.generated_bench import run_generated_bench
+
+        rows = run_generated_bench(getattr(args, "duration", None) or 60.0, quick=quick,
+                                   out_root=getattr(args, "out", None))
     elif args.what == "scale":
         from sumoco.app.scale_bench import run_scale_bench
 

@@ -85,15 +85,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
     p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway",
-                                    "scenarios", "scale", "viewer"])
+                                    "scenarios", "generated", "scale", "viewer"])
     p.add_argument("--pack", help="scenarios: folder of the scenario pack (default ../shared/scenarios "
                                   "beside the repository)")
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
     p.add_argument("--config", help="soak: run config (default configs/soak.toml)")
     p.add_argument("--minutes", type=float, default=60.0, help="soak: wall-clock minutes to run")
-    p.add_argument("--out", help="soak: output folder (default runs/soak); scenarios: folder for the runs "
+    p.add_argument("--out", help="soak: output folder (default runs/soak); scenarios, generated: folder for the runs "
                                  "(default a temporary one)")
-    p.add_argument("--duration", type=float, help="scenarios: simulated seconds per scenario (default 60); "
+    p.add_argument("--duration", type=float, help="scenarios, generated: simulated seconds per scenario (default 60); "
                                                   "viewer: wall seconds measured per agent count (default 10)")
     p.add_argument("--agents", help="viewer: agent counts, comma-separated (default 500,1000,2500)")
     p.add_argument("--sample-s", dest="sample_s", type=float, help="soak: seconds between rows (default 60)")
