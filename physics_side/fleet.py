@@ -45,6 +45,7 @@ GHOST_CLEAR_M = 0.3  # [m] a ghost spawn joins once its body is this far from ev
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
 CARRY_SPEED = 0.5  # [m/s] below this SUMO speed a sideways slide is carried, not driven
 BIKE_MAX_LEAN_DEG = 35.0  # [deg] bicycles (a rider's lean)
+BIKE_LEAN_TARGET_TAN = 0.6  # [1] bicycles' stabiliser leans for at most tan(phi) = this (31 deg)
 MOTORCYCLE_MAX_LEAN_DEG = 42.0  # [deg] motorcycles and mopeds: at their tyres' ~48 deg a lean transient reached 60
 MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next sample (bounded)
 MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
@@ -892,7 +893,9 @@ class Fleet:
             stab = C.steered_roll_stabiliser(
                 obs.roll[vi], obs.roll_rate[vi], obs.speed[vi], steer[vi], p.wheelbase[vi],
                 self.ctl.default.bike_roll_kp * gain, self.ctl.default.bike_roll_kd * gain, self.stab_max[vi],
-                self._a_lat[vi] / C.G,
+                # bicycles keep their old target cap (tan 0.6, 31 deg): leaning up to their 35 deg
+                # limit flipped a bicycle in the 1 s-step tram scenario
+                np.where(self.mass[vi] < MOTORCYCLE_MASS_KG, BIKE_LEAN_TARGET_TAN, self._a_lat[vi] / C.G),
             )
         ped = None
         if len(g.ped_idx):
