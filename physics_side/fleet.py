@@ -49,6 +49,7 @@ BIKE_LEAN_TARGET_TAN = 0.6  # [1] bicycles' stabiliser leans for at most tan(phi
 MOTORCYCLE_MAX_LEAN_DEG = 42.0  # [deg] motorcycles and mopeds: at their tyres' ~48 deg a lean transient reached 60
 MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next sample (bounded)
 MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
+PED_HOP_M = 0.5  # [m] a pedestrian's sample this much further than its speed takes it is a jump
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
 _BICYCLE_ROLL_STIFFNESS = M.default_spec(AgentClass.BICYCLE).roll_stiffness  # [N*m/rad] the stabiliser gains' reference
 # A manoeuvre no vehicle of the agent's size can drive (a U-turn on a turnaround lane, a
@@ -451,6 +452,13 @@ class Fleet:
         is_new = np.zeros(len(ids), bool)
         is_new[new] = True
         jumped = ((flags & AgentFlag.JUMPED) != 0) & ~is_new & physical
+        if old_ref is not None and old_ref.n and len(ids):
+            # a pedestrian SUMO moves further than it walks (onto a walking area or crossing:
+            # 1.3 m in one 0.1 s step) is placed there too: running after it, one ran into a bus
+            p0 = np.maximum(prev, 0)
+            moved = np.hypot(x - old_ref.x[p0], y - old_ref.y[p0])
+            reach = np.maximum(old_ref.speed[p0], a.speed[rows]) * (msg.time - old_ref.t_k) + PED_HOP_M
+            jumped |= (prev >= 0) & (self.kind == M.KIND_PED) & (moved > reach) & ~is_new & physical
         # A slow vehicle's sideways hop (above) is placed like a teleport (counted as a jump);
         # faster lane changes are driven (the paper's error peaks at lane changes) ...
         carry = np.zeros(len(ids), bool)
@@ -621,6 +629,15 @@ class Fleet:
         # SUMO's own body angle (the direct representation)
         if yaw is None:
             yaw = at.tangent if steady_turn else at.yaw
+        if steady_turn:
+            # a standing vehicle stands on SUMO's chord, wheels straight: in the steady-turn pose of
+            # a bend that starts at its bumper, a car inserted standing there stood 37 deg off
+            still = at.speed[idx] < CARRY_SPEED
+            if still.any():
+                s_ = idx[still]
+                self.world.place(self.slots[s_], at.x[s_], at.y[s_], at.yaw[s_], at.speed[s_], None,
+                                 steady_turn=False, count=count)
+                idx = idx[~still]
         if steady_turn and len(self._rear_idx):
             # a vehicle that steers its rear axle is placed on SUMO's chord, as it drives
             rear = self._max_rear[idx] > 0
@@ -710,8 +727,12 @@ class Fleet:
                 & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * self._reach()))
             # over once the path ahead is in reach and the body is straight on it (a long
             # vehicle's rear is still in the turn when its bumper is out: SUMO's chord angle)
-            keep = (tight > INFEASIBLE_RELEASE) | (
-                np.abs(wrap_pi(ref.yaw - ref.start_heading)) > math.radians(INFEASIBLE_STRAIGHT_DEG))
+            # and the carried body itself has turned onto SUMO's angle (SUMO's angle jumps where a
+            # junction meets the lane: released in that step, a car was handed back 20 deg off
+            # the lane and fell 1.8 m behind)
+            straight = math.radians(INFEASIBLE_STRAIGHT_DEG)
+            keep = ((tight > INFEASIBLE_RELEASE) | (np.abs(wrap_pi(ref.yaw - ref.start_heading)) > straight)
+                    | (np.abs(wrap_pi(obs.yaw - ref.yaw)) > straight))
             now = cand & (start | (was & keep))
         self.infeasible = now
         # a carry glides from the body's pose onto SUMO's (KIN_BLEND_S): switched at once, a
@@ -923,7 +944,10 @@ class Fleet:
                 self.kin_age = self.kin_age + self.dt
             self._place(g.kin_idx, at, count=False, steady_turn=False, yaw=yaw)
         if u.carry is not None:
-            self._place(u.carry, u.at, count=False)
+            # a standing slide keeps SUMO's body angle, wheels straight: in the steady-turn pose
+            # of the slide's jog a stopped 6.5 m van turned 11 deg, its rear into passing traffic
+            at = replace(u.at, curvature=np.zeros_like(u.at.curvature))
+            self._place(u.carry, at, count=False, steady_turn=False, yaw=self.ref.yaw)
         vi = g.veh_idx
         if len(vi):
             if g.all_veh:

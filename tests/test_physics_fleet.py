@@ -120,6 +120,28 @@ def test_classes_modes_ego_and_riders(caplog):
     assert np.abs(snap.err_lon[[0, 3]]).max() < 0.05 and np.abs(snap.err_lat[[0, 3]]).max() < 0.05
 
 
+def test_a_pedestrian_sumo_moves_further_than_it_walks_is_placed_there():
+    """SUMO moves a pedestrian onto a walking area 1.3 m at once (one 0.1 s step at 1.2 m/s):
+    it is placed there (a jump), not left running after it at twice its speed; ordinary
+    walking is never placed."""
+    f = _fleet()
+    ped = np.array([AgentClass.PEDESTRIAN], np.uint8)
+    worst = 0.0
+    for k in range(30):
+        x = 100.0 + 1.2 * k * 0.1 + (1.3 if k >= 15 else 0.0)
+        msg = _line_step(k, [x], [1.2])
+        f.apply_step(_with(msg, cls=ped, length=np.array([0.3], np.float32), width=np.array([0.5], np.float32)))
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+        if k >= 15:
+            worst = max(worst, float(np.hypot(f.err_lon, f.err_lat).max()))
+    from physics_side import models as M
+
+    assert f.kind[0] == M.KIND_PED
+    assert f.counters["placements_jump"] == 1 and f.counters["placements_divergence"] == 0, f.counters
+    assert worst < 0.3, worst
+
+
 def test_safe_stop_brakes_every_agent_to_rest_along_its_path():
     f = _fleet(stop_decel=4.0)
     for k in range(3):
@@ -270,6 +292,36 @@ def test_a_standing_vehicle_slid_sideways_is_carried_along_the_slide():
     assert f.counters["placements_jump"] == 1 and f.counters["placements_divergence"] == 0, f.counters
     assert abs(snap.y[0] - 103.2) < 0.1 and abs(snap.roll[0]) < 3.0
     assert worst < 0.1, worst
+
+
+def test_a_standing_slide_before_a_bend_keeps_sumos_body_angle():
+    """A van standing where its lane bends (radius 8 m from its bumper) that SUMO slides
+    0.5 m sideways: it follows the slide at SUMO's body angle with straight wheels, not in
+    the steady-turn pose of the bend (that turned a stopped 6.5 m van 11 deg, its rear into
+    the next lane)."""
+    f = _fleet()
+    s_arc = np.arange(0.0, 60.0, 2.0)
+    bend = np.minimum(s_arc, 10.0) / 8.0  # [rad] heading along the path: 72 deg over 10 m, then straight
+    hx = np.concatenate([[0.0], np.cumsum(2.0 * np.cos(bend[:-1]))])
+    hy = np.concatenate([[0.0], np.cumsum(2.0 * np.sin(bend[:-1]))])
+    worst_yaw = 0.0
+    for k in range(40):
+        t = k * 0.1
+        off = float(np.clip((t - 1.0) * 0.5, 0.0, 0.5))
+        m = circle_traffic(1, 0)
+        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
+        pts = np.c_[100.0 + hx, 100.0 + hy].astype(np.float32)  # the lane's centre line
+        a = replace(m.agents, x=np.array([100.0]), y=np.array([100.0 + off]), angle=f32(90.0), speed=f32(0.0),
+                    accel=f32(0.0), la_x=pts[3:4, 0], la_y=pts[3:4, 1], flags=np.array([8 if k == 0 else 0], np.uint8),
+                    path_offsets=np.array([0, 30], np.uint32), path_xy=pts)
+        f.apply_step(replace(m, step=k, time=t, step_length=0.1, agents=a))
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+            worst_yaw = max(worst_yaw, abs(float(f.snapshot().heading[0]) - 90.0))
+    snap = f.snapshot()
+    assert f.counters["placements_jump"] == 1, f.counters  # the slide: one placement
+    assert abs(snap.y[0] - 100.5) < 0.05 and abs(snap.x[0] - 100.0) < 0.05
+    assert worst_yaw < 1.0, worst_yaw
 
 
 def _line_step(k: int, xs, speeds, ids=None, flags=None, step_s: float = 0.1):
