@@ -732,7 +732,11 @@ class Fleet:
             # the lane and fell 1.8 m behind)
             straight = math.radians(INFEASIBLE_STRAIGHT_DEG)
             keep = ((tight > INFEASIBLE_RELEASE) | (np.abs(wrap_pi(ref.yaw - ref.start_heading)) > straight)
-                    | (np.abs(wrap_pi(obs.yaw - ref.yaw)) > straight))
+                    | (np.abs(wrap_pi(obs.yaw - ref.yaw)) > straight)
+                    # ... and SUMO no longer turns it tighter than its steering holds (handed back
+                    # while SUMO still turned it at 100 deg/s, a car lagged 0.6 m, a van spun round)
+                    | (np.abs(yaw_rate) > INFEASIBLE_RELEASE * np.maximum(ref.speed, INFEASIBLE_MIN_SPEED)
+                       * self._reach()))
             now = cand & (start | (was & keep))
         self.infeasible = now
         # a carry glides from the body's pose onto SUMO's (KIN_BLEND_S): switched at once, a
