@@ -157,6 +157,8 @@ class _Commands:
     """Standing agents carried along SUMO's sideways slide (placed), or None."""
     rear: np.ndarray | None
     """Rear-axle angle [rad] per agent (vehicles that steer it), None when nobody does."""
+    carry_yaw: np.ndarray | None = None
+    """Body yaw [rad] per agent that ``carry`` keeps (its own at the tick's start)."""
 
 
 @dataclass
@@ -492,7 +494,11 @@ class Fleet:
         place = is_new | jumped | flipped | diverged
         if place.any():
             idx = np.flatnonzero(place)
-            self._place(idx, held, count=True)
+            slide = carry[idx]  # a slide's start: placed as it stands (``_actuate``)
+            if slide.any():
+                self._place(idx[slide], replace(held, curvature=np.zeros_like(held.curvature)), count=True,
+                            steady_turn=False, yaw=obs.yaw)
+            self._place(idx[~slide], held, count=True)
             self.state.integ[idx] = 0.0
             e_lon[idx] = 0.0
         st.jumped, st.diverged, st.flipped = int(jumped.sum()), int(diverged.sum()), int(flipped.sum())
@@ -630,7 +636,7 @@ class Fleet:
         if yaw is None:
             yaw = at.tangent if steady_turn else at.yaw
         if steady_turn:
-            # a standing vehicle stands on SUMO's chord, wheels straight: in the steady-turn pose of
+            # a standing vehicle stands on SUMO's angle, wheels straight: in the steady-turn pose of
             # a bend that starts at its bumper, a car inserted standing there stood 37 deg off
             still = at.speed[idx] < CARRY_SPEED
             if still.any():
@@ -865,10 +871,11 @@ class Fleet:
             idx = g.kin_idx
             at = ref.at(tau)
             steer[idx] = np.arctan(p.wheelbase[idx] * at.curvature[idx])
-        carry = None
+        carry = carry_yaw = None
         if not self.stopping and self.carry.any():  # standing, slid sideways by SUMO: follow the slide
             carry = np.flatnonzero(self.carry)
             at = ref.at(tau)
+            carry_yaw = obs.yaw.copy()
             drive[carry] = 0.0
         rear = None
         if len(self._rear_idx):  # long vehicles: the body onto SUMO's chord (``C.rear_axle_steer``)
@@ -927,7 +934,7 @@ class Fleet:
             fx, fy, tz, force = self._pedestrians(g.ped_idx, obs, tau, stopping, stop_speed)
             ped = (fx, fy, tz)
             drive[g.ped_idx] = force
-        return _Commands(steer, drive, brake, aux, stab, ped, at, carry, rear)
+        return _Commands(steer, drive, brake, aux, stab, ped, at, carry, rear, carry_yaw)
 
     def _actuate(self, u: _Commands) -> None:
         """Write the commands into the world: kinematic agents and SUMO's sideways slides
@@ -948,10 +955,12 @@ class Fleet:
                 self.kin_age = self.kin_age + self.dt
             self._place(g.kin_idx, at, count=False, steady_turn=False, yaw=yaw)
         if u.carry is not None:
-            # a standing slide keeps SUMO's body angle, wheels straight: in the steady-turn pose
-            # of the slide's jog a stopped 6.5 m van turned 11 deg, its rear into passing traffic
+            # a standing slide moves the body sideways as it stands, wheels straight: in the
+            # steady-turn pose of a bend at the bumper a stopped 6.5 m van turned 11 deg, its rear
+            # into passing traffic; on SUMO's angle (which turns with the lane change, 38 deg
+            # while standing) a car's rear swung into the next lane
             at = replace(u.at, curvature=np.zeros_like(u.at.curvature))
-            self._place(u.carry, at, count=False, steady_turn=False, yaw=self.ref.yaw)
+            self._place(u.carry, at, count=False, steady_turn=False, yaw=u.carry_yaw)
         vi = g.veh_idx
         if len(vi):
             if g.all_veh:
