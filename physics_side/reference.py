@@ -439,6 +439,12 @@ class Reference:
         return s1 - sl - s0, v1 - v0
 
     @property
+    def interpolated(self) -> bool:
+        """Whether ``interpolate_to`` made the profile go through the next sample (else it is
+        extrapolated from the newest one)."""
+        return getattr(self, "_interp", None) is not None
+
+    @property
     def start_heading(self) -> np.ndarray:
         """The path's heading at its start (the sample's bumper) [rad]."""
         return self._h0
