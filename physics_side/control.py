@@ -526,7 +526,9 @@ def control_default(
         ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s, tau) if cfg.preview_s else pp
         # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
         # leads the body by beta_ss = asin(kappa * d) in a steady turn
-        heading_err = wrap_pi(obs.yaw - ahead.heading - ref.drift_angle(tau))
+        # ... turned by the drift's angle for SUMO's lateral speed at the car's own speed (at
+        # SUMO's, a car catching up from a stop mid lane change went 0.15 m further sideways)
+        heading_err = wrap_pi(obs.yaw - ahead.heading - ref.drift_angle(tau, np.maximum(obs.speed, 0.0)))
         steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase,
                                math.radians(cfg.max_correction_deg))
         if cfg.k_yaw:

@@ -347,3 +347,25 @@ def test_default_loop_brakes_faster_when_ahead_and_catches_up_as_before():
         assert ref.interpolated
         cmds[w] = C.control_default(obs, p, ref, 0.0, 0.02, replace(cfg, brake_omega=w), C.ControlState.zeros(n)).aux
     np.testing.assert_allclose(cmds[cfg.brake_omega], cmds[cfg.pos_omega], atol=1e-9)
+
+
+def test_lane_change_feed_forward_uses_the_cars_own_speed():
+    """SUMO drifts the sample sideways at 1 m/s while its speed along the lane is 2 m/s;
+    a car catching up at 4 m/s moves sideways at SUMO's 1 m/s with its bumper at
+    atan(1 / 4) to the lane, not atan(1 / 2) (pulling away from a stop mid-lane-change, the
+    reference car ran 0.15 m past its new lane's centre line)."""
+    from physics_side.config import DefaultControl
+
+    xs = np.arange(0.0, 60.0, 2.0)
+    ref = Reference(0.0, np.zeros(1), np.zeros(1), np.full(1, 90.0), np.full(1, 2.0), np.zeros(1),
+                    np.full(1, 7.0), np.zeros(1), np.array([0, 30]), np.c_[xs, np.zeros_like(xs)])
+    ref.set_side_rate(np.array([1.0]))
+    assert ref.drift_angle(0.0) == pytest.approx(math.atan(0.5))
+    yaw, v = math.atan(0.25), 4.0
+    one = np.ones(1)
+    obs = C.VehicleObs(np.zeros(1), np.zeros(1), -4.0 * math.cos(yaw) * one, -4.0 * math.sin(yaw) * one,
+                       yaw * one, v * one, np.zeros(1), v * math.cos(yaw) * one, v * math.sin(yaw) * one)
+    p = C.VehicleParams(2.7 * one, 3.6 * one, -1.3 * one, 2.3 * one, 1400.0 * one, 0.3 * one,
+                        np.radians(35.0) * one, 2500.0 * one, 5000.0 * one)
+    cmd = C.control_default(obs, p, ref, 0.0, 0.02, DefaultControl(), C.ControlState.zeros(1))
+    assert abs(float(cmd.steer[0])) < 1e-3, cmd.steer  # (0.17 rad with SUMO's speed)
