@@ -162,6 +162,7 @@ class DefaultControl:
     mean_speed_lead: float = 0.5  # [SUMO steps] the extrapolated speed profile is taken this much ahead: SUMO's speed is the mean over the step before its sample (0 = off)
     pos_omega: float = 2.5  # [rad/s] along-path position loop natural frequency
     pos_zeta: float = 1.0  # [1] along-path position loop damping ratio (critically damped)
+    brake_omega: float = 4.0  # [rad/s] natural frequency of the loop where it brakes harder than the pos_omega one (ahead of SUMO or faster); <= pos_omega: off
     k_int: float = 0.5  # [1/s^3] gain on the integral of the along-path error (cornering drag, slopes)
     int_limit: float = 1.0  # [m/s^2] integral term clamp
     accel_max: float = 6.0  # [m/s^2] commanded acceleration limit

@@ -493,6 +493,12 @@ def control_default(
     int_max = cfg.int_limit / max(cfg.k_int, 1e-9)
     state.integ = np.where(live, _clip(state.integ + e_s * dt, -int_max, int_max), 0.0)
     a_cmd = accel_command(e_s, e_v, a_ref, state.integ, cfg.pos_omega, cfg.pos_zeta, cfg.k_int)
+    if cfg.brake_omega > cfg.pos_omega and not ref.interpolated:
+        # ahead of SUMO or faster, a faster loop brakes: extrapolating, the car learns that
+        # SUMO brakes one sample late (0.5 m/s too fast at 0.1 s steps), and ahead is where
+        # SUMO's leader or stop line is; catching up keeps the slower loop (an interpolated
+        # reference knows the next sample: at 1 s steps the faster loop placed more cars)
+        a_cmd = np.minimum(a_cmd, accel_command(e_s, e_v, a_ref, state.integ, cfg.brake_omega, cfg.pos_zeta, cfg.k_int))
     a_cmd = _clip(a_cmd, -cfg.decel_max, cfg.accel_max)
     drive, brake = accel_to_torques(a_cmd, p.m_eff, p.r_wheel, p.max_drive, p.max_brake)
     hold = (v_ref <= cfg.hold_speed) & (a_cmd <= 0.5)
@@ -520,7 +526,9 @@ def control_default(
         ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s, tau) if cfg.preview_s else pp
         # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
         # leads the body by beta_ss = asin(kappa * d) in a steady turn
-        heading_err = wrap_pi(obs.yaw - ahead.heading - ref.drift_angle(tau))
+        # ... turned by the drift's angle for SUMO's lateral speed at the car's own speed (at
+        # SUMO's, a car catching up from a stop mid lane change went 0.15 m further sideways)
+        heading_err = wrap_pi(obs.yaw - ahead.heading - ref.drift_angle(tau, np.maximum(obs.speed, 0.0)))
         steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase,
                                math.radians(cfg.max_correction_deg))
         if cfg.k_yaw:

@@ -396,7 +396,11 @@ class Fleet:
             # hop, or the step where the lane switches (the offset flips sides), is no drift
             side = (ref.side_offset - old_ref.side_offset[p0]) / gap
             side_rate = np.where(had & (np.abs(side) < self.cfg.max_side_speed), side, 0.0)
-            ref.set_side_rate(side_rate)
+            # a sample that came back onto its lane's centre line has ended its lane change
+            # there (SUMO stops it on the line; its offset's sign is rounding): no drift past
+            # it (a car ran a whole step's drift, 0.18 m, beyond its new lane's centre)
+            arrived = np.abs(ref.side_offset) < 0.25 * np.abs(side_rate) * gap
+            ref.set_side_rate(np.where(arrived, 0.0, side_rate))
         # SUMO moves a slow vehicle sideways at once when it changes lanes without a
         # lane-change duration (queues at junctions) or parks off the lane (a bus bay): no
         # vehicle can drive that without hitting its neighbours, so it is placed like a

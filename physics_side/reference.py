@@ -318,12 +318,14 @@ class Reference:
         """The sample's offset left of its path's start (its lane's centre line) [m]."""
         return self._dx * self.nx + self._dy * self.ny
 
-    def drift_angle(self, tau: float) -> np.ndarray | float:
-        """Heading of the sideways drift relative to the path [rad] while it lasts at ``tau`` [s]."""
+    def drift_angle(self, tau: float, speed: np.ndarray | None = None) -> np.ndarray | float:
+        """Heading of the sideways drift relative to the path [rad] while it lasts at ``tau`` [s],
+        for a motion along the path at ``speed`` [m/s] (default: the sample's)."""
         if not self._drift:
             return 0.0
         on = np.abs(self.side_rate) * tau < self._side_cap
-        return np.where(on, np.arctan2(self.side_rate, np.maximum(self.speed, 1.0)), 0.0)
+        v = self.speed if speed is None else speed
+        return np.where(on, np.arctan2(self.side_rate, np.maximum(v, 1.0)), 0.0)
 
     def _shift(self, tau: float) -> tuple[np.ndarray | float, np.ndarray | float]:
         """World-frame offset [m] the sideways drift adds ``tau`` [s] after the sample."""
@@ -437,6 +439,12 @@ class Reference:
         s1, v1 = stopping_distance(self.speed, self.accel, tau + lead)
         sl, _ = stopping_distance(self.speed, self.accel, lead)
         return s1 - sl - s0, v1 - v0
+
+    @property
+    def interpolated(self) -> bool:
+        """Whether ``interpolate_to`` made the profile go through the next sample (else it is
+        extrapolated from the newest one)."""
+        return getattr(self, "_interp", None) is not None
 
     @property
     def start_heading(self) -> np.ndarray:

@@ -307,3 +307,65 @@ def test_steer_limit_is_the_friction_circle_or_the_mechanical_limit():
     assert np.all(np.diff(lim) < 0)
     assert np.allclose(friction_steer_limit(np.full(3, 1.0), v, L, a, mx), lim)
     assert np.allclose(friction_steer_limit(np.full(3, -1.0), v, L, a, mx), -lim)
+
+
+def test_default_loop_brakes_faster_when_ahead_and_catches_up_as_before():
+    """The along-path loop brakes at ``brake_omega`` where that asks for more braking (the
+    car ahead of SUMO or faster: it learns a sample late that SUMO brakes) and keeps
+    ``pos_omega`` where it catches up."""
+    from dataclasses import replace
+
+    from physics_side.config import DefaultControl
+
+    n = 2
+    xs = np.r_[np.arange(0.0, 60.0, 2.0), np.arange(0.0, 60.0, 2.0)]
+    path = np.c_[xs, np.zeros_like(xs)]
+    ref = Reference(0.0, np.zeros(n), np.zeros(n), np.full(n, 90.0), np.full(n, 10.0), np.zeros(n),
+                    np.full(n, 7.0), np.zeros(n), np.array([0, 30, 60]), path)
+    # agent 0 is 0.2 m ahead and 0.5 m/s faster than its reference, agent 1 as much behind and slower
+    fx, v = np.array([0.2, -0.2]), np.array([10.5, 9.5])
+    one = np.ones(n)
+    obs = C.VehicleObs(fx, np.zeros(n), fx - 4.0, np.zeros(n), np.zeros(n), v, np.zeros(n), v, np.zeros(n))
+    p = C.VehicleParams(2.7 * one, 3.6 * one, -1.3 * one, 2.3 * one, 1400.0 * one, 0.3 * one,
+                        np.radians(35.0) * one, 2500.0 * one, 5000.0 * one)
+    cfg = DefaultControl()
+    assert cfg.brake_omega > cfg.pos_omega
+    cmds = {}
+    for w in (cfg.brake_omega, cfg.pos_omega):  # (brake_omega <= pos_omega: one loop)
+        st = C.ControlState.zeros(n)
+        cmds[w] = C.control_default(obs, p, ref, 0.0, 0.02, replace(cfg, brake_omega=w), st).aux
+        integ = st.integ
+    e_s, e_v = np.array([-0.2, 0.2]), np.array([-0.5, 0.5])
+    slow = C.accel_command(e_s, e_v, 0.0, integ, cfg.pos_omega, cfg.pos_zeta, cfg.k_int)
+    fast = C.accel_command(e_s, e_v, 0.0, integ, cfg.brake_omega, cfg.pos_zeta, cfg.k_int)
+    np.testing.assert_allclose(cmds[cfg.pos_omega], slow, atol=1e-6)
+    np.testing.assert_allclose(cmds[cfg.brake_omega], [fast[0], slow[1]], atol=1e-6)
+    assert cmds[cfg.brake_omega][0] < cmds[cfg.pos_omega][0] - 2.0  # -7.2 instead of -3.75 m/s^2
+    # a reference interpolated to the next sample (long steps) brings no late news: one loop
+    for w in (cfg.brake_omega, cfg.pos_omega):
+        ref.interpolate_to(0.5, np.ones(n, bool), np.full(n, 5.0), np.full(n, 10.0), np.zeros(n), np.zeros(n))
+        assert ref.interpolated
+        cmds[w] = C.control_default(obs, p, ref, 0.0, 0.02, replace(cfg, brake_omega=w), C.ControlState.zeros(n)).aux
+    np.testing.assert_allclose(cmds[cfg.brake_omega], cmds[cfg.pos_omega], atol=1e-9)
+
+
+def test_lane_change_feed_forward_uses_the_cars_own_speed():
+    """SUMO drifts the sample sideways at 1 m/s while its speed along the lane is 2 m/s;
+    a car catching up at 4 m/s moves sideways at SUMO's 1 m/s with its bumper at
+    atan(1 / 4) to the lane, not atan(1 / 2) (pulling away from a stop mid-lane-change, the
+    reference car ran 0.15 m past its new lane's centre line)."""
+    from physics_side.config import DefaultControl
+
+    xs = np.arange(0.0, 60.0, 2.0)
+    ref = Reference(0.0, np.zeros(1), np.zeros(1), np.full(1, 90.0), np.full(1, 2.0), np.zeros(1),
+                    np.full(1, 7.0), np.zeros(1), np.array([0, 30]), np.c_[xs, np.zeros_like(xs)])
+    ref.set_side_rate(np.array([1.0]))
+    assert ref.drift_angle(0.0) == pytest.approx(math.atan(0.5))
+    yaw, v = math.atan(0.25), 4.0
+    one = np.ones(1)
+    obs = C.VehicleObs(np.zeros(1), np.zeros(1), -4.0 * math.cos(yaw) * one, -4.0 * math.sin(yaw) * one,
+                       yaw * one, v * one, np.zeros(1), v * math.cos(yaw) * one, v * math.sin(yaw) * one)
+    p = C.VehicleParams(2.7 * one, 3.6 * one, -1.3 * one, 2.3 * one, 1400.0 * one, 0.3 * one,
+                        np.radians(35.0) * one, 2500.0 * one, 5000.0 * one)
+    cmd = C.control_default(obs, p, ref, 0.0, 0.02, DefaultControl(), C.ControlState.zeros(1))
+    assert abs(float(cmd.steer[0])) < 1e-3, cmd.steer  # (0.17 rad with SUMO's speed)

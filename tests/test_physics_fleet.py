@@ -277,6 +277,28 @@ def test_continuous_lane_change_is_driven_within_bounds(v):
     assert worst < (0.3 if v > 10 else 0.5), worst
 
 
+def test_a_lane_change_ends_on_the_new_lanes_centre_line():
+    """SUMO stops a continuous lane change on the target lane's centre line: the sample that
+    arrives there is not extrapolated a further step sideways past it (its offset is 0, whose
+    sign is no direction), and the car does not run past the line."""
+    f = _fleet()
+    end_k = 50  # 2.0 s + 3.2 m at 1.07 m/s
+    over = 0.0
+    for k in range(end_k + 15):
+        msg, off = _lane_change_step(k, 0.1, 13.9, 3.2 / 3.0, t0=2.0)
+        f.apply_step(msg)
+        if k == end_k:
+            assert off == pytest.approx(3.2)
+            # half a step on, the reference is still on the line (was 0.053 m past it)
+            assert f.ref.at(0.05).y[0] == pytest.approx(103.2, abs=1e-3)
+            assert f.ref.drift_angle(0.05) == pytest.approx(0.0)
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+            if k >= end_k:
+                over = max(over, float(f.snapshot().y[0]) - 103.2)
+    assert over < 0.08, over  # (0.15 m when the sample drifted on)
+
+
 def test_a_standing_vehicle_slid_sideways_is_carried_along_the_slide():
     """SUMO's continuous lane change while standing in a queue: no vehicle drives that, so it
     follows SUMO's slide every tick (one placement for the slide), not lagging 0.5 m behind."""
