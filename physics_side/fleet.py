@@ -74,8 +74,11 @@ KIN_BLEND_S = 0.4  # [s] time constant of a carried body's glide from its driven
 # Between the samples of long (interpolated) steps a carry also starts for a turn beyond the
 # tyres' grip at the step's speed: at 1 s steps SUMO takes junction corners at 13 m/s through
 # 45-75 deg within one step (15-25 m/s^2 of lateral acceleration); driven, cars ran up to 9 m
-# wide and were placed back. The window's demand v^2 * kappa counts as a share of the lateral
-# acceleration the tyres carry (``_a_lat``), compared with INFEASIBLE_MARGIN / _RELEASE.
+# wide and were placed back. The demand v^2 * kappa of GRIP_WINDOW_K windows counts as a share
+# of the lateral acceleration the tyres carry (``_a_lat``), against INFEASIBLE_MARGIN / _RELEASE.
+# [grid steps] the grip check's windows are 4 m: over 8 m a bus's 26 deg corner of its lane's
+# shape at 10.5 m/s looked like 0.7 of its grip; driven, it crabbed 20 deg off its lane into a bus
+GRIP_WINDOW_K = 2
 CHORD_FIX_MAX_DEG = 30.0  # [deg] a carried body's chord is turned onto SUMO's angle at the step's end within this
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
@@ -727,10 +730,12 @@ class Fleet:
         if self.interpolating:
             v = np.maximum(v, ref.step_speed)
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
-        kappa = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0)
-        tight = kappa / self._reach()
+        tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
         if self.interpolating:
-            tight = np.maximum(tight, kappa * v * v / self._a_lat)
+            kg = GRIP_WINDOW_K
+            kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
+            kap = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0)
+            tight = np.maximum(tight, kap * v * v / self._a_lat)
         return tight
 
     def _kin_pose(self, at: ReferencePoint, tau: float) -> tuple[np.ndarray, ReferencePoint]:
