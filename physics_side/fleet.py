@@ -718,10 +718,9 @@ class Fleet:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``): the mean
         curvature of 8 m windows starting up to 1 s of travel ahead. Between the samples of
         long steps also as a share of its tyres' grip at the step's speed (see above); at
-        short steps grip is left out: there SUMO's turns are driven within a step's
-        correction, and a grip carry put the carried vehicle, exact on SUMO's path, into a
-        neighbour running slightly wide beside it. One path evaluation per SUMO step:
-        headings every INFEASIBLE_GRID_M, windows by index offset."""
+        short steps grip is left out (SUMO's turns there are driven without divergence
+        placements in the pack). One path evaluation per SUMO step: headings every
+        INFEASIBLE_GRID_M, windows by index offset."""
         k = int(round(INFEASIBLE_WINDOW_M / INFEASIBLE_GRID_M))
         grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + INFEASIBLE_WINDOW_M + 1e-9, INFEASIBLE_GRID_M)[:, None]
         h = ref.path.at(np.broadcast_to(grid, (len(grid), self.n))).heading
