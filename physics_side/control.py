@@ -493,7 +493,7 @@ def control_default(
     int_max = cfg.int_limit / max(cfg.k_int, 1e-9)
     state.integ = np.where(live, _clip(state.integ + e_s * dt, -int_max, int_max), 0.0)
     a_cmd = accel_command(e_s, e_v, a_ref, state.integ, cfg.pos_omega, cfg.pos_zeta, cfg.k_int)
-    if cfg.brake_omega > cfg.pos_omega and not ref.interpolated:
+    if cfg.brake_omega > cfg.pos_omega and ref.interpolated is None:
         # ahead of SUMO or faster, a faster loop brakes: extrapolating, the car learns that
         # SUMO brakes one sample late (0.5 m/s too fast at 0.1 s steps), and ahead is where
         # SUMO's leader or stop line is; catching up keeps the slower loop (an interpolated

@@ -71,6 +71,15 @@ INFEASIBLE_RATE_MARGIN = 1.5
 INFEASIBLE_MIN_SPEED = 1.0
 INFEASIBLE_OFF_M = 0.5
 KIN_BLEND_S = 0.4  # [s] time constant of a carried body's glide from its driven pose onto SUMO's
+# Between the samples of long (interpolated) steps a carry also starts for a turn beyond the
+# tyres' grip at the step's speed: at 1 s steps SUMO takes junction corners at 13 m/s through
+# 45-75 deg within one step (15-25 m/s^2 of lateral acceleration); driven, cars ran up to 9 m
+# wide and were placed back. The demand v^2 * kappa of GRIP_WINDOW_K windows counts as a share
+# of the lateral acceleration the tyres carry (``_a_lat``), against INFEASIBLE_MARGIN / _RELEASE.
+# [grid steps] the grip check's windows are 4 m: over 8 m a bus's 26 deg corner of its lane's
+# shape at 10.5 m/s looked like 0.7 of its grip; driven, it crabbed 20 deg off its lane into a bus
+GRIP_WINDOW_K = 2
+CHORD_FIX_MAX_DEG = 30.0  # [deg] a carried body's chord is turned onto SUMO's angle at the step's end within this
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
 
@@ -153,6 +162,8 @@ class _Commands:
     """Force x, y [N] and yaw torque [N*m] per pedestrian (``_Groups.ped_idx``)."""
     at: ReferencePoint | None
     """Reference point where kinematic agents and ``carry`` are placed (``Reference.at``), or None."""
+    kin_yaw: np.ndarray | None
+    """Body angle [rad] of kinematic agents (``Fleet._kin_pose``), or None."""
     carry: np.ndarray | None
     """Standing agents carried along SUMO's sideways slide (placed), or None."""
     rear: np.ndarray | None
@@ -225,6 +236,7 @@ class Fleet:
         self.kin_off = np.zeros((0, 3))  # carried agents' offset from SUMO's pose at the start (x, y [m], yaw [rad])
         self.kin_age = np.zeros(0)  # [s] since the carry started
         self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
+        self._chord_end: np.ndarray | None = None  # carried bodies' chord to SUMO's angle at the step's end [rad]
         self._pending_collisions: list[str] = []
         self.tau = 0.0
         self.state = C.ControlState.zeros(0)
@@ -387,6 +399,7 @@ class Fleet:
             yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
         ref = cur = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
         self._sumo_yaw, self._sumo_yaw_rate = yaw, yaw_rate
+        self._chord_end = None
         side_rate = np.zeros(len(ids))
         if old_ref is not None and bool((prev >= 0).any()):  # (the previous step may have had no agents)
             had = prev >= 0
@@ -453,6 +466,8 @@ class Fleet:
                 else ref.held())
         e_lon, e_lat = tracking_error(obs.fx, obs.fy, held)
         dist = np.hypot(e_lon, e_lat)
+        self.sumo_len = a.length[rows].astype(np.float64)
+        self.sumo_wid = a.width[rows].astype(np.float64)
         self._carry_infeasible(ref, prev, yaw_rate, dist, obs, held)
         physical = self.mode == AgentMode.PHYSICAL
         is_new = np.zeros(len(ids), bool)
@@ -490,6 +505,16 @@ class Fleet:
             # placed in the steady-turn pose of the lane's sharpest bend, 60 deg off SUMO's
             # angle; a slide under way continues through the step where the lane switches
             carry &= was_carried | (np.abs(side_rate) > 0.05)
+            if ref.interpolated is not None:
+                # between the samples of long steps also a slow vehicle that SUMO moves sideways off
+                # its path further than it can drive over its travel in the step (a lane change's
+                # S of curvature at its reach covers reach * travel^2 / 4): a bus stopping from
+                # 1.3 m/s that SUMO moved 0.9 m sideways stood still, 1.4 m off at the next sample
+                lat = np.abs(ref.side_rate) * self.step_length
+                travel = ref.step_speed * self.step_length
+                carry |= (slow & ref.interpolated & (lat > self.cfg.sideways_slide_m)
+                          & (lat > 0.25 * self._reach() * travel * travel)
+                          & ~jumped & ~is_new & physical & (self.kind != M.KIND_PED))
         jumped |= carry & ~was_carried
         self.carry = carry
         flip = math.radians(self.cfg.flip_deg)
@@ -518,8 +543,6 @@ class Fleet:
         self._update_ghosts(obs, held, is_new, prev, msg.time)
         self.jump_t = np.where(prev >= 0, self.jump_t[np.maximum(prev, 0)] if len(self.jump_t) else -np.inf, -np.inf)
         self.jump_t[jumped | ((flags & AgentFlag.JUMPED) != 0)] = msg.time
-        self.sumo_len = a.length[rows].astype(np.float64)
-        self.sumo_wid = a.width[rows].astype(np.float64)
         if self._pending_collisions:
             self._recheck_collisions()
         self.s_act = (np.where(place, held.s, ref.project_far(obs.fx, obs.fy, held.s + e_lon, tau=self.tau)[0]) if len(ids)
@@ -703,17 +726,73 @@ class Fleet:
 
     def _path_tightness(self, ref: Reference) -> np.ndarray:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``): the mean
-        curvature of 8 m windows starting up to 1 s of travel ahead. Grip is left out: a carry
-        for a turn too fast for the tyres (at 1 s steps) put the carried vehicle, exact on
-        SUMO's path, into a neighbour running slightly wide beside it. One path evaluation
-        per SUMO step: headings every INFEASIBLE_GRID_M, windows by index offset."""
+        curvature of 8 m windows starting up to 1 s of travel ahead. Between the samples of
+        long steps also as a share of its tyres' grip at the step's speed (see above); at
+        short steps grip is left out (SUMO's turns there are driven without divergence
+        placements in the pack). One path evaluation per SUMO step: headings every
+        INFEASIBLE_GRID_M, windows by index offset."""
         k = int(round(INFEASIBLE_WINDOW_M / INFEASIBLE_GRID_M))
         grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + INFEASIBLE_WINDOW_M + 1e-9, INFEASIBLE_GRID_M)[:, None]
         h = ref.path.at(np.broadcast_to(grid, (len(grid), self.n))).heading
         kappa = np.abs(wrap_pi(h[k:] - h[:-k])) / INFEASIBLE_WINDOW_M
-        ahead = np.clip(np.maximum(ref.speed, 0.0), *INFEASIBLE_AHEAD_M)
-        kappa = np.where(grid[:-k] <= ahead, kappa, 0.0)
-        return kappa.max(axis=0) / self._reach()
+        v = np.maximum(ref.speed, 0.0)
+        if self.interpolating:
+            v = np.maximum(v, ref.step_speed)
+        ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
+        tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
+        if self.interpolating:
+            kg = GRIP_WINDOW_K
+            kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
+            kap = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0)
+            tight = np.maximum(tight, kap * v * v / self._a_lat)
+        return tight
+
+    def _kin_pose(self, at: ReferencePoint, tau: float) -> tuple[np.ndarray, ReferencePoint]:
+        """Body angle [rad] of kinematic agents placed at ``at`` (``tau`` [s] past the sample),
+        and ``at`` with the curvature they are placed turning at.
+
+        At short steps: SUMO's own angle turning at its rate between its samples (not the
+        path's heading at the bumper: a corner of a coarse lane shape right at the bumper swung
+        a carried car's body 19 deg off SUMO's angle for one step, into its neighbours). Between
+        the samples of long steps SUMO's angle at either sample may be far off the interpolated
+        path (a 65 deg corner taken within one step): the chord from the body's back to its
+        bumper on the interpolated path, SUMO's own definition of the angle, straight back
+        along SUMO's angle at the step's start where the back is behind the path's start. It
+        turns at the chord's own rate (curvature cross(d, u_front - u_back) / |d|^2 for the
+        chord d and the path's unit tangents at both ends): placed turning at the curvature of
+        a lane shape's corner at the bumper, a released car kept spinning (90 deg off, rolling
+        backwards). The straight back is not SUMO's back on its lanes: the chord's difference
+        from SUMO's angle at the step's end sample is added in proportion to the time (a
+        carried bus's chord was 7 deg off SUMO's angle there, its rear 1.4 m into the next lane)."""
+        ref = self.ref
+        sumo = wrap_pi(ref.yaw + ref.yaw_rate * min(tau, self.step_length))
+        if not self.interpolating or not self.infeasible.any():  # (agents kinematic by preset: SUMO's)
+            return sumo, at
+        if self._chord_end is None:  # once per SUMO step
+            L = self.step_length
+            fix = wrap_pi(self._sumo_yaw - self._chord(ref.at(L), L)[0])
+            known = ref.interpolated if ref.interpolated is not None else np.zeros(self.n, bool)
+            self._chord_end = np.where(known & (np.abs(fix) < math.radians(CHORD_FIX_MAX_DEG)), fix, 0.0)
+        u = min(max(tau, 0.0) / self.step_length, 1.0)
+        yaw, kappa = self._chord(at, tau)
+        kappa = kappa + self._chord_end / (self.step_length * np.maximum(at.speed, 1.0))
+        return (np.where(self.infeasible, wrap_pi(yaw + u * self._chord_end), sumo),
+                replace(at, curvature=np.where(self.infeasible, kappa, at.curvature)))
+
+    def _chord(self, at: ReferencePoint, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """Angle [rad] and turning curvature [1/m] of each body's chord on the interpolated path
+        with its bumper at ``at`` (``_kin_pose``)."""
+        ref = self.ref
+        back = at.s - self.sumo_len
+        p = ref.point_at(np.maximum(back, 0.0), tau)
+        # (SUMO's angle unless it is far off the path's start: a vehicle it turned on the spot)
+        h0 = np.where(np.abs(wrap_pi(ref.yaw - ref.start_heading)) < 0.5 * np.pi, ref.yaw, ref.start_heading)
+        short = np.minimum(back, 0.0)
+        dx, dy = at.x - p.x - short * np.cos(h0), at.y - p.y - short * np.sin(h0)
+        hb = np.where(back > 0.0, p.heading, h0)
+        ux, uy = np.cos(at.tangent) - np.cos(hb), np.sin(at.tangent) - np.sin(hb)
+        kappa = (dx * uy - dy * ux) / np.maximum(dx * dx + dy * dy, 1e-6)
+        return np.arctan2(dy, dx), kappa
 
     def _carry_infeasible(self, ref: Reference, prev: np.ndarray, yaw_rate: np.ndarray, dist: np.ndarray,
                           obs, held) -> None:
@@ -728,13 +807,12 @@ class Fleet:
             was = (prev >= 0) & self.infeasible[np.maximum(prev, 0)]
         cand = (self.mode == AgentMode.PHYSICAL) & (self.kind != M.KIND_PED)
         now = np.zeros(self.n, bool)
-        # (not between samples of long steps: there the switches fall 1 s apart and SUMO's motion
-        # between its samples is a guess anyway)
-        if self.cfg.carry_infeasible and not self.interpolating and cand.any():
+        if self.cfg.carry_infeasible and cand.any():
             tight = self._path_tightness(ref)
-            start = (tight > INFEASIBLE_MARGIN) | (
-                (ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
-                & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * self._reach()))
+            start = tight > INFEASIBLE_MARGIN
+            if not self.interpolating:  # (between the samples of long steps SUMO's rate is a chord's)
+                start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
+                          & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * self._reach()))
             # over once the path ahead is in reach and the body is straight on it (a long
             # vehicle's rear is still in the turn when its bumper is out: SUMO's chord angle)
             # and the carried body itself has turned onto SUMO's angle (SUMO's angle jumps where a
@@ -747,6 +825,11 @@ class Fleet:
                     # while SUMO still turned it at 100 deg/s, a car lagged 0.6 m, a van spun round)
                     | (np.abs(yaw_rate) > INFEASIBLE_RELEASE * np.maximum(ref.speed, INFEASIBLE_MIN_SPEED)
                        * self._reach()))
+            if self.interpolating:
+                # ... and, between long steps' samples, once the carried body no longer turns faster
+                # than its tyres carry (the chord of a body whose back is still in the corner turns
+                # at up to 1.2 rad/s at 14 m/s: released then, cars spun round)
+                keep |= np.abs(obs.yaw_rate * obs.speed) > INFEASIBLE_RELEASE * self._a_lat
             now = cand & (start | (was & keep))
         self.infeasible = now
         # a carry glides from the body's pose onto SUMO's (KIN_BLEND_S): switched at once, a
@@ -756,7 +839,7 @@ class Fleet:
             off[was], age[was] = self.kin_off[prev[was]], self.kin_age[prev[was]]
         began = now & ~was
         if began.any():
-            yaw0 = ref.yaw + ref.yaw_rate * min(self.tau, self.step_length)
+            yaw0 = self._kin_pose(held, self.tau)[0]
             off[began] = np.c_[obs.fx - held.x, obs.fy - held.y, wrap_pi(obs.yaw - yaw0)][began]
             age[began] = 0.0
         self.kin_off, self.kin_age = off, age
@@ -870,15 +953,15 @@ class Fleet:
                 drive = np.where(use, cmd.drive, drive)
                 brake = np.where(use, cmd.brake, brake)
                 aux = np.where(use, cmd.aux, aux)
-        at = None
+        at = kin_yaw = None
         if len(g.kin_idx):  # placed at the reference (``_actuate``), steering shown for its path
             idx = g.kin_idx
-            at = ref.at(tau)
+            kin_yaw, at = self._kin_pose(ref.at(tau), tau)
             steer[idx] = np.arctan(p.wheelbase[idx] * at.curvature[idx])
         carry = carry_yaw = None
         if not self.stopping and self.carry.any():  # standing, slid sideways by SUMO: follow the slide
             carry = np.flatnonzero(self.carry)
-            at = ref.at(tau)
+            at = ref.at(tau) if at is None else at  # (a carried slide is placed straight anyway)
             carry_yaw = obs.yaw.copy()
             drive[carry] = 0.0
         rear = None
@@ -938,7 +1021,7 @@ class Fleet:
             fx, fy, tz, force = self._pedestrians(g.ped_idx, obs, tau, stopping, stop_speed)
             ped = (fx, fy, tz)
             drive[g.ped_idx] = force
-        return _Commands(steer, drive, brake, aux, stab, ped, at, carry, rear, carry_yaw)
+        return _Commands(steer, drive, brake, aux, stab, ped, at, kin_yaw, carry, rear, carry_yaw)
 
     def _actuate(self, u: _Commands) -> None:
         """Write the commands into the world: kinematic agents and SUMO's sideways slides
@@ -946,12 +1029,7 @@ class Fleet:
         w = self.world
         g = self._groups
         if len(g.kin_idx):
-            # the body turns at SUMO's own rate between its samples, not with the path's
-            # heading at the bumper: a corner of a coarse lane shape right at the bumper swung
-            # a carried car's body 19 deg off SUMO's angle for one step, into its neighbours
-            ref = self.ref
-            yaw = wrap_pi(ref.yaw + ref.yaw_rate * min(self.tau, self.step_length))
-            at = u.at
+            at, yaw = u.at, u.kin_yaw
             if len(self.kin_age) == self.n and np.isfinite(self.kin_age).any():
                 f = np.exp(-self.kin_age / KIN_BLEND_S)  # 0 for agents kinematic by preset (age inf)
                 at = replace(at, x=at.x + f * self.kin_off[:, 0], y=at.y + f * self.kin_off[:, 1])

@@ -344,7 +344,7 @@ def test_default_loop_brakes_faster_when_ahead_and_catches_up_as_before():
     # a reference interpolated to the next sample (long steps) brings no late news: one loop
     for w in (cfg.brake_omega, cfg.pos_omega):
         ref.interpolate_to(0.5, np.ones(n, bool), np.full(n, 5.0), np.full(n, 10.0), np.zeros(n), np.zeros(n))
-        assert ref.interpolated
+        assert ref.interpolated is not None
         cmds[w] = C.control_default(obs, p, ref, 0.0, 0.02, replace(cfg, brake_omega=w), C.ControlState.zeros(n)).aux
     np.testing.assert_allclose(cmds[cfg.brake_omega], cmds[cfg.pos_omega], atol=1e-9)
 
