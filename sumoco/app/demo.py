@@ -264,6 +264,9 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
         raise KeyboardInterrupt
 
     old = signal.signal(signal.SIGTERM, _on_sigint)
+    # Ctrl-C stops the run even when the shell that started us ignores SIGINT (a script's
+    # background job inherits SIG_IGN, and Python then installs no KeyboardInterrupt)
+    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with open_session(zcfg) as session:
             live = LiveRecorder(session, keys, recorder, on_message=progress,
@@ -338,6 +341,7 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
         log.warning("interrupted: stopping the daemons")
     finally:
         signal.signal(signal.SIGTERM, old)
+        signal.signal(signal.SIGINT, old_int)
         procs.close()
         recorder.close()
     try:
