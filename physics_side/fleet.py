@@ -523,10 +523,9 @@ class Fleet:
         place = is_new | jumped | flipped | diverged
         if place.any():
             idx = np.flatnonzero(place)
-            slide = carry[idx]  # a slide's start: placed as it stands (``_actuate``)
+            slide = carry[idx]  # a slide's start: placed as it stands
             if slide.any():
-                self._place(idx[slide], replace(held, curvature=np.zeros_like(held.curvature)), count=True,
-                            steady_turn=False, yaw=obs.yaw)
+                self._place_slide(idx[slide], held, obs.yaw, count=True)
             self._place(idx[~slide], held, count=True)
             self.state.integ[idx] = 0.0
             e_lon[idx] = 0.0
@@ -654,6 +653,13 @@ class Fleet:
             log.info("%d collision(s) of the last interval were SUMO's: its footprints overlap at t=%.2f s",
                      moved, self._sample_ref.t_k)
 
+    def _place_slide(self, idx: np.ndarray, at, yaw: np.ndarray, count: bool) -> None:
+        """Place standing agents ``idx`` that SUMO slides sideways at ``at`` as they stand (body
+        ``yaw``, full length), wheels straight: in the steady-turn pose of a bend at the bumper a
+        stopped 6.5 m van turned 11 deg, its rear into passing traffic; on SUMO's angle (which
+        turns with the lane change, 38 deg while standing) a car's rear swung into the next lane."""
+        self._place(idx, replace(at, curvature=np.zeros_like(at.curvature)), count=count, steady_turn=False, yaw=yaw)
+
     def _place(self, idx: np.ndarray, at, count: bool, steady_turn: bool = True,
                yaw: np.ndarray | None = None) -> None:
         """Place agents ``idx`` at reference point ``at`` (full-length arrays); ``yaw``
@@ -715,14 +721,15 @@ class Fleet:
         self._any_bike = bool(np.any(self.kind == M.KIND_BIKE))
         self._gen = self.world.generation
         self._groups = None
+        p = self.params
+        self._reach_c = C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, None)
 
     def _reach(self) -> np.ndarray:
         """Tightest path curvature [1/m] each vehicle's bumper follows when driven: its front
         steering's (``bumper_curvature_limit``); a steered rear axle keeps a long body on
         SUMO's chord rather than turning it tighter (a truck released at 75 % of its
-        four-wheel-steered limit ran 6 m wide)."""
-        p = self.params
-        return C.bumper_curvature_limit(p.wheelbase, p.d_bumper, p.max_steer, None)
+        four-wheel-steered limit ran 6 m wide). Computed with the agents' parameters (``_params``)."""
+        return self._reach_c
 
     def _path_tightness(self, ref: Reference) -> np.ndarray:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``): the mean
@@ -962,7 +969,7 @@ class Fleet:
         if not self.stopping and self.carry.any():  # standing, slid sideways by SUMO: follow the slide
             carry = np.flatnonzero(self.carry)
             at = ref.at(tau) if at is None else at  # (a carried slide is placed straight anyway)
-            carry_yaw = obs.yaw.copy()
+            carry_yaw = obs.yaw  # (this tick's observation: not written)
             drive[carry] = 0.0
         rear = None
         if len(self._rear_idx):  # long vehicles: the body onto SUMO's chord (``C.rear_axle_steer``)
@@ -1037,12 +1044,7 @@ class Fleet:
                 self.kin_age = self.kin_age + self.dt
             self._place(g.kin_idx, at, count=False, steady_turn=False, yaw=yaw)
         if u.carry is not None:
-            # a standing slide moves the body sideways as it stands, wheels straight: in the
-            # steady-turn pose of a bend at the bumper a stopped 6.5 m van turned 11 deg, its rear
-            # into passing traffic; on SUMO's angle (which turns with the lane change, 38 deg
-            # while standing) a car's rear swung into the next lane
-            at = replace(u.at, curvature=np.zeros_like(u.at.curvature))
-            self._place(u.carry, at, count=False, steady_turn=False, yaw=u.carry_yaw)
+            self._place_slide(u.carry, u.at, u.carry_yaw, count=False)
         vi = g.veh_idx
         if len(vi):
             if g.all_veh:
