@@ -236,6 +236,7 @@ class Fleet:
         self.kin_off = np.zeros((0, 3))  # carried agents' offset from SUMO's pose at the start (x, y [m], yaw [rad])
         self.kin_age = np.zeros(0)  # [s] since the carry started
         self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
+        self._kin_rate = np.zeros(0)  # [rad/s] kinematic bodies' turn rate between samples (``_kin_pose``)
         self._chord_end: np.ndarray | None = None  # carried bodies' chord to SUMO's angle at the step's end [rad]
         self._pending_collisions: list[str] = []
         self.tau = 0.0
@@ -398,6 +399,14 @@ class Fleet:
             had = prev >= 0
             yaw_rate[had] = wrap_pi(yaw[had] - old_ref.yaw[prev[had]]) / (msg.time - old_ref.t_k)
         ref = cur = Reference.from_batch(msg.time, a, rows if st.skipped else None, yaw_rate)
+        # kinematic bodies turn on between samples at the rate SUMO kept over its last two
+        # steps: a one-step jump of its angle (a sublane move's start: 3.4 deg in 0.05 s at
+        # 1.3 m/s) carried on for a step swung a carried 16.5 m trailer's rear 0.7 m sideways
+        before = np.zeros(len(ids))
+        if old_ref is not None and len(self._sumo_yaw_rate) and len(ids):
+            had = prev >= 0
+            before[had] = self._sumo_yaw_rate[prev[had]]
+        self._kin_rate = np.where(before * yaw_rate > 0.0, np.sign(yaw_rate) * np.minimum(np.abs(before), np.abs(yaw_rate)), 0.0)
         self._sumo_yaw, self._sumo_yaw_rate = yaw, yaw_rate
         self._chord_end = None
         side_rate = np.zeros(len(ids))
@@ -625,8 +634,9 @@ class Fleet:
         self._ghost_sumo_overlaps(idx[sumo])
         for i in idx[~sumo]:
             if not later and len(self._pending_collisions) < MAX_PENDING_COLLISIONS:
-                self._pending_collisions.append(self.ids[i])
-            log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", t, self.ids[i])
+                self._pending_collisions.append(self.ids[i])  # told at the next sample (_recheck_collisions)
+            else:
+                log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", t, self.ids[i])
 
     def _ghost_sumo_overlaps(self, idx: np.ndarray) -> None:
         """Agents touching where SUMO has them overlap pass through each other as in SUMO (ghosts
@@ -642,6 +652,9 @@ class Fleet:
         SUMO's footprints now were SUMO's (it moved them into each other between its samples)."""
         pending, self._pending_collisions = self._pending_collisions, []
         idx = np.array([self._index[a] for a in pending if a in self._index], np.int64)
+        for a in pending:
+            if a not in self._index:  # left SUMO at this sample: stays physics only
+                log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", self._sample_ref.t_k, a)
         if not len(idx):
             return
         overlap = self._sumo_overlaps(idx, self._sample_ref.held())
@@ -652,6 +665,8 @@ class Fleet:
             self.counters["collisions_sumo_reported"] += moved
             log.info("%d collision(s) of the last interval were SUMO's: its footprints overlap at t=%.2f s",
                      moved, self._sample_ref.t_k)
+        for i in idx[~overlap]:
+            log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", self._sample_ref.t_k, self.ids[i])
 
     def _place_slide(self, idx: np.ndarray, at, yaw: np.ndarray, count: bool) -> None:
         """Place standing agents ``idx`` that SUMO slides sideways at ``at`` as they stand (body
@@ -772,7 +787,8 @@ class Fleet:
         from SUMO's angle at the step's end sample is added in proportion to the time (a
         carried bus's chord was 7 deg off SUMO's angle there, its rear 1.4 m into the next lane)."""
         ref = self.ref
-        sumo = wrap_pi(ref.yaw + ref.yaw_rate * min(tau, self.step_length))
+        rate = ref.yaw_rate if self.interpolating else self._kin_rate  # (interpolating: the next sample's known)
+        sumo = wrap_pi(ref.yaw + rate * min(tau, self.step_length))
         if not self.interpolating or not self.infeasible.any():  # (agents kinematic by preset: SUMO's)
             return sumo, at
         if self._chord_end is None:  # once per SUMO step
@@ -901,7 +917,7 @@ class Fleet:
         obs, proj = self._observe()
         tau = min(self.tau, self.max_extrapolation)
         u = self._control(obs, proj, tau)
-        self._actuate(u)
+        self._actuate(u, obs)
         w.step()
         self.tick_count += 1
         self.tau += self.dt
@@ -1030,7 +1046,7 @@ class Fleet:
             drive[g.ped_idx] = force
         return _Commands(steer, drive, brake, aux, stab, ped, at, kin_yaw, carry, rear, carry_yaw)
 
-    def _actuate(self, u: _Commands) -> None:
+    def _actuate(self, u: _Commands, obs) -> None:
         """Write the commands into the world: kinematic agents and SUMO's sideways slides
         placed at the reference, vehicles' steering / drive / brakes, pedestrians' forces."""
         w = self.world
@@ -1048,10 +1064,10 @@ class Fleet:
         vi = g.veh_idx
         if len(vi):
             if g.all_veh:
-                w.command_vehicles(g.veh_slots, u.steer, u.drive, u.brake, u.stab, u.rear)
+                w.command_vehicles(g.veh_slots, u.steer, u.drive, u.brake, u.stab, u.rear, obs.speed)
             else:
                 w.command_vehicles(g.veh_slots, u.steer[vi], u.drive[vi], u.brake[vi], u.stab,
-                                   None if u.rear is None else u.rear[vi])
+                                   None if u.rear is None else u.rear[vi], obs.speed[vi])
         if u.ped is not None:
             w.command_pedestrians(self.slots[g.ped_idx], *u.ped)
 

@@ -190,6 +190,10 @@ class SlotTables:
     """(G, 4) flat qvel index of the spin dofs."""
     brake_share: np.ndarray
     """(G, 4) share of the total brake torque per brake column."""
+    drive_share: np.ndarray
+    """(G, 4) share of the total drive torque per spin column (the drive tendon's coefficients)."""
+    traction_control: np.ndarray
+    """(G,) 1 where the model has traction control (``world.traction_control``)."""
     tree: np.ndarray
     """Flat index into the expanded tree_sleep_policy."""
     body: np.ndarray
@@ -374,17 +378,20 @@ def _build_tables(
             drive_u = ub + rel_act["drive"]
             aux_u = neg2
             share = [spec.brake_front / 2] * 2 + [(1 - spec.brake_front) / 2] * 2
+            drive_share = [0.25] * 4 if spec.awd else [0.0, 0.0, 0.5, 0.5]
         elif spec.kind == M.KIND_BIKE:
             steer_q = qb[:, None] + rel_sq[None, :]
             steer_u = np.repeat((ub + rel_act["steer"])[:, None], 2, axis=1)
             drive_u = ub + rel_act["drive"]
             aux_u = np.stack([ub + rel_act["stab"], np.full(n, -1, np.int64)], axis=1)
             share = [spec.brake_front] * 2 + [1 - spec.brake_front] * 2
+            drive_share = [0.0, 0.0, 1.0, 1.0]  # (one rear wheel in both columns)
         else:
             steer_q, steer_u = neg2, neg2.copy()
             drive_u = ub + rel_act["fx"]
             aux_u = np.stack([ub + rel_act["fy"], ub + rel_act["tz"]], axis=1)
             share = [0.0] * 4
+            drive_share = [0.0] * 4
         if len(rel_sd):
             spin_fl = (s * m.nv + d)[:, None] + rel_sd[None, :]
             spin_v = vb[:, None] + rel_sd[None, :]
@@ -404,6 +411,8 @@ def _build_tables(
             qpos=qb, nq=whole(nq_slot), qvel=vb, nv=whole(nv_slot), ctrl=ub, nu=whole(nu_slot), qpos0=q, dof=d,
             steer_q=steer_q, steer_u=steer_u, drive_u=drive_u, aux_u=aux_u, spin_fl=spin_fl, spin_v=spin_v,
             brake_share=np.tile(np.asarray(share, np.float64), (n, 1)),
+            drive_share=np.tile(np.asarray(drive_share, np.float64), (n, 1)),
+            traction_control=whole(int(spec.traction_control)),
             tree=s * m.ntree + (tree0 + i), body=(s * m.nbody + b) * 6 + 3,
             geom=s * m.ngeom + g_first + i * ng_slot, geom_model=g_first + i * ng_slot, park_x=px, park_y=py,
             length=full(spec.length), width=full(spec.width), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
@@ -422,9 +431,9 @@ def _build_tables(
     return SlotTables(**{k: _concat(k, v) for k, v in cols.items()}), base
 
 
-_WIDTH = {"steer_q": 2, "steer_u": 2, "rsteer_q": 2, "rsteer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4}
+_WIDTH = {"steer_q": 2, "steer_u": 2, "rsteer_q": 2, "rsteer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4, "drive_share": 4}
 _FLOAT = {
-    "brake_share", "park_x", "park_y", "length", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
+    "brake_share", "drive_share", "park_x", "park_y", "length", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
     "mass", "max_steer", "max_rsteer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "roll_stiffness", "rest_z",
     "rest_pitch",
 }

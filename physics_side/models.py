@@ -119,6 +119,8 @@ class AgentSpec:
     """Share of brake torque on the front axle."""
     tyre_mu: float = 1.0
     """Tyre-road sliding friction [1]."""
+    traction_control: bool = False
+    """A spinning driven wheel is braked (heavy vehicles' ASR: ``world.traction_control``)."""
 
     @property
     def front_offset(self) -> float:
@@ -196,7 +198,7 @@ def _heavy(cls: AgentClass, length: float, width: float, name: str, mass: float,
         # whatever the turn's radius; a rigid 12-16 m body on a fixed rear axle cuts ~3 m inside
         # a 10 m junction turn (into the next lane) or cannot make it at all. Steering the rear
         # axle too (as articulated buses, trailers and bogies effectively do) keeps it on the chord.
-        rear_steer_deg=40.0,
+        rear_steer_deg=40.0, traction_control=True,
         # SUMO's coach accelerates at 2.0 m/s^2 (bus 1.2, truck 1.3): ~2 m/s^2 of drive left a
         # coach ~6 m behind after every start, so the drive keeps a margin over the fastest
         max_drive=3.5 * mass * 0.5 * 1.3, max_brake=9.0 * mass * 0.5 * 1.2,
@@ -215,8 +217,11 @@ def _bike(length: float, width: float = 0.65, name: str = "") -> AgentSpec:
         width=width, height=1.7, mass=85.0, com_height=1.0, wheelbase=0.62 * length,
         wheel_radius=0.34, wheel_mass=2.0, clearance=0.3, max_steer_deg=35.0,
         # COM 1 m high over a 1 m wheelbase: beyond ~4.9 m/s^2 a bicycle lifts a wheel,
-        # so drive (~3 m/s^2) and brakes (~4 m/s^2, half on each wheel) stay below that.
-        max_drive=100.0, max_brake=130.0, brake_front=0.5, steer_kp=300.0, steer_kv=15.0,
+        # so drive (~3 m/s^2) and brakes (~4.5 m/s^2) stay below that. Braking unloads the
+        # rear wheel: with half the brake there it locked at full braking and the bicycle
+        # swung 26 deg off its lane on a straight. 65 % in front (75 % ran bicycles braking
+        # in junction turns wide: p95 0.22 -> 0.29 m on a random network).
+        max_drive=100.0, max_brake=130.0, brake_front=0.65, steer_kp=300.0, steer_kv=15.0,
         stab_max=1500.0, tyre_mu=CAR_TYRE_MU,  # SUMO's bicycles take junction turns like cars
     )
 

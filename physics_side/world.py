@@ -34,6 +34,9 @@ from protocol.messages import AgentClass
 
 MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
+TCS_SLIP = 1.5  # [1] a heavy vehicle's driven wheel turning faster than this share of its speed ...
+TCS_MARGIN_MPS = 5.0  # [m/s] ... plus this is spinning: braked by up to its drive share over ...
+TCS_BAND_MPS = 5.0  # [m/s] ... this much more spin
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
 
 
@@ -122,6 +125,17 @@ class _SlotPlan:
         su = t.steer_u[s]
         return (t.wheelbase[s], t.track[s], su[:, 0].copy(), su[:, 1].copy(), t.drive_u[s], t.spin_fl[s],
                 t.brake_share[s])
+
+    @cached_property
+    def traction(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Rows of the slots with traction control, their spin qvel indices (k, 4), wheel radii
+        (k, 1) and drive shares (k, 4); None: none."""
+        t = self.t
+        ok = np.flatnonzero(t.traction_control[self.slots] > 0)
+        if not len(ok):
+            return None
+        s = self.slots[ok]
+        return ok, t.spin_v[s], t.r_wheel[s][:, None], t.drive_share[s]
 
     @cached_property
     def rear(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -419,10 +433,12 @@ class PhysicsWorld:
 
     def command_vehicles(
         self, slots: np.ndarray, steer: np.ndarray, drive: np.ndarray, brake: np.ndarray,
-        stab: np.ndarray | None = None, rear: np.ndarray | None = None,
+        stab: np.ndarray | None = None, rear: np.ndarray | None = None, speed: np.ndarray | None = None,
     ) -> None:
         """Steer (bicycle-model angle [rad], split by Ackermann), drive and brake torques [N*m];
-        ``rear``: rear-axle bicycle-model angles [rad] of the slots that steer it (else unused)."""
+        ``rear``: rear-axle bicycle-model angles [rad] of the slots that steer it (else unused).
+        With the vehicles' forward ``speed`` [m/s] heavy vehicles' wheel brakes also act as
+        their traction control (``traction_control``)."""
         slots = np.asarray(slots, np.int64)
         if len(slots) == 0:
             return
@@ -438,7 +454,13 @@ class PhysicsWorld:
         st[steer_l] = left
         st[steer_r] = right
         st[drive_u] = drive
-        self._fl[spin_fl] = brake[:, None] * brake_share
+        fl = brake[:, None] * brake_share
+        tc = plan.traction
+        if speed is not None and tc is not None:
+            rows, spin_v, r, share = tc
+            fl[rows] = traction_control(fl[rows], np.asarray(drive)[rows, None] * share, st[spin_v] * r,
+                                        np.asarray(speed)[rows, None])
+        self._fl[spin_fl] = fl
         if stab is not None:
             au, ok = plan.stab
             st[au] = np.asarray(stab)[ok]
@@ -505,6 +527,22 @@ class PhysicsWorld:
     @property
     def tables(self) -> SlotTables:
         return self._tables
+
+
+def traction_control(brake: np.ndarray, drive: np.ndarray, surface: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """Per-wheel brake torques [N*m] (n, 4) of a heavy vehicle's traction control (ASR): each
+    wheel's share of the ``brake`` torque, or, for a driven wheel spinning faster than
+    ``TCS_SLIP`` of the vehicle's forward ``speed`` [m/s] (n, 1) plus ``TCS_MARGIN_MPS``
+    (``surface``: its surface speed [m/s]), up to its own share of the ``drive`` [N*m] over
+    ``TCS_BAND_MPS`` more spin (the other driven wheels keep theirs).
+
+    A sliding tyre's friction points along its slip: a truck's inner rear wheel, unloaded
+    in a junction turn under full drive, spun up to 700 m/s of surface speed and the truck
+    slid 3.6 m out of the turn into a pedestrian. Cars, buses and bicycles are left without:
+    braked at their spinning wheel they fell behind SUMO pulling away (spider network p95
+    0.16 -> 0.18-0.22 m), and an anti-lock (tried too) stopped them late."""
+    over = surface - (TCS_SLIP * np.maximum(speed, 0.0) + TCS_MARGIN_MPS)
+    return np.maximum(brake, np.maximum(drive, 0.0) * np.clip(over / TCS_BAND_MPS, 0.0, 1.0))
 
 
 def _vehicle_state(g: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -620,3 +621,27 @@ def test_a_slow_vehicle_sumo_moves_sideways_within_a_long_step_is_carried_along(
     assert f.counters["placements_jump"] == 1 and f.counters["placements_divergence"] == 0, f.counters
     assert abs(snap.y[0] - 103.2) < 0.1 and abs(snap.roll[0]) < 3.0, (snap.y, snap.roll)
     assert worst < 0.2, worst
+
+
+def test_a_kinematic_body_does_not_carry_a_one_step_jump_of_sumos_angle_on():
+    """SUMO's angle jumps 3.4 deg in one 0.05 s step (a sublane move's start) and then holds:
+    a kinematic body turns onto the new angle, not 3.4 deg further over the next step (a
+    carried 16.5 m trailer's rear swung 0.7 m sideways into a bicycle); a steady turn is
+    still carried on between samples."""
+    from protocol.frames import sumo_angle_to_yaw
+
+    f = _fleet(presets={"passenger": "kinematic"})
+    dt, v = 0.05, 1.3
+    angles = [90.0] * 10 + [86.6] * 6
+    for k, ang in enumerate(angles):
+        m = _line_step(k, [10.0 + v * dt * k], [v], step_s=dt)
+        _run_step(f, _with(m, angle=np.array([ang], np.float32)))
+        if k >= 10:
+            yaw = float(f.world.observe(f.slots).yaw[0])
+            assert abs(math.degrees(yaw - sumo_angle_to_yaw(ang))) < 0.5, (k, math.degrees(yaw))
+    g = _fleet(presets={"passenger": "kinematic"})
+    for k in range(12):  # a steady 20 deg/s turn: the body keeps turning between samples
+        ang = 90.0 - 20.0 * dt * k
+        _run_step(g, _with(_line_step(k, [10.0 + v * dt * k], [v], step_s=dt), angle=np.array([ang], np.float32)))
+    yaw = math.degrees(float(g.world.observe(g.slots).yaw[0]))
+    assert abs(yaw - math.degrees(sumo_angle_to_yaw(90.0 - 20.0 * dt * 12))) < 0.3, yaw

@@ -275,3 +275,30 @@ def test_pedestrian_body_is_sumo_footprint():
     g = m.geom("chassis")
     assert g.type[0] == mujoco.mjtGeom.mjGEOM_BOX
     assert 2 * g.size[0] == pytest.approx(spec.length) and 2 * g.size[1] == pytest.approx(spec.width)
+
+
+def test_a_heavy_vehicles_spinning_wheel_is_braked_by_its_traction_control():
+    """Full drive in a tight turn unloads a bus's inner rear wheel: without traction control it
+    spins up to hundreds of m/s (its tyre then carries no side force); with it, within tens."""
+    from physics_side.world import TCS_BAND_MPS, TCS_MARGIN_MPS, TCS_SLIP
+
+    def excess_spin(with_tcs: bool) -> tuple[float, float]:
+        w = _world(AgentClass.BUS, n=1)
+        s = _one(w, AgentClass.BUS, speed=4.0)
+        t = w.tables
+        sv, r = t.spin_v[s][0], t.r_wheel[s][0]
+        top = 0.0
+        for _ in range(150):
+            o = w.observe(s)
+            w.command_vehicles(s, np.array([0.5]), np.array([M.default_spec(AgentClass.BUS).max_drive]), np.zeros(1),
+                               None, np.zeros(1), o.speed if with_tcs else None)
+            w.step()
+            o = w.observe(s)
+            top = max(top, float(np.max(w._state[sv] * r) - o.speed[0]))
+        return top, float(o.speed[0])
+
+    free, _ = excess_spin(False)
+    held, v = excess_spin(True)
+    assert free > 100.0, free
+    assert held < (TCS_SLIP - 1.0) * v + TCS_MARGIN_MPS + TCS_BAND_MPS + 10.0, (held, v)  # (+ one tick's spin-up)
+    assert M.default_spec(AgentClass.BUS).traction_control and not M.default_spec(AgentClass.PASSENGER).traction_control
