@@ -46,6 +46,7 @@ PED_YAW_KP = 60.0  # [N*m/rad] pedestrian heading servo
 PED_YAW_KD = 15.0  # [N*m*s/rad]
 PED_YAW_MAX = 150.0  # [N*m] pedestrian heading servo torque limit
 REAR_STEER_K_YAW = 0.3  # [1/s] rear-axle steering: body angle error -> yaw rate
+REAR_STEER_LAG = math.radians(3.0)  # [rad] a body this far behind SUMO's angle is lagging (``rear_axle_steer``)
 REAR_STEER_V_MIN = 1.0  # [m/s] below this the rear-axle law acts as at this speed
 STEER_SAT_SHARE = 0.97  # [1] steering at this share of its limit counts as saturated
 STEER_SAT_DECEL = 2.0  # [m/s^2] braking per m/s over the reference while saturated (at most this)
@@ -305,7 +306,12 @@ def rear_axle_steer(
     ahead = wrap_pi(yaw - yaw_ref) * np.sign(tb) > 0.0
     sat = (np.abs(tf) > t_f) & ~ahead
     tf = _clip(tf, -t_f, t_f)
-    tr = np.where(sat, _clip((tb - b * tf) / (1.0 - b), -t_r, t_r), tr)
+    tr_b = _clip((tb - b * tf) / (1.0 - b), -t_r, t_r)
+    # ... but never in phase with the front while the body lags SUMO's angle: crabbing the
+    # bumper sideways, a truck's body fell 23 deg behind in a junction turn and ran 1.7 m wide
+    lag = wrap_pi(yaw_ref - yaw) * np.sign(tf) > REAR_STEER_LAG
+    tr_b = np.where(lag & (tr_b * tf > 0.0), np.where(tr * tf < 0.0, tr, 0.0), tr_b)
+    tr = np.where(sat, tr_b, tr)
     if a_lat is not None:  # the turn's curvature (tan f - tan r) / L within the tyres' grip at this speed
         q_max = wheelbase * a_lat / np.maximum(speed * speed, 0.01)
         tr = _clip(tr, tf - q_max, tf + q_max)

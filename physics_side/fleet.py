@@ -79,6 +79,12 @@ KIN_BLEND_S = 0.4  # [s] time constant of a carried body's glide from its driven
 # [grid steps] the grip check's windows are 4 m: over 8 m a bus's 26 deg corner of its lane's
 # shape at 10.5 m/s looked like 0.7 of its grip; driven, it crabbed 20 deg off its lane into a bus
 GRIP_WINDOW_K = 2
+# At short steps the grip check covers heavy vehicles (those that steer their rear axle) at
+# this share of their tyres' grip: a 7.1 m truck SUMO took through a 12 m junction turn at
+# 8.5 m/s (5-9 m/s^2) steered to full lock, its body fell 17 deg behind SUMO's angle and
+# its rear swung into a car. Cars stay driven (carried on their approach to turns, the
+# demo's reference car tracked worse).
+HEAVY_GRIP_SHARE = 0.6
 CHORD_FIX_MAX_DEG = 30.0  # [deg] a carried body's chord is turned onto SUMO's angle at the step's end within this
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 
@@ -599,9 +605,14 @@ class Fleet:
             if not (other.any() and footprints_overlap(cx[i], cy[i], yaw[i], L[i], W[i], cx[other], cy[other],
                                                        yaw[other], L[other], W[other], GHOST_CLEAR_M).any()):
                 ghost[i] = False
-        self.world.set_ghost(self.slots, ghost)  # every step: a recompile resets the bits
-        self.counters["ghost_spawns"] += int((ghost & is_new).sum())
         self.ghost = ghost
+        self._set_bits()  # every step: a recompile resets the bits, and the modes change
+        self.counters["ghost_spawns"] += int((ghost & is_new).sum())
+
+    def _set_bits(self) -> None:
+        """The world's collision bits of every agent: ghosts, and bodies placed every tick."""
+        placed = (self.mode == AgentMode.KINEMATIC) | (self.mode == AgentMode.EXTERNAL)
+        self.world.set_ghost(self.slots, self.ghost, placed)
 
     def _sumo_overlaps(self, idx: np.ndarray, h) -> np.ndarray:
         """Whether each agent of ``idx`` overlaps another agent in SUMO's footprints of sample ``h``."""
@@ -644,7 +655,7 @@ class Fleet:
         if len(idx):
             self.ghost = self.ghost.copy()
             self.ghost[idx] = True
-            self.world.set_ghost(self.slots, self.ghost)
+            self._set_bits()
             self.counters["ghost_sumo_overlaps"] += len(idx)
 
     def _recheck_collisions(self) -> None:
@@ -750,8 +761,8 @@ class Fleet:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``): the mean
         curvature of 8 m windows starting up to 1 s of travel ahead. Between the samples of
         long steps also as a share of its tyres' grip at the step's speed (see above); at
-        short steps grip is left out (SUMO's turns there are driven without divergence
-        placements in the pack). One path evaluation per SUMO step: headings every
+        short steps only for heavy vehicles (HEAVY_GRIP_SHARE: SUMO's turns there are driven
+        by cars without divergence placements in the pack). One path evaluation per SUMO step: headings every
         INFEASIBLE_GRID_M, windows by index offset."""
         k = int(round(INFEASIBLE_WINDOW_M / INFEASIBLE_GRID_M))
         grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + INFEASIBLE_WINDOW_M + 1e-9, INFEASIBLE_GRID_M)[:, None]
@@ -762,11 +773,15 @@ class Fleet:
             v = np.maximum(v, ref.step_speed)
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
-        if self.interpolating:
+        heavy = self._max_rear > 0.0
+        if self.interpolating or heavy.any():
             kg = GRIP_WINDOW_K
             kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
             kap = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0)
-            tight = np.maximum(tight, kap * v * v / self._a_lat)
+            grip = kap * v * v / self._a_lat
+            if not self.interpolating:  # short steps: heavy vehicles only, at HEAVY_GRIP_SHARE
+                grip = np.where(heavy, grip / HEAVY_GRIP_SHARE, 0.0)
+            tight = np.maximum(tight, grip)
         return tight
 
     def _kin_pose(self, at: ReferencePoint, tau: float) -> tuple[np.ndarray, ReferencePoint]:
@@ -933,7 +948,7 @@ class Fleet:
             self.slots = w.slot_of(self.ids)
             self._params()
             self._cache = None
-            w.set_ghost(self.slots, self.ghost)
+            self._set_bits()
         # the previous tick's end state (or the one ``apply_step`` read) is this tick's start
         # state unless a placement happened in between (then the cache was dropped)
         if self._cache is not None:

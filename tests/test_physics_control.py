@@ -294,6 +294,25 @@ def test_rear_axle_steer_puts_the_body_on_the_chord_of_a_circle():
     assert front[0] == pytest.approx(0.6) and rear[0] < 0.0
 
 
+def test_a_saturated_front_axle_never_crabs_a_lagging_body_sideways():
+    """Front at full lock while the body lags SUMO's angle (a 7.1 m truck in a junction turn):
+    the rear axle does not turn in phase with the front (which crabs the bumper sideways at
+    no yaw rate: the truck's body fell 23 deg behind); aligned, the bumper's direction wins."""
+    from physics_side.control import rear_axle_steer
+
+    L, d, v, lim_f, lim_r = 4.26, 5.5, 3.9, math.radians(50.0), math.radians(40.0)
+
+    def steer(lag: float) -> tuple[float, float]:
+        f, r = rear_axle_steer(np.array([0.852]), np.zeros(1), np.array([v]), np.array([lag]), np.array([0.487]),
+                               np.array([L]), np.array([d]), np.array([lim_f]), np.array([lim_r]), a_lat=np.array([9.0]))
+        return float(f[0]), float(r[0])
+
+    f, r = steer(0.377)  # 21.6 deg behind
+    assert f == pytest.approx(lim_f) and r * f <= 0.0
+    f, r = steer(0.0)  # on SUMO's angle: the rear turns in phase for the bumper's direction
+    assert f == pytest.approx(lim_f) and r > 0.0
+
+
 def test_steer_limit_is_the_friction_circle_or_the_mechanical_limit():
     """``steer_limit`` is what ``friction_steer_limit`` clips to: atan(L a / v^2) at speed, the
     mechanical limit when slow (a car of 2.7 m at 11.7 m/s^2: 10.6 deg at 13 m/s, 35 deg at 3)."""

@@ -302,3 +302,20 @@ def test_a_heavy_vehicles_spinning_wheel_is_braked_by_its_traction_control():
     assert free > 100.0, free
     assert held < (TCS_SLIP - 1.0) * v + TCS_MARGIN_MPS + TCS_BAND_MPS + 10.0, (held, v)  # (+ one tick's spin-up)
     assert M.default_spec(AgentClass.BUS).traction_control and not M.default_spec(AgentClass.PASSENGER).traction_control
+
+
+@pytest.mark.parametrize("placed, touch", [((True, True), False), ((True, False), True), ((False, False), True)])
+def test_bodies_placed_every_tick_touch_driven_ones_but_not_each_other(placed, touch):
+    """Two cars overlapping 0.3 m side by side: kinematic (placed) bodies touch driven bodies
+    and pedestrians but not each other (neither answers a contact: no physics between them)."""
+    w = _world(n=2)
+    pool = w.pool_for("car", 5.0, 1.8)
+    s = w.allocate(["a", "b"], np.array([pool, pool]), np.array([0.0, 0.0]), np.array([0.0, 1.5]))
+    w.set_ghost(s, False, np.array(placed))
+    touching = np.zeros(2, bool)
+    for _ in range(10):
+        w.place(s, np.array([0.0, 0.0]), np.array([0.0, 1.5]), np.zeros(2), np.zeros(2), count=False)
+        w.command_vehicles(s, np.zeros(2), np.zeros(2), np.full(2, 3000.0), np.zeros(2))
+        w.step()
+        touching |= w.contacts(s, np.ones(2, bool))[0]
+    assert bool(touching.all()) == touch
