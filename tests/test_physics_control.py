@@ -256,6 +256,21 @@ def test_pathset_long_segments_turn_only_near_the_corner():
     assert ps.at(np.array([19.0])).curvature[0] == pytest.approx(np.pi / 2 / (2 * BLEND_M))
 
 
+def test_pathset_a_lanes_last_stretch_before_a_tight_curve_keeps_its_heading():
+    """The last 3.4 m of a straight lane before a dead end's U-turn (1.44 m segments of radius
+    1.6 m): the path heads along the lane at the bumper (it took 2.4 times the U-turn's first
+    corner, 46 deg off, and a bicycle steered off its lane); a sampled curve's first segment,
+    as long as its neighbours, still continues their turn."""
+    u = np.array([[17.01, 301.6], [13.6, 301.6], [12.4, 300.8], [12.0, 300.0], [12.4, 299.2], [13.6, 298.4],
+                  [30.0, 298.4]])
+    ps = PathSet(np.array([0, len(u)]), u)
+    assert ps.at(np.array([0.0])).heading[0] == pytest.approx(np.pi)
+    th = np.radians(np.arange(0.0, 91.0, 10.0))  # a quarter circle sampled every 10 deg
+    arc = np.c_[10.0 * np.sin(th), 10.0 * (1.0 - np.cos(th))]
+    ps = PathSet(np.array([0, len(arc)]), arc)
+    assert ps.at(np.array([0.0])).curvature[0] == pytest.approx(0.1, rel=0.05)
+
+
 def test_sumo_body_angle_is_kept_apart_from_the_path_tangent():
     """In a junction SUMO's angle is the rear-to-front chord, not the lane tangent at the
     front bumper: controllers steer on the tangent, kinematic agents show SUMO's angle."""
