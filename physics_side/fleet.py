@@ -50,6 +50,7 @@ MOTORCYCLE_MAX_LEAN_DEG = 42.0  # [deg] motorcycles and mopeds: at their tyres' 
 MAX_PENDING_COLLISIONS = 256  # physics-only collisions re-checked at the next sample (bounded)
 MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
 PED_HOP_M = 0.5  # [m] a pedestrian's sample this much further than its speed takes it is a jump
+RIDER_BACK_CLEAR_M = 0.3  # [m] a two-wheeler's way back must be this clear of every body (``_may_roll_back``)
 SUMO_OVERLAP_M = 0.05  # [m] SUMO footprints this close count as SUMO's own collision
 _BICYCLE_ROLL_STIFFNESS = M.default_spec(AgentClass.BICYCLE).roll_stiffness  # [N*m/rad] the stabiliser gains' reference
 # A manoeuvre no vehicle of the agent's size can drive (a U-turn on a turnaround lane, a
@@ -243,6 +244,7 @@ class Fleet:
         self.kin_age = np.zeros(0)  # [s] since the carry started
         self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
         self._kin_rate = np.zeros(0)  # [rad/s] kinematic bodies' turn rate between samples (``_kin_pose``)
+        self._rolls_back = np.zeros(0, bool)  # who may roll back to its standing reference (``_may_roll_back``)
         self._chord_end: np.ndarray | None = None  # carried bodies' chord to SUMO's angle at the step's end [rad]
         self._pending_collisions: list[str] = []
         self.tau = 0.0
@@ -484,6 +486,7 @@ class Fleet:
         self.sumo_len = a.length[rows].astype(np.float64)
         self.sumo_wid = a.width[rows].astype(np.float64)
         self._carry_infeasible(ref, prev, yaw_rate, dist, obs, held)
+        self._rolls_back = self._may_roll_back(obs, held, e_lon)
         physical = self.mode == AgentMode.PHYSICAL
         is_new = np.zeros(len(ids), bool)
         is_new[new] = True
@@ -832,6 +835,30 @@ class Fleet:
         kappa = (dx * uy - dy * ux) / np.maximum(dx * dx + dy * dy, 1e-6)
         return np.arctan2(dy, dx), kappa
 
+    def _may_roll_back(self, obs, held, e_lon: np.ndarray) -> np.ndarray:
+        """Who may roll back to a standing reference it came to rest past (``control_default``):
+        four-wheeled vehicles, and two-wheelers whose way back is clear of every other body
+        (``RIDER_BACK_CLEAR_M``). A motorcycle rolled back into the bicycle queued beside and
+        behind it under the sublane model; never rolled back, a motorcycle stopped 2.7 m past
+        SUMO's stop (SUMO brakes it at 10 m/s^2 and more) stood on a crossing in the way of a
+        pedestrian."""
+        out = self.kind != M.KIND_BIKE
+        cand = np.flatnonzero(~out & (held.speed <= self.ctl.default.hold_speed)
+                              & (e_lon > self.ctl.default.creep_back_m) & (self.mode == AgentMode.PHYSICAL))
+        if not len(cand):
+            return out
+        t_ = self.world.tables
+        L, W = t_.length[self.slots], t_.width[self.slots]
+        every = np.arange(self.n)
+        for i in cand:  # (two-wheelers standing past their stop: a handful)
+            back = e_lon[i]  # the way back: the body stretched back to its reference
+            c, s_ = np.cos(obs.yaw[i]), np.sin(obs.yaw[i])
+            other = every != i
+            out[i] = not footprints_overlap(
+                obs.cx[i] - 0.5 * back * c, obs.cy[i] - 0.5 * back * s_, obs.yaw[i], L[i] + back, W[i],
+                obs.cx[other], obs.cy[other], obs.yaw[other], L[other], W[other], RIDER_BACK_CLEAR_M).any()
+        return out
+
     def _carry_infeasible(self, ref: Reference, prev: np.ndarray, yaw_rate: np.ndarray, dist: np.ndarray,
                           obs, held) -> None:
         """Agents (physical vehicles) on a manoeuvre they cannot drive become kinematic until
@@ -976,7 +1003,7 @@ class Fleet:
         if g.any_default:
             cmd = C.control_default(
                 vobs, p, ref, tau, self.dt, self.ctl.default, self.state, stopping, self.cfg.stop_decel,
-                stop_speed, s_guess=self.s_act, proj=proj, rolls_back=self.kind != M.KIND_BIKE,
+                stop_speed, s_guess=self.s_act, proj=proj, rolls_back=self._rolls_back,
             )
             cmds.append((g.all_default, g.use_default, cmd))
         if g.any_paper:

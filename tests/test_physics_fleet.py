@@ -663,3 +663,31 @@ def test_a_heavy_vehicle_in_a_turn_beyond_its_grip_is_carried_at_short_steps(cls
         s += v * dt
     assert (f.counters["carries_infeasible"] > 0) == carried, f.counters
     assert f.counters["placements_divergence"] == 0
+
+
+@pytest.mark.parametrize("blocked", [False, True])
+def test_a_two_wheeler_stopped_past_its_stop_rolls_back_only_if_the_way_is_clear(blocked):
+    """SUMO stops a bicycle from 6 m/s at 8 m/s^2 (it brakes at ~4.5): it comes to rest 2.8 m
+    past SUMO's stop and rolls back to it, unless a body stands in its way back (a car that
+    stops 0.2 m behind SUMO's bicycle): then it stays where it stopped."""
+    f = _fleet()
+    dt = 0.1
+    for k in range(110):
+        t = k * dt
+        u = min(max(t - 1.0, 0.0), 0.75)
+        xb, vb = 6.0 * min(t, 1.0) + 6.0 * u - 4.0 * u * u, 6.0 - 8.0 * u
+        w = min(max(t - 1.0, 0.0), 1.5)
+        xc, vc = 1.95 - 6.0 * max(1.0 - t, 0.0) + 6.0 * w - 2.0 * w * w, 6.0 - 4.0 * w
+        if not blocked:
+            xc -= 30.0
+        m = _line_step(k, [xb, xc], [vb, vc], ids=["bike", "car"], step_s=dt)
+        a = m.agents
+        m = replace(m, agents=replace(a, cls=np.array([int(AgentClass.BICYCLE), int(AgentClass.PASSENGER)], a.cls.dtype),
+                                      length=np.array([1.6, 5.0], a.length.dtype), width=np.array([0.65, 1.8], a.width.dtype)))
+        _run_step(f, m)
+    ahead = float(f.err_lon[f._index["bike"]])
+    assert f.counters["placements_divergence"] == 0 and f.counters["collisions_physics_only"] == 0, f.counters
+    if blocked:
+        assert ahead > 2.0, ahead  # stayed where it stopped
+    else:
+        assert abs(ahead) < 0.3, ahead  # (never rolled back: 2.84 m)
