@@ -14,6 +14,7 @@ The per-tick world (``world.PhysicsWorld``) owns a ``SlotPools`` and reads its c
 
 from __future__ import annotations
 
+import atexit
 import concurrent.futures
 import threading
 import logging
@@ -55,20 +56,42 @@ class _Growth:
         )
 
 
+_GROWTHS: set[threading.Thread] = set()  # background compiles still running
+GROWTH_EXIT_WAIT_S = 5.0  # [s] how long interpreter exit waits for a running compile (``_wait_for_growths``)
+
+
+def _wait_for_growths() -> None:
+    """At interpreter exit, wait (at most GROWTH_EXIT_WAIT_S) for running compiles: one that
+    returns into Python while the interpreter finalizes crashes the process (a script that
+    ended right after a small pool growth exited with a segmentation fault, 6 runs of 6). A
+    longer compile is left to end with the process."""
+    deadline = time.monotonic() + GROWTH_EXIT_WAIT_S
+    for t in list(_GROWTHS):
+        t.join(max(0.0, deadline - time.monotonic()))
+
+
+atexit.register(_wait_for_growths)
+
+
 def _in_daemon_thread(fn, *args) -> concurrent.futures.Future:
     """``fn(*args)`` on a daemon thread of its own, as a Future (an executor's worker threads
     are joined at interpreter exit, so a process could not end during a compile)."""
     fut: concurrent.futures.Future = concurrent.futures.Future()
 
     def work() -> None:
-        if not fut.set_running_or_notify_cancel():
-            return
         try:
-            fut.set_result(fn(*args))
-        except BaseException as e:  # handed to whoever reads the result
-            fut.set_exception(e)
+            if not fut.set_running_or_notify_cancel():
+                return
+            try:
+                fut.set_result(fn(*args))
+            except BaseException as e:  # handed to whoever reads the result
+                fut.set_exception(e)
+        finally:
+            _GROWTHS.discard(threading.current_thread())
 
-    threading.Thread(target=work, name="physics-growth", daemon=True).start()
+    t = threading.Thread(target=work, name="physics-growth", daemon=True)
+    _GROWTHS.add(t)
+    t.start()
     return fut
 
 
