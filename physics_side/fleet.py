@@ -122,6 +122,10 @@ def footprints_overlap(ax, ay, ah, al, aw, bx, by, bh, bl, bw, margin: float = 0
     return ~apart
 
 
+def _log_physics_only(t: float, agent: str) -> None:
+    log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", t, agent)
+
+
 @dataclass(frozen=True)
 class _Pose:
     x: np.ndarray
@@ -650,7 +654,7 @@ class Fleet:
             if not later and len(self._pending_collisions) < MAX_PENDING_COLLISIONS:
                 self._pending_collisions.append(self.ids[i])  # told at the next sample (_recheck_collisions)
             else:
-                log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", t, self.ids[i])
+                _log_physics_only(t, self.ids[i])
 
     def _ghost_sumo_overlaps(self, idx: np.ndarray) -> None:
         """Agents touching where SUMO has them overlap pass through each other as in SUMO (ghosts
@@ -668,7 +672,7 @@ class Fleet:
         idx = np.array([self._index[a] for a in pending if a in self._index], np.int64)
         for a in pending:
             if a not in self._index:  # left SUMO at this sample: stays physics only
-                log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", self._sample_ref.t_k, a)
+                _log_physics_only(self._sample_ref.t_k, a)
         if not len(idx):
             return
         overlap = self._sumo_overlaps(idx, self._sample_ref.held())
@@ -680,7 +684,7 @@ class Fleet:
             log.info("%d collision(s) of the last interval were SUMO's: its footprints overlap at t=%.2f s",
                      moved, self._sample_ref.t_k)
         for i in idx[~overlap]:
-            log.warning("t=%.2f s: %s collided in physics only (SUMO had a gap there)", self._sample_ref.t_k, self.ids[i])
+            _log_physics_only(self._sample_ref.t_k, self.ids[i])
 
     def _place_slide(self, idx: np.ndarray, at, yaw: np.ndarray, count: bool) -> None:
         """Place standing agents ``idx`` that SUMO slides sideways at ``at`` as they stand (body
