@@ -88,6 +88,19 @@ GRIP_WINDOW_K = 2
 HEAVY_GRIP_SHARE = 0.6
 CHORD_FIX_MAX_DEG = 30.0  # [deg] a carried body's chord is turned onto SUMO's angle at the step's end within this
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
+# Contact guard: SUMO packs agents closer than any driven body keeps to its reference (a
+# bicycle 0.2 m beside a car in the sublane model, a pedestrian 0.15 m from a passing
+# motorcycle) and a two-wheeler leans its rider beyond SUMO's upright footprint. A pair of
+# agents whose physics footprints come within GUARD_GAP_M (now, or GUARD_HORIZON_S ahead with
+# their errors kept) where SUMO's footprints have a gap is carried (shown kinematic, gliding
+# onto SUMO's poses; placed bodies do not touch each other) for at least GUARD_HOLD_S and
+# until SUMO has them GUARD_KEEP_M apart; counted apart (``carries_contact``).
+GUARD_GAP_M = 0.1  # [m]
+GUARD_HORIZON_S = (0.3, 1.0)  # [s] look-ahead: at least the first, at least a step, at most the second
+GUARD_HOLD_S = 1.0  # [s]
+GUARD_KEEP_M = 0.3  # [m]
+GUARD_BIKE_RELEASE_ALAT = 2.0  # [m/s^2] a carried two-wheeler is handed back (upright) only below this of SUMO's turn
+MAX_GUARD_PAIRS = 4096  # active guard pairs (bounded; more are not guarded, logged)
 
 
 def _stack_batches(a, b):
@@ -120,6 +133,39 @@ def footprints_overlap(ax, ay, ah, al, aw, bx, by, bh, bl, bw, margin: float = 0
         rb = hbl * np.abs(cb * ux + sb * uy) + hbw * np.abs(-sb * ux + cb * uy)
         apart |= np.abs(dx * ux + dy * uy) > ra + rb
     return ~apart
+
+
+def footprint_gap(ax, ay, ah, al, aw, bx, by, bh, bl, bw) -> np.ndarray:
+    """Separation [m] of rectangles a and b (centre x, y [m], heading [rad], length, width
+    [m]) along the separating axis that parts them most: their distance where an edge faces the
+    other (a lower bound corner to corner), negative where they overlap. Vectorised."""
+    ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)
+    dx, dy = np.asarray(bx) - ax, np.asarray(by) - ay
+    hal, haw, hbl, hbw = 0.5 * np.asarray(al), 0.5 * np.asarray(aw), 0.5 * np.asarray(bl), 0.5 * np.asarray(bw)
+    gap = np.full(np.broadcast(dx, dy, ca, cb).shape, -np.inf)
+    for ux, uy in ((ca, sa), (-sa, ca), (cb, sb), (-sb, cb)):
+        ra = hal * np.abs(ca * ux + sa * uy) + haw * np.abs(-sa * ux + ca * uy)
+        rb = hbl * np.abs(cb * ux + sb * uy) + hbw * np.abs(-sb * ux + cb * uy)
+        gap = np.maximum(gap, np.abs(dx * ux + dy * uy) - ra - rb)
+    return gap
+
+
+def near_pairs(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i < j) of discs (centre x, y, radius r [m]) that overlap: sweep along x
+    (each disc against the discs after it within its reach), O(n log n + pairs)."""
+    n = len(x)
+    if n < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.argsort(x, kind="stable")
+    xs, rs = x[order], r[order]
+    hi = np.searchsorted(xs, xs + rs + rs.max(), side="right")
+    cnt = hi - np.arange(n) - 1
+    a = np.repeat(np.arange(n), cnt)
+    b = a + 1 + np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    i, j = order[a], order[b]
+    keep = np.hypot(x[i] - x[j], y[i] - y[j]) < r[i] + r[j]
+    i, j = i[keep], j[keep]
+    return np.minimum(i, j), np.maximum(i, j)
 
 
 def _log_physics_only(t: float, agent: str) -> None:
@@ -216,6 +262,7 @@ class Fleet:
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
             "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_sumo_overlaps": 0,
             "retyped": 0, "carries_infeasible": 0, "carried_infeasible_ms": 0,
+            "carries_contact": 0, "carried_contact_ms": 0, "guard_pairs_dropped": 0,
         }
         self.wire_vtype = np.zeros(0, np.uint16)  # vType index per agent of the newest step
         self._empty()
@@ -244,6 +291,8 @@ class Fleet:
         self.jump_t = np.zeros(0)
         self.carry = np.zeros(0, bool)
         self.infeasible = np.zeros(0, bool)
+        self.guarded = np.zeros(0, bool)  # carried by the contact guard (``_contact_guard``)
+        self._guard_pairs: dict[tuple[str, str], float] = {}  # guarded pair -> time [s] it was last near
         self.kin_off = np.zeros((0, 3))  # carried agents' offset from SUMO's pose at the start (x, y [m], yaw [rad])
         self.kin_age = np.zeros(0)  # [s] since the carry started
         self._sumo_yaw = self._sumo_yaw_rate = np.zeros(0)  # SUMO body angle [rad] and its rate [rad/s]
@@ -899,7 +948,11 @@ class Fleet:
                 # than its tyres carry (the chord of a body whose back is still in the corner turns
                 # at up to 1.2 rad/s at 14 m/s: released then, cars spun round)
                 keep |= np.abs(obs.yaw_rate * obs.speed) > INFEASIBLE_RELEASE * self._a_lat
+            # ... and a two-wheeler (placed upright) not in a turn it would have to lean into
+            keep |= (self.kind == M.KIND_BIKE) & (np.abs(yaw_rate * ref.speed) > GUARD_BIKE_RELEASE_ALAT)
             now = cand & (start | (was & keep))
+        guard = self._contact_guard(ref, prev, obs, held, was)
+        now |= guard
         self.infeasible = now
         # a carry glides from the body's pose onto SUMO's (KIN_BLEND_S): switched at once, a
         # long body's yaw jumped from its driven pose to SUMO's chord, its rear ~1 m sideways
@@ -914,11 +967,99 @@ class Fleet:
         self.kin_off, self.kin_age = off, age
         if now.any():
             self.mode = np.where(now, AgentMode.KINEMATIC, self.mode).astype(np.uint8)
-            self.counters["carries_infeasible"] += int(began.sum())
-            self.counters["carried_infeasible_ms"] += int(round(1e3 * self.step_length * now.sum()))
-            if began.any():
+            ms = 1e3 * self.step_length
+            self.counters["carries_infeasible"] += int((began & ~guard).sum())
+            self.counters["carried_infeasible_ms"] += int(round(ms * (now & ~guard).sum()))
+            self.counters["carries_contact"] += int((began & guard).sum())
+            self.counters["carried_contact_ms"] += int(round(ms * guard.sum()))
+            if (began & ~guard).any():
                 log.info("t=%.2f s: %s on a manoeuvre beyond their steering: shown kinematic until it is over",
-                         ref.t_k, [self.ids[i] for i in np.flatnonzero(began)][:10])
+                         ref.t_k, [self.ids[i] for i in np.flatnonzero(began & ~guard)][:10])
+
+    def _contact_guard(self, ref: Reference, prev: np.ndarray, obs, held, was: np.ndarray) -> np.ndarray:
+        """Agents carried so that a contact SUMO does not have cannot happen (GUARD_*): pairs
+        whose physics footprints (a two-wheeler's widened by its rider's lean) come within
+        GUARD_GAP_M now or GUARD_HORIZON_S ahead (their errors kept, or moving on at their
+        velocity) while SUMO's footprints at the same times have a gap; a pair stays guarded
+        for GUARD_HOLD_S after it was last near and while SUMO has it within GUARD_KEEP_M.
+        Pedestrian pairs never touch; a pair of bodies both placed every tick neither."""
+        n = self.n
+        out = np.zeros(n, bool)
+        if not self.cfg.contact_guard or n < 2:
+            self._guard_pairs, self.guarded = {}, out
+            return out
+        t = ref.t_k
+        t_ = self.world.tables
+        L, W = t_.length[self.slots], t_.width[self.slots]
+        had = prev >= 0
+        ghost = had & self.ghost[np.maximum(prev, 0)] if len(self.ghost) else np.zeros(n, bool)
+        ped = self.kind == M.KIND_PED
+        placed = (self.mode != AgentMode.PHYSICAL) | was
+        H = float(np.clip(self.step_length, *GUARD_HORIZON_S))
+        # SUMO's footprints now and H ahead (its angle turning at its rate)
+        sx = held.x - 0.5 * self.sumo_len * np.cos(held.yaw)
+        sy = held.y - 0.5 * self.sumo_len * np.sin(held.yaw)
+        ah = ref.at(min(self.tau, self.max_extrapolation) + H)
+        syaw2 = held.yaw + self._kin_rate * H
+        sx2 = ah.x - 0.5 * self.sumo_len * np.cos(syaw2)
+        sy2 = ah.y - 0.5 * self.sumo_len * np.sin(syaw2)
+        # the bodies' footprints: a two-wheeler's body (its rider) leaning over reaches
+        # height x sin(roll) sideways, less what its half-width comes in
+        lean = np.abs(obs.roll)
+        extra = np.where(self.kind == M.KIND_BIKE,
+                         np.maximum(t_.height[self.slots] * np.sin(lean) - 0.5 * W * (1.0 - np.cos(lean)), 0.0), 0.0)
+        side = 0.5 * extra * np.sign(obs.roll)  # (+ roll: right side down)
+        px = np.where(had, obs.fx - 0.5 * L * np.cos(obs.yaw) + side * np.sin(obs.yaw), sx)
+        py = np.where(had, obs.fy - 0.5 * L * np.sin(obs.yaw) - side * np.cos(obs.yaw), sy)
+        pyaw = np.where(had, obs.yaw, held.yaw)
+        pw = W + extra
+        v = np.maximum(np.hypot(obs.vx, obs.vy), np.abs(held.speed))
+        r = 0.5 * np.hypot(np.maximum(L, self.sumo_len), np.maximum(pw, self.sumo_wid)) + v * H + GUARD_GAP_M
+        i, j = near_pairs(px, py, r)
+        ok = ~(ped[i] & ped[j]) & ~ghost[i] & ~ghost[j] & ~(placed[i] & placed[j])
+        i, j = i[ok], j[ok]
+        if len(i):
+            def gaps(ax, ay, ah_, bx, by, bh, al, aw, bl, bw):
+                return footprint_gap(ax[i], ay[i], ah_[i], al[i], aw[i], bx[j], by[j], bh[j], bl[j], bw[j])
+            sumo_now = gaps(sx, sy, held.yaw, sx, sy, held.yaw, self.sumo_len, self.sumo_wid, self.sumo_len, self.sumo_wid)
+            sumo_ahead = gaps(sx2, sy2, syaw2, sx2, sy2, syaw2, self.sumo_len, self.sumo_wid, self.sumo_len, self.sumo_wid)
+            phys_now = gaps(px, py, pyaw, px, py, pyaw, L, pw, L, pw)
+            # ahead: with its error kept, or moving on at its velocity
+            kx, ky, kyaw = sx2 + px - sx, sy2 + py - sy, syaw2 + wrap_pi(pyaw - held.yaw)
+            lx, ly, lyaw = px + obs.vx * H, py + obs.vy * H, pyaw + obs.yaw_rate * H
+            phys_ahead = np.minimum(gaps(kx, ky, kyaw, kx, ky, kyaw, L, pw, L, pw),
+                                    gaps(lx, ly, lyaw, lx, ly, lyaw, L, pw, L, pw))
+            sumo_gap = 2.0 * SUMO_OVERLAP_M  # SUMO's footprints this close: its own collision
+            # (ahead, SUMO's own footprints are our extrapolation: a motorcycle SUMO stops within
+            # a step from 15 m/s runs on into its leader there, SUMO's next sample does not)
+            near = (np.minimum(phys_now, phys_ahead) < GUARD_GAP_M) & (sumo_now > sumo_gap)
+            ids = self.ids
+            pg, sg = np.minimum(phys_now, phys_ahead), np.minimum(sumo_now, sumo_ahead)
+            for a, b, g_p, g_s in zip(i[near], j[near], pg[near], sg[near]):
+                key = (ids[a], ids[b]) if ids[a] < ids[b] else (ids[b], ids[a])
+                if key not in self._guard_pairs:
+                    if len(self._guard_pairs) >= MAX_GUARD_PAIRS:
+                        self.counters["guard_pairs_dropped"] += 1
+                        continue
+                    log.info("t=%.2f s: %s and %s carried: bodies %.2f m apart, SUMO's %.2f m", t, *key, g_p, g_s)
+                self._guard_pairs[key] = t
+        pairs = [(self._index.get(a, -1), self._index.get(b, -1), t0) for (a, b), t0 in self._guard_pairs.items()]
+        pairs = [p for p in pairs if p[0] >= 0 and p[1] >= 0]
+        if pairs:
+            a, b, t0 = (np.array(c) for c in zip(*pairs))
+            sumo_now = footprint_gap(sx[a], sy[a], held.yaw[a], self.sumo_len[a], self.sumo_wid[a],
+                                     sx[b], sy[b], held.yaw[b], self.sumo_len[b], self.sumo_wid[b])
+            stay = ((t - t0) < GUARD_HOLD_S) | (sumo_now < GUARD_KEEP_M)
+            a, b, t0 = a[stay], b[stay], t0[stay]
+            self._guard_pairs = {(self.ids[x], self.ids[y]) if self.ids[x] < self.ids[y] else (self.ids[y], self.ids[x]):
+                                 float(z) for x, y, z in zip(a, b, t0)}
+            out[a] = True
+            out[b] = True
+        else:
+            self._guard_pairs = {}
+        out &= self.mode == AgentMode.PHYSICAL
+        self.guarded = out
+        return out
 
     def _build_groups(self) -> _Groups:
         veh = self.kind != M.KIND_PED

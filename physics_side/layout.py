@@ -210,6 +210,8 @@ class SlotTables:
     """[m]."""
     width: np.ndarray
     """[m]."""
+    height: np.ndarray
+    """Top of the body above the ground [m]."""
     front: np.ndarray
     """Body origin -> front bumper [m]."""
     wheelbase: np.ndarray
@@ -415,7 +417,7 @@ def _build_tables(
             traction_control=whole(int(spec.traction_control)),
             tree=s * m.ntree + (tree0 + i), body=(s * m.nbody + b) * 6 + 3,
             geom=s * m.ngeom + g_first + i * ng_slot, geom_model=g_first + i * ng_slot, park_x=px, park_y=py,
-            length=full(spec.length), width=full(spec.width), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
+            length=full(spec.length), width=full(spec.width), height=full(spec.height), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
             rear_axle=full(spec.rear_axle), track=full(spec.track), r_wheel=full(spec.wheel_radius),
             m_eff=full(spec.effective_mass), mass=full(spec.total_mass),
             max_steer=full(math.radians(spec.max_steer_deg)), rsteer_q=rsteer_q, rsteer_u=rsteer_u,
@@ -433,7 +435,7 @@ def _build_tables(
 
 _WIDTH = {"steer_q": 2, "steer_u": 2, "rsteer_q": 2, "rsteer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4, "drive_share": 4}
 _FLOAT = {
-    "brake_share", "drive_share", "park_x", "park_y", "length", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
+    "brake_share", "drive_share", "park_x", "park_y", "length", "width", "height", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
     "mass", "max_steer", "max_rsteer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "roll_stiffness", "rest_z",
     "rest_pitch",
 }

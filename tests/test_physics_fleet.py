@@ -11,6 +11,7 @@ import pytest
 
 from sumoco.testing.synthetic import circle_traffic
 from physics_side.config import PhysicsConfig, PhysicsSettings
+from physics_side import fleet as fleet_mod
 from physics_side.daemon import build_fleet
 from protocol.messages import AgentClass, AgentFlag, AgentMode, VType
 
@@ -386,21 +387,68 @@ def test_two_vehicles_inserted_at_one_point_never_stack():
 
 def test_collisions_split_into_sumo_reported_and_physics_only():
     """A rear-end collision that SUMO has too (its footprints overlap) vs one only physics
-    has (SUMO stops the follower 1 m short at a deceleration no car can brake)."""
-    f = _fleet()
+    has (SUMO stops the follower 1 m short at a deceleration no car can brake); without the
+    contact guard, which keeps the latter from happening (next test)."""
+    f = _fleet(contact_guard=False)
     for k in range(30):  # SUMO's own crash: veh1 runs into the standing veh0
         x1 = min(80.0 + 6.0 * k * 0.1, 97.0)  # bumper ends 2 m inside veh0's 5 m body
         f.apply_step(_line_step(k, [100.0, x1], [0.0, 6.0 if x1 < 97.0 else 0.0]))
         for _ in range(f.rates.ticks_per_step):
             f.tick()
     assert f.counters["collisions_sumo_reported"] >= 1 and f.counters["collisions_physics_only"] == 0
-    g = _fleet()
+    g = _fleet(contact_guard=False)
     for k in range(40):  # physics only: SUMO stops veh1 1 m short of veh0 within 0.3 s from 15 m/s
         x1 = 60.0 + 15.0 * k * 0.1 if k < 24 else 94.0
         g.apply_step(_line_step(k, [100.0, min(x1, 94.0)], [0.0, 15.0 if k < 24 else 0.0]))
         for _ in range(g.rates.ticks_per_step):
             g.tick()
     assert g.counters["collisions_physics_only"] >= 1 and g.counters["collisions_sumo_reported"] == 0
+
+
+def test_a_contact_sumo_does_not_have_is_kept_off_by_carrying_the_pair():
+    """SUMO stops a car from 15 m/s 1 m short of a standing one within 0.3 s: no car brakes
+    that, so the pair is carried (shown on SUMO's poses) before the bodies touch, counted,
+    and handed back once SUMO has them apart; both then stand where SUMO has them."""
+    f = _fleet()
+    modes = []
+    for k in range(60):
+        x1 = 60.0 + 15.0 * k * 0.1 if k < 24 else 94.0
+        f.apply_step(_line_step(k, [100.0, min(x1, 94.0)], [0.0, 15.0 if k < 24 else 0.0]))
+        modes.append(f.mode.copy())
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+    c = f.counters
+    assert c["collisions_physics_only"] == 0 and f.world.counters["collisions"] == 0, c
+    assert c["carries_contact"] == 2 and 1.0 <= c["carried_contact_ms"] / 1e3 / 2 <= 3.0, c
+    assert any((m == AgentMode.KINEMATIC).all() for m in modes)  # both carried at once
+    assert (f.mode == AgentMode.PHYSICAL).all() and not f._guard_pairs  # handed back
+    s = f.snapshot()
+    assert np.abs(s.speed).max() < 0.3 and np.hypot(s.err_lon, s.err_lat).max() < 0.3, (s.speed, s.err_lon)
+
+
+def test_near_pairs_and_footprint_gaps_match_a_brute_force_check():
+    rng = np.random.default_rng(4)
+    x, y, r = rng.uniform(0, 60, 300), rng.uniform(0, 20, 300), rng.uniform(0.2, 4.0, 300)
+    i, j = fleet_mod.near_pairs(x, y, r)
+    d = np.hypot(x[:, None] - x, y[:, None] - y) < r[:, None] + r
+    want = {(a, b) for a, b in zip(*np.nonzero(np.triu(d, 1)))}
+    assert set(zip(i.tolist(), j.tolist())) == want and len(i) == len(want)
+    # two 4 x 2 m boxes side by side 0.5 m apart, end to end 1 m apart, crossing (overlap)
+    g = fleet_mod.footprint_gap(0.0, 0.0, 0.0, 4.0, 2.0, np.array([0.0, 5.0, 1.0]), np.array([2.5, 0.0, 1.0]),
+                                np.array([0.0, 0.0, math.pi / 2]), 4.0, 2.0)
+    assert np.allclose(g[:2], [0.5, 1.0]) and g[2] < 0
+
+
+def test_the_slot_tables_keep_sizes_in_metres():
+    """Every agent's body size as the model has it (a width table of whole metres made a
+    bicycle 0 m and a car 1 m wide for every footprint check)."""
+    f = _fleet()
+    t = f.world.tables
+    specs = {p.index: p.spec for p in f.world.pools.layout.pools}
+    assert len(specs) >= 4 and len(t.pool) > 0
+    for k in range(len(t.pool)):
+        spec = specs[int(t.pool[k])]
+        assert t.width[k] == pytest.approx(spec.width) and t.height[k] == pytest.approx(spec.height), spec.name
 
 
 def test_interpolated_speed_is_continuous_across_long_steps():

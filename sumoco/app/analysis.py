@@ -717,6 +717,10 @@ class Analysis:
                 # and for how long; their samples are not PHYSICAL, so not in the errors above
                 "carries_infeasible": {"count": int(c.get("carries_infeasible", 0)),
                                        "agent_s": round(int(c.get("carried_infeasible_ms", 0)) / 1e3, 3)},
+                # agents about to touch where SUMO has a gap, shown kinematic on SUMO's poses
+                # (the contact guard): how many and for how long; not in the errors either
+                "carries_contact": {"count": int(c.get("carries_contact", 0)),
+                                    "agent_s": round(int(c.get("carried_contact_ms", 0)) / 1e3, 3)},
                 "ghost_spawns": int(c.get("ghost_spawns", 0)),
                 "rejected": int(c.get("rejected", 0)),
                 "agents_seen": self._seen(acc.seen),

@@ -115,6 +115,7 @@ def run_one(
             "collisions_sumo_reported": e.get("collisions_sumo_reported"),
             "placements": e.get("placements_by_cause"),
             "carries_infeasible": e.get("carries_infeasible"),
+            "carries_contact": e.get("carries_contact"),
             "physics_wall_s": round(wall[p], 3),
         })
     return rows

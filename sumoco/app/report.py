@@ -60,20 +60,22 @@ def render_markdown(summary: dict, recording) -> str:
         "",
         "| preset | all agents | reference car | ref straight | ref turn | lane changes: count, p95 / max "
         "| collisions (physics only) | placements (spawn / jump / divergence / flip) "
-        "| kinematic through a manoeuvre beyond steering: count, agent-s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| kinematic through a manoeuvre beyond steering: count, agent-s "
+        "| kinematic to keep clear of a contact SUMO does not have: count, agent-s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for inst, p in summary["presets"].items():
         rc = p.get("reference_car", {})
         pc = p.get("placements_by_cause", {})
         ci = p.get("carries_infeasible", {})
+        cc = p.get("carries_contact", {})
         causes = " / ".join(str(pc.get(c, 0)) for c in ("spawn", "jump", "divergence", "flip"))
         lines.append(
             f"| {inst} | {_fmt(p['error_m']['overall'])} | {_fmt(rc.get('overall'))} | "
             f"{_fmt(rc.get('straight'))} | {_fmt(rc.get('turn'))} | {_fmt_lc(p.get('lane_changes'))} | "
             f"{p['collisions']} "
             f"({p.get('collisions_physics_only', 0)}) | {p['placements']} ({causes}) | "
-            f"{ci.get('count', 0)}, {ci.get('agent_s', 0):g} |"
+            f"{ci.get('count', 0)}, {ci.get('agent_s', 0):g} | {cc.get('count', 0)}, {cc.get('agent_s', 0):g} |"
         )
     lines += [
         "",

@@ -80,7 +80,8 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
                      "at_samples_p95_m": at.get("p95"),
                      "collisions": p.get("collisions"), "collisions_physics_only": p.get("collisions_physics_only"),
                      "placements": p.get("placements"), "placements_by_cause": p.get("placements_by_cause"),
-                     "carries_infeasible": p.get("carries_infeasible"), "rejected": p.get("rejected")}
+                     "carries_infeasible": p.get("carries_infeasible"),
+                     "carries_contact": p.get("carries_contact"), "rejected": p.get("rejected")}
     return row
 
 
