@@ -291,7 +291,7 @@ class Fleet:
         self.jump_t = np.zeros(0)
         self.carry = np.zeros(0, bool)
         self.infeasible = np.zeros(0, bool)
-        self.guarded = np.zeros(0, bool)  # carried by the contact guard (``_contact_guard``)
+        self.guarded = np.zeros(0, bool)  # carried, the carry started by the contact guard (``_contact_guard``)
         self._guard_pairs: dict[tuple[str, str], float] = {}  # guarded pair -> time [s] it was last near
         self.kin_off = np.zeros((0, 3))  # carried agents' offset from SUMO's pose at the start (x, y [m], yaw [rad])
         self.kin_age = np.zeros(0)  # [s] since the carry started
@@ -960,6 +960,10 @@ class Fleet:
         if was.any():
             off[was], age[was] = self.kin_off[prev[was]], self.kin_age[prev[was]]
         began = now & ~was
+        # a carry the guard started stays the guard's while the manoeuvre keeps it (above)
+        had_guard = (prev >= 0) & self.guarded[np.maximum(prev, 0)] if len(self.guarded) else np.zeros(self.n, bool)
+        contact = now & (guard | (was & had_guard))
+        self.guarded = contact
         if began.any():
             yaw0 = self._kin_pose(held, self.tau)[0]
             off[began] = np.c_[obs.fx - held.x, obs.fy - held.y, wrap_pi(obs.yaw - yaw0)][began]
@@ -969,9 +973,9 @@ class Fleet:
             self.mode = np.where(now, AgentMode.KINEMATIC, self.mode).astype(np.uint8)
             ms = 1e3 * self.step_length
             self.counters["carries_infeasible"] += int((began & ~guard).sum())
-            self.counters["carried_infeasible_ms"] += int(round(ms * (now & ~guard).sum()))
+            self.counters["carried_infeasible_ms"] += int(round(ms * (now & ~contact).sum()))
             self.counters["carries_contact"] += int((began & guard).sum())
-            self.counters["carried_contact_ms"] += int(round(ms * guard.sum()))
+            self.counters["carried_contact_ms"] += int(round(ms * contact.sum()))
             if (began & ~guard).any():
                 log.info("t=%.2f s: %s on a manoeuvre beyond their steering: shown kinematic until it is over",
                          ref.t_k, [self.ids[i] for i in np.flatnonzero(began & ~guard)][:10])
@@ -986,7 +990,7 @@ class Fleet:
         n = self.n
         out = np.zeros(n, bool)
         if not self.cfg.contact_guard or n < 2:
-            self._guard_pairs, self.guarded = {}, out
+            self._guard_pairs = {}
             return out
         t = ref.t_k
         t_ = self.world.tables
@@ -1058,7 +1062,6 @@ class Fleet:
         else:
             self._guard_pairs = {}
         out &= self.mode == AgentMode.PHYSICAL
-        self.guarded = out
         return out
 
     def _build_groups(self) -> _Groups:
