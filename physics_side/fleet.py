@@ -151,18 +151,35 @@ def footprint_gap(ax, ay, ah, al, aw, bx, by, bh, bl, bw) -> np.ndarray:
 
 
 def near_pairs(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (i < j) of discs (centre x, y, radius r [m]) that overlap: sweep along x
-    (each disc against the discs after it within its reach), O(n log n + pairs)."""
+    """Index pairs (i < j) of discs (centre x, y, radius r [m]) that overlap. A grid of cells
+    as wide as the largest disc: every disc against the discs of its own cell and of four of
+    its eight neighbours (the other four see it), O(n log n + candidates); a sweep along x
+    alone took every car of a north-south street as a candidate of every other."""
     n = len(x)
     if n < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    order = np.argsort(x, kind="stable")
-    xs, rs = x[order], r[order]
-    hi = np.searchsorted(xs, xs + rs + rs.max(), side="right")
-    cnt = hi - np.arange(n) - 1
-    a = np.repeat(np.arange(n), cnt)
-    b = a + 1 + np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    i, j = order[a], order[b]
+    cell = max(2.0 * float(r.max()), 1e-3)
+    gx, gy = np.floor(x / cell).astype(np.int64), np.floor(y / cell).astype(np.int64)
+    gx -= gx.min()
+    gy -= gy.min() - 1  # (a row below the lowest: the (1, -1) neighbour's key stays apart)
+    rows = int(gy.max()) + 2
+    key = gx * rows + gy
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    pos = np.arange(n)
+    ii, jj = [], []
+    for dx, dy in ((0, 0), (0, 1), (1, -1), (1, 0), (1, 1)):
+        want = ks + dx * rows + dy
+        lo = np.searchsorted(ks, want, side="left")
+        hi = np.searchsorted(ks, want, side="right")
+        if dx == 0 and dy == 0:
+            lo = np.maximum(lo, pos + 1)  # (its own cell: the discs after it)
+        cnt = np.maximum(hi - lo, 0)
+        a = np.repeat(pos, cnt)
+        b = np.repeat(lo, cnt) + np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        ii.append(order[a])
+        jj.append(order[b])
+    i, j = np.concatenate(ii), np.concatenate(jj)
     keep = np.hypot(x[i] - x[j], y[i] - y[j]) < r[i] + r[j]
     i, j = i[keep], j[keep]
     return np.minimum(i, j), np.maximum(i, j)
