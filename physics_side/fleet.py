@@ -277,7 +277,7 @@ class Fleet:
         self.counters: dict[str, int] = {
             "steps": 0, "placements_spawn": 0, "placements_jump": 0, "placements_divergence": 0,
             "placements_flip": 0, "resyncs": 0, "skipped_inside_vehicle": 0,
-            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_sumo_overlaps": 0,
+            "collisions_sumo_reported": 0, "collisions_physics_only": 0, "ghost_spawns": 0, "ghost_placements": 0, "ghost_sumo_overlaps": 0,
             "retyped": 0, "carries_infeasible": 0, "carried_infeasible_ms": 0,
             "carries_contact": 0, "carried_contact_ms": 0, "guard_pairs_dropped": 0,
         }
@@ -627,7 +627,7 @@ class Fleet:
                         [self.ids[i] for i in np.flatnonzero(diverged)], [self.ids[i] for i in np.flatnonzero(flipped)])
         # along-path position of each bumper on the new path (guess for the projection)
         # (``obs`` predates the placements: placed agents sit exactly at s = 0)
-        self._update_ghosts(obs, held, is_new, prev, msg.time)
+        self._update_ghosts(w.observe(slots) if place.any() else obs, is_new, place, prev)
         self.jump_t = np.where(prev >= 0, self.jump_t[np.maximum(prev, 0)] if len(self.jump_t) else -np.inf, -np.inf)
         self.jump_t[jumped | ((flags & AgentFlag.JUMPED) != 0)] = msg.time
         if self._pending_collisions:
@@ -648,13 +648,16 @@ class Fleet:
             self.counters["resyncs"] += 1
         return st
 
-    def _update_ghosts(self, obs, at, is_new: np.ndarray, prev: np.ndarray, t: float) -> None:
-        """Spawns into an occupied spot stay ghosts (no agent contact) until they are clear.
+    def _update_ghosts(self, obs, is_new: np.ndarray, placed: np.ndarray, prev: np.ndarray) -> None:
+        """Bodies placed into an occupied spot stay ghosts (no agent contact) until they are clear.
 
-        A new agent whose footprint at its placement overlaps a live body (or a new one
-        placed before it this step) becomes a ghost; a ghost whose physics footprint is
-        ``GHOST_CLEAR_M`` clear of every other body joins again. Pedestrian pairs are never
-        checked (their bodies do not touch each other)."""
+        An agent placed this step (``placed``: spawned, or put on SUMO's pose after a jump,
+        a divergence, a flip or a slide's start; ``obs`` is the state after the placements)
+        whose footprint overlaps a live body (or one placed before it this step) becomes a
+        ghost: a motorcycle standing 2.1 m past its stop and 19 deg off was put on SUMO's
+        pose as it stood, its rear into a bicycle queued beside it. A ghost whose footprint
+        is ``GHOST_CLEAR_M`` clear of every other body joins again. Pedestrian pairs are
+        never checked (their bodies do not touch each other)."""
         n = self.n
         old = self.ghost[np.maximum(prev, 0)] if len(self.ghost) else np.zeros(n, bool)
         ghost = np.where(prev >= 0, old, False) & ~is_new
@@ -662,25 +665,26 @@ class Fleet:
             self.ghost = ghost
             return
         t_ = self.world.tables
-        L, W, front = t_.length[self.slots], t_.width[self.slots], t_.front[self.slots]
-        yaw = np.where(is_new, at.tangent, obs.yaw)
-        cx = np.where(is_new, at.x - front * np.cos(at.tangent), obs.cx)
-        cy = np.where(is_new, at.y - front * np.sin(at.tangent), obs.cy)
+        L, W = t_.length[self.slots], t_.width[self.slots]
+        yaw = obs.yaw
+        cx, cy = obs.fx - 0.5 * L * np.cos(yaw), obs.fy - 0.5 * L * np.sin(yaw)
         ped = self.kind == M.KIND_PED
         idx = np.arange(n)
-        for i in np.flatnonzero(is_new):
-            other = (idx != i) & (~is_new | (idx < i)) & ~ghost & ~(ped & ped[i])
+        fresh = np.zeros(n, bool)
+        for i in np.flatnonzero(placed):
+            other = (idx != i) & (~placed | (idx < i)) & ~ghost & ~(ped & ped[i])
             if other.any() and footprints_overlap(cx[i], cy[i], yaw[i], L[i], W[i], cx[other], cy[other],
                                                   yaw[other], L[other], W[other]).any():
-                ghost[i] = True
-        for i in np.flatnonzero(ghost & ~is_new):
+                ghost[i] = fresh[i] = True
+        for i in np.flatnonzero(ghost & ~fresh):
             other = (idx != i) & ~ghost & ~(ped & ped[i])
             if not (other.any() and footprints_overlap(cx[i], cy[i], yaw[i], L[i], W[i], cx[other], cy[other],
                                                        yaw[other], L[other], W[other], GHOST_CLEAR_M).any()):
                 ghost[i] = False
         self.ghost = ghost
         self._set_bits()  # every step: a recompile resets the bits, and the modes change
-        self.counters["ghost_spawns"] += int((ghost & is_new).sum())
+        self.counters["ghost_spawns"] += int((fresh & is_new).sum())
+        self.counters["ghost_placements"] += int((fresh & ~is_new).sum())
 
     def _set_bits(self) -> None:
         """The world's collision bits of every agent: ghosts, and bodies placed every tick."""

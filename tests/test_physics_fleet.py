@@ -385,6 +385,29 @@ def test_two_vehicles_inserted_at_one_point_never_stack():
     assert np.hypot(f.err_lon, f.err_lat).max() < 0.3
 
 
+def test_a_vehicle_placed_onto_an_occupied_spot_passes_through_until_clear():
+    """SUMO moves a car (a teleport) to where its bumper is inside a standing car's body:
+    placed there, it is a ghost (no contact, no push) until it has driven clear, then an
+    ordinary body again; nobody is pushed or stacked."""
+    f = _fleet()
+    ghost_seen = False
+    for k in range(50):
+        if k < 10:
+            xs, v, flags = [100.0, 60.0 + 5.0 * k * 0.1], [0.0, 5.0], None
+        else:  # teleported at k = 10 to 103 m (body 98-103 m, the standing car's 95-100 m)
+            xs, v = [100.0, 103.0 + 6.0 * (k - 10) * 0.1], [0.0, 6.0]
+            flags = [0, int(AgentFlag.JUMPED) if k == 10 else 0]
+        f.apply_step(_line_step(k, xs, v, flags=flags))
+        ghost_seen |= bool(f.ghost[1])
+        for _ in range(f.rates.ticks_per_step):
+            f.tick()
+    assert ghost_seen and f.counters["ghost_placements"] == 1, f.counters
+    assert not f.ghost.any()  # clear again
+    assert f.world.counters["collisions"] == 0 and f.counters["collisions_physics_only"] == 0
+    s = f.snapshot()
+    assert abs(s.x[0] - 100.0) < 0.05 and float(s.z.max()) < float(f.world.tables.rest_z[f.slots].max()) + 0.05
+
+
 def test_collisions_split_into_sumo_reported_and_physics_only():
     """A rear-end collision that SUMO has too (its footprints overlap) vs one only physics
     has (SUMO stops the follower 1 m short at a deceleration no car can brake); without the

@@ -722,6 +722,8 @@ class Analysis:
                 "carries_contact": {"count": int(c.get("carries_contact", 0)),
                                     "agent_s": round(int(c.get("carried_contact_ms", 0)) / 1e3, 3)},
                 "ghost_spawns": int(c.get("ghost_spawns", 0)),
+                # placed (teleport, slide, divergence, flip) into an occupied spot: passes through until clear
+                "ghost_placements": int(c.get("ghost_placements", 0)),
                 "rejected": int(c.get("rejected", 0)),
                 "agents_seen": self._seen(acc.seen),
                 "agents_by_mode": {m.name.lower(): len(acc.modes.get(int(m), ())) for m in AgentMode},
