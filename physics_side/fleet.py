@@ -84,7 +84,11 @@ GRIP_WINDOW_K = 2
 # this share of their tyres' grip: a 7.1 m truck SUMO took through a 12 m junction turn at
 # 8.5 m/s (5-9 m/s^2) steered to full lock, its body fell 17 deg behind SUMO's angle and
 # its rear swung into a car. Cars stay driven (carried on their approach to turns, the
-# demo's reference car tracked worse).
+# demo's reference car tracked worse). Two-wheelers are carried (upright) beyond the lean
+# their tyres and riders hold (``_a_lat``): SUMO takes bicycles through junction turns at
+# 7-9 m/s^2 and its angle jumps there; driven, they fell over and were placed back. They are
+# handed back only once SUMO turns them at less than GUARD_BIKE_RELEASE_ALAT (upright mid-arc,
+# a motorcycle rolled to 54 deg).
 HEAVY_GRIP_SHARE = 0.6
 CHORD_FIX_MAX_DEG = 30.0  # [deg] a carried body's chord is turned onto SUMO's angle at the step's end within this
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
@@ -99,7 +103,7 @@ GUARD_GAP_M = 0.1  # [m]
 GUARD_HORIZON_S = (0.3, 1.0)  # [s] look-ahead: at least the first, at least a step, at most the second
 GUARD_HOLD_S = 1.0  # [s]
 GUARD_KEEP_M = 0.3  # [m]
-GUARD_BIKE_RELEASE_ALAT = 2.0  # [m/s^2] a carried two-wheeler is handed back (upright) only below this of SUMO's turn
+GUARD_BIKE_RELEASE_ALAT = 2.0  # [m/s^2] a carried two-wheeler (any carry) is handed back (upright) only below this of SUMO's turn
 MAX_GUARD_PAIRS = 4096  # active guard pairs (bounded; more are not guarded, logged)
 
 
@@ -838,8 +842,8 @@ class Fleet:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``): the mean
         curvature of 8 m windows starting up to 1 s of travel ahead. Between the samples of
         long steps also as a share of its tyres' grip at the step's speed (see above); at
-        short steps only for heavy vehicles (HEAVY_GRIP_SHARE: SUMO's turns there are driven
-        by cars without divergence placements in the pack). One path evaluation per SUMO step: headings every
+        short steps only for heavy vehicles (HEAVY_GRIP_SHARE) and two-wheelers (SUMO's turns
+        there are driven by cars without divergence placements in the pack). One path evaluation per SUMO step: headings every
         INFEASIBLE_GRID_M, windows by index offset."""
         k = int(round(INFEASIBLE_WINDOW_M / INFEASIBLE_GRID_M))
         grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + INFEASIBLE_WINDOW_M + 1e-9, INFEASIBLE_GRID_M)[:, None]
@@ -851,13 +855,14 @@ class Fleet:
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
         heavy = self._max_rear > 0.0
-        if self.interpolating or heavy.any():
+        bike = self.kind == M.KIND_BIKE
+        if self.interpolating or heavy.any() or bike.any():
             kg = GRIP_WINDOW_K
             kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
             kap = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0)
             grip = kap * v * v / self._a_lat
-            if not self.interpolating:  # short steps: heavy vehicles only, at HEAVY_GRIP_SHARE
-                grip = np.where(heavy, grip / HEAVY_GRIP_SHARE, 0.0)
+            if not self.interpolating:  # short steps: heavy vehicles at HEAVY_GRIP_SHARE, two-wheelers at their lean
+                grip = np.where(heavy, grip / HEAVY_GRIP_SHARE, np.where(bike, grip, 0.0))
             tight = np.maximum(tight, grip)
         return tight
 

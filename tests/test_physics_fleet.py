@@ -736,6 +736,28 @@ def test_a_heavy_vehicle_in_a_turn_beyond_its_grip_is_carried_at_short_steps(cls
     assert f.counters["placements_divergence"] == 0
 
 
+@pytest.mark.parametrize("v, carried", [(8.0, True), (4.0, False)])
+def test_a_two_wheeler_in_a_turn_beyond_its_lean_is_carried_upright_at_short_steps(v, carried):
+    """SUMO takes a bicycle round an 8 m radius at 8 m/s (8 m/s^2: 39 deg of lean, beyond a
+    rider's 35) in 0.05 s steps: carried upright (bicycles had fallen over in such junction
+    turns and were placed back), and kept carried while SUMO still turns it harder than
+    2 m/s^2; at 4 m/s (2 m/s^2) it is driven, leaning."""
+    f = _fleet()
+    dt, s, roll_max = 0.05, 0.0, 0.0
+    for k in range(40):
+        msg = _turn_step(k, s, v, R=8.0, step_s=dt, length=1.6)
+        a = msg.agents
+        msg = replace(msg, agents=replace(a, cls=np.array([int(AgentClass.BICYCLE)], a.cls.dtype),
+                                          length=np.array([1.6], a.length.dtype), width=np.array([0.65], a.width.dtype)))
+        _run_step(f, msg)
+        roll_max = max(roll_max, abs(float(f.world.observe(f.slots).roll[0])))
+        s += v * dt
+    assert (f.counters["carries_infeasible"] > 0) == carried, f.counters
+    assert (f.mode[0] == AgentMode.KINEMATIC) == carried  # (still in the turn: not handed back)
+    assert f.counters["placements_flip"] == 0 and f.counters["placements_divergence"] == 0
+    assert (roll_max < 0.05) if carried else (0.1 < roll_max < math.radians(35.0)), math.degrees(roll_max)
+
+
 @pytest.mark.parametrize("blocked", [False, True])
 def test_a_two_wheeler_stopped_past_its_stop_rolls_back_only_if_the_way_is_clear(blocked):
     """SUMO stops a bicycle from 6 m/s at 8 m/s^2 (it brakes at ~4.5): it comes to rest 2.8 m
