@@ -71,6 +71,7 @@ INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] ... and SUMO's body angle is this close 
 INFEASIBLE_RATE_MARGIN = 1.5
 INFEASIBLE_MIN_SPEED = 1.0
 INFEASIBLE_OFF_M = 0.5
+KIN_CURVATURE_M = 4.0  # [m] window of the path curvature carried bodies are placed turning at (``_kin_pose``)
 KIN_BLEND_S = 0.4  # [s] time constant of a carried body's glide from its driven pose onto SUMO's
 # Between the samples of long (interpolated) steps a carry also starts for a turn beyond the
 # tyres' grip at the step's speed: at 1 s steps SUMO takes junction corners at 13 m/s through
@@ -886,6 +887,12 @@ class Fleet:
         ref = self.ref
         rate = ref.yaw_rate if self.interpolating else self._kin_rate  # (interpolating: the next sample's known)
         sumo = wrap_pi(ref.yaw + rate * min(tau, self.step_length))
+        # placed turning at the path's mean curvature over KIN_CURVATURE_M around the bumper:
+        # at a lane shape's corner the curvature right there is a spike (a carried van was
+        # handed back steering 36 deg against its turn at 7 m/s, spun 30 deg off and was
+        # placed back 5.9 m behind)
+        h = ref.path.at(at.s + np.array([[-0.5], [0.5]]) * KIN_CURVATURE_M).heading
+        at = replace(at, curvature=wrap_pi(h[1] - h[0]) / KIN_CURVATURE_M)
         if not self.interpolating or not self.infeasible.any():  # (agents kinematic by preset: SUMO's)
             return sumo, at
         if self._chord_end is None:  # once per SUMO step
