@@ -72,6 +72,7 @@ INFEASIBLE_RATE_MARGIN = 1.5
 INFEASIBLE_MIN_SPEED = 1.0
 INFEASIBLE_OFF_M = 0.5
 KIN_CURVATURE_M = 4.0  # [m] window of the path curvature carried bodies are placed turning at (``_kin_pose``)
+KIN_GLIDE_MAX_M = 3.0  # [m] a carry starting further off SUMO's pose starts on it (no glide)
 KIN_BLEND_S = 0.4  # [s] time constant of a carried body's glide from its driven pose onto SUMO's
 # Between the samples of long (interpolated) steps a carry also starts for a turn beyond the
 # tyres' grip at the step's speed: at 1 s steps SUMO takes junction corners at 13 m/s through
@@ -999,7 +1000,12 @@ class Fleet:
         self.guarded = contact
         if began.any():
             yaw0 = self._kin_pose(held, self.tau)[0]
-            off[began] = np.c_[obs.fx - held.x, obs.fy - held.y, wrap_pi(obs.yaw - yaw0)][began]
+            o = np.c_[obs.fx - held.x, obs.fy - held.y, wrap_pi(obs.yaw - yaw0)]
+            # ... from a pose it drove to; a body spawned (at its parking spot) or teleported
+            # this step starts on SUMO's pose (a van carried from its spawn glided in from the
+            # parking spot 70 km away, 5.6 km off a second later)
+            far = (prev < 0) | (np.hypot(o[:, 0], o[:, 1]) > KIN_GLIDE_MAX_M)
+            off[began] = np.where(far[:, None], 0.0, o)[began]
             age[began] = 0.0
         self.kin_off, self.kin_age = off, age
         if now.any():

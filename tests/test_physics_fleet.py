@@ -736,6 +736,22 @@ def test_a_heavy_vehicle_in_a_turn_beyond_its_grip_is_carried_at_short_steps(cls
     assert f.counters["placements_divergence"] == 0
 
 
+def test_an_agent_carried_from_its_first_step_starts_on_sumos_pose():
+    """A bus SUMO inserts inside a turn beyond its grip is carried from its first step: its
+    body starts on SUMO's pose, not gliding in from its parking spot (kilometres away)."""
+    f = _fleet()
+    dt, v = 0.05, 8.5
+    for k in range(4):
+        msg = _turn_step(k, 10.0 + v * dt * k, v, R=12.0, step_s=dt, length=12.0)
+        a = msg.agents
+        msg = replace(msg, agents=replace(a, cls=np.array([int(AgentClass.BUS)], a.cls.dtype),
+                                          length=np.array([12.0], a.length.dtype), width=np.array([2.5], a.width.dtype)))
+        _run_step(f, msg)
+        assert f.mode[0] == AgentMode.KINEMATIC
+        s = f.snapshot()
+        assert math.hypot(s.x[0] - a.x[0], s.y[0] - a.y[0]) < 1.0, (k, s.x[0], a.x[0])
+
+
 @pytest.mark.parametrize("v, carried", [(8.0, True), (4.0, False)])
 def test_a_two_wheeler_in_a_turn_beyond_its_lean_is_carried_upright_at_short_steps(v, carried):
     """SUMO takes a bicycle round an 8 m radius at 8 m/s (8 m/s^2: 39 deg of lean, beyond a
