@@ -713,7 +713,7 @@ class Analysis:
                 "placements": int(c.get("placements", 0)),
                 "placements_by_cause": {k: int(c.get(f"placements_{k}", 0))
                                         for k in ("spawn", "jump", "divergence", "flip")},
-                # manoeuvres beyond the vehicle's steering (U-turns...) shown kinematic: how many
+                # manoeuvres beyond the vehicle's steering or a rider's lean (U-turns...) shown kinematic: how many
                 # and for how long; their samples are not PHYSICAL, so not in the errors above
                 "carries_infeasible": {"count": int(c.get("carries_infeasible", 0)),
                                        "agent_s": round(int(c.get("carried_infeasible_ms", 0)) / 1e3, 3)},

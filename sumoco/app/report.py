@@ -60,7 +60,7 @@ def render_markdown(summary: dict, recording) -> str:
         "",
         "| preset | all agents | reference car | ref straight | ref turn | lane changes: count, p95 / max "
         "| collisions (physics only) | placements (spawn / jump / divergence / flip) "
-        "| kinematic through a manoeuvre beyond steering: count, agent-s "
+        "| kinematic through a manoeuvre beyond steering or lean: count, agent-s "
         "| kinematic to keep clear of a contact SUMO does not have: count, agent-s |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
