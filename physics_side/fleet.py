@@ -629,8 +629,9 @@ class Fleet:
         self.counters["placements_divergence"] += st.diverged
         self.counters["placements_flip"] += st.flipped
         if st.diverged or st.flipped:
-            log.warning("step %d: placed diverged %s, flipped %s", msg.step,
-                        [self.ids[i] for i in np.flatnonzero(diverged)], [self.ids[i] for i in np.flatnonzero(flipped)])
+            log.warning("step %d: placed %d diverged %s, %d flipped %s", msg.step, st.diverged,
+                        [self.ids[i] for i in np.flatnonzero(diverged)][:10], st.flipped,
+                        [self.ids[i] for i in np.flatnonzero(flipped)][:10])
         # along-path position of each bumper on the new path (guess for the projection)
         # (``obs`` predates the placements: placed agents sit exactly at s = 0)
         self._update_ghosts(w.observe(slots) if place.any() else obs, is_new, place, prev)
@@ -1042,10 +1043,12 @@ class Fleet:
         # SUMO's footprints now and H ahead (its angle turning at its rate)
         sx = held.x - 0.5 * self.sumo_len * np.cos(held.yaw)
         sy = held.y - 0.5 * self.sumo_len * np.sin(held.yaw)
-        ah = ref.at(min(self.tau, self.max_extrapolation) + H)
+        # (moving on along its angle at its speed and acceleration: no path evaluation)
         syaw2 = held.yaw + self._kin_rate * H
-        sx2 = ah.x - 0.5 * self.sumo_len * np.cos(syaw2)
-        sy2 = ah.y - 0.5 * self.sumo_len * np.sin(syaw2)
+        go = np.maximum(held.speed * H + 0.5 * held.accel * H * H, 0.0)
+        mid = held.yaw + 0.5 * self._kin_rate * H
+        sx2 = held.x + go * np.cos(mid) - 0.5 * self.sumo_len * np.cos(syaw2)
+        sy2 = held.y + go * np.sin(mid) - 0.5 * self.sumo_len * np.sin(syaw2)
         # the bodies' footprints: a two-wheeler's body (its rider) leaning over reaches
         # height x sin(roll) sideways, less what its half-width comes in
         lean = np.abs(obs.roll)
@@ -1078,14 +1081,17 @@ class Fleet:
             near = (np.minimum(phys_now, phys_ahead) < GUARD_GAP_M) & (sumo_now > sumo_gap)
             ids = self.ids
             pg, sg = np.minimum(phys_now, phys_ahead), np.minimum(sumo_now, sumo_ahead)
+            told = []
             for a, b, g_p, g_s in zip(i[near], j[near], pg[near], sg[near]):
                 key = (ids[a], ids[b]) if ids[a] < ids[b] else (ids[b], ids[a])
                 if key not in self._guard_pairs:
                     if len(self._guard_pairs) >= MAX_GUARD_PAIRS:
                         self.counters["guard_pairs_dropped"] += 1
                         continue
-                    log.info("t=%.2f s: %s and %s carried: bodies %.2f m apart, SUMO's %.2f m", t, *key, g_p, g_s)
+                    told.append(f"{key[0]} and {key[1]} ({g_p:.2f} m apart, SUMO's {g_s:.2f} m)")
                 self._guard_pairs[key] = t
+            if told:
+                log.info("t=%.2f s: %d pair(s) carried to keep clear: %s", t, len(told), "; ".join(told[:5]))
         pairs = [(self._index.get(a, -1), self._index.get(b, -1), t0) for (a, b), t0 in self._guard_pairs.items()]
         pairs = [p for p in pairs if p[0] >= 0 and p[1] >= 0]
         if pairs:
