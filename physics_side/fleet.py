@@ -1043,12 +1043,10 @@ class Fleet:
         # SUMO's footprints now and H ahead (its angle turning at its rate)
         sx = held.x - 0.5 * self.sumo_len * np.cos(held.yaw)
         sy = held.y - 0.5 * self.sumo_len * np.sin(held.yaw)
-        # (moving on along its angle at its speed and acceleration: no path evaluation)
+        ah = ref.at(min(self.tau, self.max_extrapolation) + H)
         syaw2 = held.yaw + self._kin_rate * H
-        go = np.maximum(held.speed * H + 0.5 * held.accel * H * H, 0.0)
-        mid = held.yaw + 0.5 * self._kin_rate * H
-        sx2 = held.x + go * np.cos(mid) - 0.5 * self.sumo_len * np.cos(syaw2)
-        sy2 = held.y + go * np.sin(mid) - 0.5 * self.sumo_len * np.sin(syaw2)
+        sx2 = ah.x - 0.5 * self.sumo_len * np.cos(syaw2)
+        sy2 = ah.y - 0.5 * self.sumo_len * np.sin(syaw2)
         # the bodies' footprints: a two-wheeler's body (its rider) leaning over reaches
         # height x sin(roll) sideways, less what its half-width comes in
         lean = np.abs(obs.roll)
