@@ -92,6 +92,9 @@ GRIP_WINDOW_K = 2
 # handed back only once SUMO turns them at less than GUARD_BIKE_RELEASE_ALAT (upright mid-arc,
 # a motorcycle rolled to 54 deg).
 HEAVY_GRIP_SHARE = 0.6
+# Motorcycles and mopeds drive SUMO's 9-10 m/s^2 junction turns leaning at their limit (within
+# a metre of SUMO's track): they are carried only beyond this share of their lean's acceleration
+MOTORCYCLE_GRIP_SHARE = 1.4
 CHORD_FIX_MAX_DEG = 30.0  # [deg] a carried body's chord is turned onto SUMO's angle at the step's end within this
 GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
 # Contact guard: SUMO packs agents closer than any driven body keeps to its reference (a
@@ -864,8 +867,9 @@ class Fleet:
             kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
             kap = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0)
             grip = kap * v * v / self._a_lat
-            if not self.interpolating:  # short steps: heavy vehicles at HEAVY_GRIP_SHARE, two-wheelers at their lean
-                grip = np.where(heavy, grip / HEAVY_GRIP_SHARE, np.where(bike, grip, 0.0))
+            if not self.interpolating:  # short steps: heavy vehicles at HEAVY_GRIP_SHARE, two-wheelers beyond their lean
+                share = np.where(self.mass < MOTORCYCLE_MASS_KG, 1.0, MOTORCYCLE_GRIP_SHARE)
+                grip = np.where(heavy, grip / HEAVY_GRIP_SHARE, np.where(bike, grip / share, 0.0))
             tight = np.maximum(tight, grip)
         return tight
 
