@@ -87,7 +87,7 @@ GRIP_WINDOW_K = 2
 # 8.5 m/s (5-9 m/s^2) steered to full lock, its body fell 17 deg behind SUMO's angle and
 # its rear swung into a car. Cars stay driven (carried on their approach to turns, the
 # demo's reference car tracked worse). Two-wheelers are carried (upright) beyond the lean
-# their tyres and riders hold (``_a_lat``): SUMO takes bicycles through junction turns at
+# their tyres and riders hold (``_a_lat``; motorcycles at MOTORCYCLE_GRIP_SHARE): SUMO takes bicycles through junction turns at
 # 7-9 m/s^2 and its angle jumps there; driven, they fell over and were placed back. They are
 # handed back only once SUMO turns them at less than GUARD_BIKE_RELEASE_ALAT (upright mid-arc,
 # a motorcycle rolled to 54 deg).
