@@ -1021,7 +1021,7 @@ class Fleet:
         """Agents carried so that a contact SUMO does not have cannot happen (GUARD_*): pairs
         whose physics footprints (a two-wheeler's widened by its rider's lean) come within
         GUARD_GAP_M now or GUARD_HORIZON_S ahead (their errors kept, or moving on at their
-        velocity) while SUMO's footprints at the same times have a gap; a pair stays guarded
+        velocity) while SUMO's footprints now have a gap; a pair stays guarded
         for GUARD_HOLD_S after it was last near and while SUMO has it within GUARD_KEEP_M.
         Pedestrian pairs never touch; a pair of bodies both placed every tick neither."""
         n = self.n
@@ -1063,19 +1063,18 @@ class Fleet:
             def gaps(ax, ay, ah_, bx, by, bh, al, aw, bl, bw):
                 return footprint_gap(ax[i], ay[i], ah_[i], al[i], aw[i], bx[j], by[j], bh[j], bl[j], bw[j])
             sumo_now = gaps(sx, sy, held.yaw, sx, sy, held.yaw, self.sumo_len, self.sumo_wid, self.sumo_len, self.sumo_wid)
-            sumo_ahead = gaps(sx2, sy2, syaw2, sx2, sy2, syaw2, self.sumo_len, self.sumo_wid, self.sumo_len, self.sumo_wid)
-            phys_now = gaps(px, py, pyaw, px, py, pyaw, L, pw, L, pw)
-            # ahead: with its error kept, or moving on at its velocity
+            # the bodies now and ahead: with their errors kept, or moving on at their velocity
             kx, ky, kyaw = sx2 + px - sx, sy2 + py - sy, syaw2 + wrap_pi(pyaw - held.yaw)
             lx, ly, lyaw = px + obs.vx * H, py + obs.vy * H, pyaw + obs.yaw_rate * H
-            phys_ahead = np.minimum(gaps(kx, ky, kyaw, kx, ky, kyaw, L, pw, L, pw),
-                                    gaps(lx, ly, lyaw, lx, ly, lyaw, L, pw, L, pw))
-            sumo_gap = 2.0 * SUMO_OVERLAP_M  # SUMO's footprints this close: its own collision
-            # (ahead, SUMO's own footprints are our extrapolation: a motorcycle SUMO stops within
-            # a step from 15 m/s runs on into its leader there, SUMO's next sample does not)
-            near = (np.minimum(phys_now, phys_ahead) < GUARD_GAP_M) & (sumo_now > sumo_gap)
+            pg = np.minimum(gaps(px, py, pyaw, px, py, pyaw, L, pw, L, pw),
+                            np.minimum(gaps(kx, ky, kyaw, kx, ky, kyaw, L, pw, L, pw),
+                                       gaps(lx, ly, lyaw, lx, ly, lyaw, L, pw, L, pw)))
+            # SUMO's footprints this close are its own collision; only now counts (ahead they are
+            # our extrapolation: a motorcycle SUMO stops within a step from 15 m/s runs on into
+            # its leader there, SUMO's next sample does not)
+            near = (pg < GUARD_GAP_M) & (sumo_now > 2.0 * SUMO_OVERLAP_M)
             ids = self.ids
-            pg, sg = np.minimum(phys_now, phys_ahead), np.minimum(sumo_now, sumo_ahead)
+            sg = sumo_now
             told = []
             for a, b, g_p, g_s in zip(i[near], j[near], pg[near], sg[near]):
                 key = (ids[a], ids[b]) if ids[a] < ids[b] else (ids[b], ids[a])
