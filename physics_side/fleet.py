@@ -630,7 +630,8 @@ class Fleet:
                         [self.ids[i] for i in np.flatnonzero(flipped)][:10])
         # along-path position of each bumper on the new path (guess for the projection)
         # (``obs`` predates the placements: placed agents sit exactly at s = 0)
-        self._update_ghosts(w.observe(slots) if place.any() else obs, is_new, place, prev)
+        placed_obs = w.observe(slots) if place.any() else obs  # (also the first tick's start state)
+        self._update_ghosts(placed_obs, is_new, place, prev)
         self.jump_t = np.where(prev >= 0, self.jump_t[np.maximum(prev, 0)] if len(self.jump_t) else -np.inf, -np.inf)
         self.jump_t[jumped | ((flags & AgentFlag.JUMPED) != 0)] = msg.time
         if self._pending_collisions:
@@ -644,8 +645,8 @@ class Fleet:
         self.err_lon = np.where(place, 0.0, e_lon)
         self.err_lat = np.where(place, 0.0, e_lat)
         self.sumo_step = msg.step
-        # the first tick starts from ``obs`` unless a placement moved somebody since
-        self._cache = None if place.any() else (obs, None)
+        # the first tick starts from the state after the placements
+        self._cache = (placed_obs, None)
         self.counters["steps"] += 1
         if resync:
             self.counters["resyncs"] += 1
@@ -825,6 +826,13 @@ class Fleet:
         self._grip_torque = C.drive_grip_torque(t.drive_grip[s], t.r_wheel[s])
         self._any_grip = bool(np.isfinite(self._grip_torque).any())
         self._any_bike = bool(np.any(self.kind == M.KIND_BIKE))
+        # share of the tyres' grip (or the lean's) beyond which a turn is carried at short steps
+        # (``_path_tightness``): heavy vehicles, two-wheelers; 0 = not checked
+        bike = self.kind == M.KIND_BIKE
+        self._short_grip_share = np.where(
+            t.max_rsteer[s] > 0, HEAVY_GRIP_SHARE,
+            np.where(bike, np.where(t.mass[s] < MOTORCYCLE_MASS_KG, 1.0, MOTORCYCLE_GRIP_SHARE), 0.0))
+        self._any_short_grip = bool(np.any(self._short_grip_share > 0))
         self._gen = self.world.generation
         self._groups = None
         p = self.params
@@ -853,16 +861,14 @@ class Fleet:
             v = np.maximum(v, ref.step_speed)
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
-        heavy = self._max_rear > 0.0
-        bike = self.kind == M.KIND_BIKE
-        if self.interpolating or heavy.any() or bike.any():
+        if self.interpolating or self._any_short_grip:
             kg = GRIP_WINDOW_K
             kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
             kap = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0)
             grip = kap * v * v / self._a_lat
-            if not self.interpolating:  # short steps: heavy vehicles at HEAVY_GRIP_SHARE, two-wheelers beyond their lean
-                share = np.where(self.mass < MOTORCYCLE_MASS_KG, 1.0, MOTORCYCLE_GRIP_SHARE)
-                grip = np.where(heavy, grip / HEAVY_GRIP_SHARE, np.where(bike, grip / share, 0.0))
+            if not self.interpolating:  # short steps: heavy vehicles and two-wheelers only
+                share = self._short_grip_share
+                grip = np.where(share > 0, grip / np.maximum(share, 1e-9), 0.0)
             tight = np.maximum(tight, grip)
         return tight
 
