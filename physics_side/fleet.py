@@ -85,13 +85,21 @@ GRIP_WINDOW_K = 2
 # At short steps the grip check covers heavy vehicles (those that steer their rear axle) at
 # this share of their tyres' grip: a 7.1 m truck SUMO took through a 12 m junction turn at
 # 8.5 m/s (5-9 m/s^2) steered to full lock, its body fell 17 deg behind SUMO's angle and
-# its rear swung into a car. Cars stay driven (carried on their approach to turns, the
-# demo's reference car tracked worse). Two-wheelers are carried (upright) beyond the lean
+# its rear swung into a car. Cars at this share were carried on their approach to the
+# demo's turns (its reference car tracked worse): they are carried only beyond CAR_GRIP_SHARE. Two-wheelers are carried (upright) beyond the lean
 # their tyres and riders hold (``_a_lat``; motorcycles at MOTORCYCLE_GRIP_SHARE): SUMO takes bicycles through junction turns at
 # 7-9 m/s^2 and its angle jumps there; driven, they fell over and were placed back. They are
 # handed back only once SUMO turns them at less than GUARD_BIKE_RELEASE_ALAT (upright mid-arc,
 # a motorcycle rolled to 54 deg).
 HEAVY_GRIP_SHARE = 0.6
+# Cars beyond their tyres' friction itself (INFEASIBLE_MARGIN x this share of the steering's
+# A_LAT_SHARE of it: 12.6 of 12.75 m/s^2): SUMO takes a curved lane (not a junction) at 13.4
+# m/s through 90 deg in 1.5 s (15 m/s^2); driven, a taxi steered at its grip's 11 deg, ran 6 m
+# wide and was placed back. Below it cars stay driven (the demo's turns ask 4-7 m/s^2)
+CAR_GRIP_SHARE = 1.2
+# [m/s^2] ... at the least speed SUMO can brake them to before each window (its emergency
+# deceleration; at their own speed cars were carried on their approach to the demo's turns)
+CAR_GRIP_BRAKE = 9.0
 # Motorcycles and mopeds drive SUMO's 9-10 m/s^2 junction turns leaning at their limit (within
 # a metre of SUMO's track): they are carried only beyond this share of their lean's acceleration
 MOTORCYCLE_GRIP_SHARE = 1.4
@@ -829,10 +837,13 @@ class Fleet:
         # share of the tyres' grip (or the lean's) beyond which a turn is carried at short steps
         # (``_path_tightness``): heavy vehicles, two-wheelers; 0 = not checked
         bike = self.kind == M.KIND_BIKE
+        car = (self.kind == M.KIND_CAR) & (t.max_rsteer[s] <= 0)
         self._short_grip_share = np.where(
             t.max_rsteer[s] > 0, HEAVY_GRIP_SHARE,
-            np.where(bike, np.where(t.mass[s] < MOTORCYCLE_MASS_KG, 1.0, MOTORCYCLE_GRIP_SHARE), 0.0))
+            np.where(bike, np.where(t.mass[s] < MOTORCYCLE_MASS_KG, 1.0, MOTORCYCLE_GRIP_SHARE),
+                     np.where(car, CAR_GRIP_SHARE, 0.0)))
         self._any_short_grip = bool(np.any(self._short_grip_share > 0))
+        self._grip_brake = np.where(car, CAR_GRIP_BRAKE, 0.0)
         self._gen = self.world.generation
         self._groups = None
         p = self.params
@@ -845,12 +856,14 @@ class Fleet:
         four-wheel-steered limit ran 6 m wide). Computed with the agents' parameters (``_params``)."""
         return self._reach_c
 
-    def _path_tightness(self, ref: Reference) -> np.ndarray:
-        """Each vehicle's tightest path ahead as a share of its reach (``_reach``): the mean
+    def _path_tightness(self, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
+        """Each vehicle's tightest path ahead as a share of its reach (``_reach``), and the
+        largest lateral acceleration [m/s^2] its path ahead asks at its speed (v^2 kappa of
+        the grip check's windows): the mean
         curvature of 8 m windows starting up to 1 s of travel ahead. Between the samples of
         long steps also as a share of its tyres' grip at the step's speed (see above); at
-        short steps only for heavy vehicles (HEAVY_GRIP_SHARE) and two-wheelers (SUMO's turns
-        there are driven by cars without divergence placements in the pack). One path evaluation per SUMO step: headings every
+        short steps as a share of ``_short_grip_share`` of it (heavy vehicles, two-wheelers,
+        cars beyond their tyres' friction). One path evaluation per SUMO step: headings every
         INFEASIBLE_GRID_M, windows by index offset."""
         k = int(round(INFEASIBLE_WINDOW_M / INFEASIBLE_GRID_M))
         grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + INFEASIBLE_WINDOW_M + 1e-9, INFEASIBLE_GRID_M)[:, None]
@@ -861,16 +874,18 @@ class Fleet:
             v = np.maximum(v, ref.step_speed)
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
+        kg = GRIP_WINDOW_K
+        kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
+        # (at short steps a car's speed at a window is the least SUMO can slow it to by then)
+        v2 = v * v - (0.0 if self.interpolating else 2.0 * self._grip_brake * grid[:-kg])
+        demand = np.where(grid[:-kg] <= ahead, kap * np.maximum(v2, 0.0), 0.0).max(axis=0)
         if self.interpolating or self._any_short_grip:
-            kg = GRIP_WINDOW_K
-            kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
-            kap = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0)
-            grip = kap * v * v / self._a_lat
-            if not self.interpolating:  # short steps: heavy vehicles and two-wheelers only
+            grip = demand / self._a_lat
+            if not self.interpolating:  # short steps: at each vehicle's share
                 share = self._short_grip_share
                 grip = np.where(share > 0, grip / np.maximum(share, 1e-9), 0.0)
             tight = np.maximum(tight, grip)
-        return tight
+        return tight, demand
 
     def _kin_pose(self, at: ReferencePoint, tau: float) -> tuple[np.ndarray, ReferencePoint]:
         """Body angle [rad] of kinematic agents placed at ``at`` (``tau`` [s] past the sample),
@@ -964,7 +979,7 @@ class Fleet:
         cand = (self.mode == AgentMode.PHYSICAL) & (self.kind != M.KIND_PED)
         now = np.zeros(self.n, bool)
         if self.cfg.carry_infeasible and cand.any():
-            tight = self._path_tightness(ref)
+            tight, demand = self._path_tightness(ref)
             start = tight > INFEASIBLE_MARGIN
             if not self.interpolating:  # (between the samples of long steps SUMO's rate is a chord's)
                 start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
@@ -981,13 +996,22 @@ class Fleet:
                     # while SUMO still turned it at 100 deg/s, a car lagged 0.6 m, a van spun round)
                     | (np.abs(yaw_rate) > INFEASIBLE_RELEASE * np.maximum(ref.speed, INFEASIBLE_MIN_SPEED)
                        * self._reach()))
+            # ... and the path ahead asks no more of the tyres than they carry (at short steps
+            # a car's carry starts on SUMO's turn rate only: released where the path's
+            # curvature was within its steering, a taxi in a 75 deg junction turn at 8 m/s, 8.7
+            # m/s^2, ran 2.6 m wide at full lock)
+            keep |= demand > INFEASIBLE_RELEASE * self._a_lat
             if self.interpolating:
                 # ... and, between long steps' samples, once the carried body no longer turns faster
                 # than its tyres carry (the chord of a body whose back is still in the corner turns
                 # at up to 1.2 rad/s at 14 m/s: released then, cars spun round)
                 keep |= np.abs(obs.yaw_rate * obs.speed) > INFEASIBLE_RELEASE * self._a_lat
-            # ... and a two-wheeler (placed upright) not in a turn it would have to lean into
-            keep |= (self.kind == M.KIND_BIKE) & (np.abs(yaw_rate * ref.speed) > GUARD_BIKE_RELEASE_ALAT)
+            # ... and a two-wheeler (placed upright) not in a turn it would have to lean into, now
+            # in SUMO's turn rate or ahead on its path (SUMO holds a motorcycle's angle for a few
+            # steps in a junction turn, then jumps it: handed back upright when the rate read 0
+            # with 30 deg of a 10 m arc still ahead at 8.6 m/s, it over-turned 20 deg and fell)
+            keep |= (self.kind == M.KIND_BIKE) & ((np.abs(yaw_rate * ref.speed) > GUARD_BIKE_RELEASE_ALAT)
+                                                  | (demand > GUARD_BIKE_RELEASE_ALAT))
             now = cand & (start | (was & keep))
         guard = self._contact_guard(ref, prev, obs, held, was)
         now |= guard

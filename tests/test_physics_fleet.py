@@ -587,8 +587,9 @@ def test_a_car_at_its_tyres_limit_does_not_speed_up_to_catch_up():
     Past the bend (the path straight again, nothing left for the curve speed cut) it does not
     speed up past SUMO to catch up while it still steers at its limit: that widened the turn
     further (Hamburg's cars at 1 s steps sped up to 16.5 m/s behind SUMO's 13.9 and were placed
-    6 m wide of their junction turns)."""
-    f = _fleet()
+    6 m wide of their junction turns). Driven, not carried: beyond the tyres' friction a car
+    is carried by default (``test_a_car_on_a_bend_beyond_its_tyres_friction_is_carried``)."""
+    f = _fleet(carry_infeasible=False)
     m0 = circle_traffic(1, 0)
     s, over, wide = -40.0, 0.0, 0.0
     for k in range(50):
@@ -736,6 +737,25 @@ def test_a_heavy_vehicle_in_a_turn_beyond_its_grip_is_carried_at_short_steps(cls
     assert f.counters["placements_divergence"] == 0
 
 
+@pytest.mark.parametrize("v, carried", [(13.4, True), (10.0, False)])
+def test_a_car_on_a_bend_beyond_its_tyres_friction_is_carried(v, carried):
+    """SUMO takes a car round a 12 m radius at 13.4 m/s (15 m/s^2, beyond its tyres' mu g of
+    12.75) in 0.1 s steps, as it does on curved lanes that are no junction: the car is carried
+    (driven, it steered at its grip's 11 deg and ran metres wide); at 10 m/s (8.3 m/s^2) it
+    drives the bend."""
+    f = _fleet()
+    dt, s, wide = 0.1, 0.0, 0.0
+    for k in range(20):
+        _run_step(f, _turn_step(k, s, v, R=12.0, step_s=dt))
+        if f.mode[0] == AgentMode.PHYSICAL:
+            wide = max(wide, abs(float(f.err_lat[0])))
+        s += v * dt
+    assert (f.counters["carries_infeasible"] > 0) == carried, f.counters
+    assert (f.mode[0] == AgentMode.KINEMATIC) == carried  # (still in the bend: not handed back)
+    assert f.counters["placements_divergence"] == 0
+    assert wide < 0.5, wide
+
+
 def test_an_agent_carried_from_its_first_step_starts_on_sumos_pose():
     """A bus SUMO inserts inside a turn beyond its grip is carried from its first step: its
     body starts on SUMO's pose, not gliding in from its parking spot (kilometres away)."""
@@ -772,6 +792,61 @@ def test_a_two_wheeler_in_a_turn_beyond_its_lean_is_carried_upright_at_short_ste
     assert (f.mode[0] == AgentMode.KINEMATIC) == carried  # (still in the turn: not handed back)
     assert f.counters["placements_flip"] == 0 and f.counters["placements_divergence"] == 0
     assert (roll_max < 0.05) if carried else (0.1 < roll_max < math.radians(35.0)), math.degrees(roll_max)
+
+
+def _arcs_xy(s: np.ndarray, arcs: list[tuple[float, float]]) -> np.ndarray:
+    """Points at arc lengths ``s`` [m] of a lane: east to (1000, 1000), then left arcs
+    ``(radius [m], turn [deg])`` one after the other, then straight on."""
+    grid = np.arange(-50.0, 150.0, 0.01)
+    heading = np.zeros_like(grid)
+    start, h0 = 0.0, 0.0
+    for R, turn in arcs:
+        length = R * np.radians(turn)
+        inside = (grid >= start) & (grid < start + length)
+        heading[inside] = h0 + (grid[inside] - start) / R
+        heading[grid >= start + length] = h0 + np.radians(turn)
+        start, h0 = start + length, h0 + np.radians(turn)
+    x = np.concatenate(([0.0], np.cumsum(np.cos(0.5 * (heading[1:] + heading[:-1])) * 0.01)))
+    y = np.concatenate(([0.0], np.cumsum(np.sin(0.5 * (heading[1:] + heading[:-1])) * 0.01)))
+    x0, y0 = np.interp(0.0, grid, x), np.interp(0.0, grid, y)
+    s = np.atleast_1d(np.asarray(s, np.float64))
+    return np.c_[1000.0 + np.interp(s, grid, x) - x0, 1000.0 + np.interp(s, grid, y) - y0]
+
+
+def test_a_carried_two_wheeler_is_not_handed_back_while_its_path_still_turns():
+    """SUMO takes a bicycle at 6 m/s into a junction's 4 m corner (9 m/s^2, beyond its lean:
+    carried) that opens into a 10 m arc (3.6 m/s^2), holding its angle for 4 steps at a time
+    and then jumping it, as it does with two-wheelers in the sublane model. The bicycle stays
+    carried (upright) while its path ahead still turns, though SUMO's turn rate reads 0 on
+    three steps of four (handed back then, a motorcycle over-turned 20 deg and fell), and is
+    handed back on the straight after the arc."""
+    f = _fleet()
+    m0 = circle_traffic(1, 0)
+    arcs = [(4.0, 30.0), (10.0, 90.0)]
+    arc_end = sum(R * np.radians(t) for R, t in arcs)
+    dt, v, s, angle = 0.05, 6.0, -6.0, 90.0
+    in_arc_modes, roll_max = [], 0.0
+    for k in range(int((arc_end + 18.0) / (v * dt))):
+        front, back = _arcs_xy(s, arcs)[0], _arcs_xy(s - 1.6, arcs)[0]
+        if k % 4 == 0:
+            angle = 90.0 - np.degrees(np.arctan2(front[1] - back[1], front[0] - back[0]))
+        pts = _arcs_xy(s + np.arange(0.0, 40.0, 1.0), arcs).astype(np.float32)
+        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
+        a = replace(m0.agents, x=np.array([front[0]]), y=np.array([front[1]]), angle=f32(angle),
+                    speed=f32(v), accel=f32(0.0), la_x=f32(pts[7, 0]), la_y=f32(pts[7, 1]),
+                    flags=np.array([8 if k == 0 else 0], np.uint8), path_offsets=np.array([0, len(pts)], np.uint32),
+                    path_xy=pts, cls=np.array([int(AgentClass.BICYCLE)], m0.agents.cls.dtype),
+                    length=np.array([1.6], m0.agents.length.dtype), width=np.array([0.65], m0.agents.width.dtype))
+        _run_step(f, replace(m0, step=k, time=k * dt, step_length=dt, agents=a))
+        if 4.0 < s < arc_end - 2.0:
+            in_arc_modes.append(int(f.mode[0]))
+        roll_max = max(roll_max, abs(float(f.world.observe(f.slots).roll[0])))
+        s += v * dt
+    assert f.counters["carries_infeasible"] > 0, f.counters
+    assert in_arc_modes and all(m == AgentMode.KINEMATIC for m in in_arc_modes), in_arc_modes
+    assert f.mode[0] == AgentMode.PHYSICAL  # handed back on the straight
+    assert f.counters["placements_flip"] == 0 and f.counters["placements_divergence"] == 0, f.counters
+    assert roll_max < math.radians(35.0), math.degrees(roll_max)
 
 
 @pytest.mark.parametrize("blocked", [False, True])
