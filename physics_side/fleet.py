@@ -65,6 +65,7 @@ INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m]
 INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle's reach starts a carry ...
 INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within this share of it
 INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] ... and SUMO's body angle is this close to the path's heading
+INFEASIBLE_GRIP_KEEP = 0.5  # [1] ... and the path ahead (8 m windows) asks less than this share of the tyres' lateral acceleration
 # Or seen in SUMO's turn rate: faster than INFEASIBLE_RATE_MARGIN x full lock at its speed
 # (SUMO's angle is the chord back to front, which turns faster than the bumper's path
 # entering a bend), moving faster than INFEASIBLE_MIN_SPEED [m/s], INFEASIBLE_OFF_M [m] off
@@ -93,7 +94,7 @@ GRIP_WINDOW_K = 2
 # a motorcycle rolled to 54 deg).
 HEAVY_GRIP_SHARE = 0.6
 # Cars beyond their tyres' friction itself (INFEASIBLE_MARGIN x this share of the steering's
-# A_LAT_SHARE of it: 12.6 of 12.75 m/s^2): SUMO takes a curved lane (not a junction) at 13.4
+# A_LAT_SHARE of it: 12.6 of 12.75 m/s^2) over the 8 m windows: SUMO takes a curved lane (not a junction) at 13.4
 # m/s through 90 deg in 1.5 s (15 m/s^2); driven, a taxi steered at its grip's 11 deg, ran 6 m
 # wide and was placed back. Below it cars stay driven (the demo's turns ask 4-7 m/s^2)
 CAR_GRIP_SHARE = 1.2
@@ -856,10 +857,11 @@ class Fleet:
         four-wheel-steered limit ran 6 m wide). Computed with the agents' parameters (``_params``)."""
         return self._reach_c
 
-    def _path_tightness(self, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
+    def _path_tightness(self, ref: Reference) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``), and the
-        largest lateral acceleration [m/s^2] its path ahead asks at its speed (v^2 kappa of
-        the grip check's windows): the mean
+        largest lateral acceleration [m/s^2] its path ahead asks at its speed: over the grip
+        check's 4 m windows, and over the 8 m ones (cars: at the least speed SUMO can brake
+        them to). The reach's share is the mean
         curvature of 8 m windows starting up to 1 s of travel ahead. Between the samples of
         long steps also as a share of its tyres' grip at the step's speed (see above); at
         short steps as a share of ``_short_grip_share`` of it (heavy vehicles, two-wheelers,
@@ -876,16 +878,20 @@ class Fleet:
         tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
         kg = GRIP_WINDOW_K
         kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
-        # (at short steps a car's speed at a window is the least SUMO can slow it to by then)
-        v2 = v * v - (0.0 if self.interpolating else 2.0 * self._grip_brake * grid[:-kg])
-        demand = np.where(grid[:-kg] <= ahead, kap * np.maximum(v2, 0.0), 0.0).max(axis=0)
+        demand = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0) * v * v
+        # over the 8 m windows, at short steps at the least speed SUMO can brake a car to by
+        # each window (a lane shape's 15 deg corner within 4 m asked 12.6 m/s^2 at 14 m/s:
+        # carried for 0.3 s, a van was handed back steering into it and spun)
+        v2 = v * v - (0.0 if self.interpolating else 2.0 * self._grip_brake * grid[:-k])
+        sustained = np.where(grid[:-k] <= ahead, kappa * np.maximum(v2, 0.0), 0.0).max(axis=0)
         if self.interpolating or self._any_short_grip:
             grip = demand / self._a_lat
             if not self.interpolating:  # short steps: at each vehicle's share
                 share = self._short_grip_share
                 grip = np.where(share > 0, grip / np.maximum(share, 1e-9), 0.0)
+                grip = np.where(self._grip_brake > 0, sustained / (self._a_lat * CAR_GRIP_SHARE), grip)
             tight = np.maximum(tight, grip)
-        return tight, demand
+        return tight, demand, sustained
 
     def _kin_pose(self, at: ReferencePoint, tau: float) -> tuple[np.ndarray, ReferencePoint]:
         """Body angle [rad] of kinematic agents placed at ``at`` (``tau`` [s] past the sample),
@@ -912,7 +918,14 @@ class Fleet:
         # handed back steering 36 deg against its turn at 7 m/s, spun 30 deg off and was
         # placed back 5.9 m behind)
         h = ref.path.at(at.s + np.array([[-0.5], [0.5]]) * KIN_CURVATURE_M).heading
-        at = replace(at, curvature=wrap_pi(h[1] - h[0]) / KIN_CURVATURE_M)
+        kappa = wrap_pi(h[1] - h[0]) / KIN_CURVATURE_M
+        if not self.interpolating:
+            # ... and no tighter than its tyres carry at its speed: placed turning at a lane
+            # shape's corner at 14 m/s (wheels at 37 deg, 3.4 rad/s), a van handed back there
+            # spun round and was placed back 6 m behind
+            lim = np.where(self.kind == M.KIND_PED, np.inf, self._a_lat / np.maximum(at.speed, 1.0) ** 2)
+            kappa = np.clip(kappa, -lim, lim)
+        at = replace(at, curvature=kappa)
         if not self.interpolating or not self.infeasible.any():  # (agents kinematic by preset: SUMO's)
             return sumo, at
         if self._chord_end is None:  # once per SUMO step
@@ -979,7 +992,7 @@ class Fleet:
         cand = (self.mode == AgentMode.PHYSICAL) & (self.kind != M.KIND_PED)
         now = np.zeros(self.n, bool)
         if self.cfg.carry_infeasible and cand.any():
-            tight, demand = self._path_tightness(ref)
+            tight, demand, sustained = self._path_tightness(ref)
             start = tight > INFEASIBLE_MARGIN
             if not self.interpolating:  # (between the samples of long steps SUMO's rate is a chord's)
                 start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
@@ -996,22 +1009,22 @@ class Fleet:
                     # while SUMO still turned it at 100 deg/s, a car lagged 0.6 m, a van spun round)
                     | (np.abs(yaw_rate) > INFEASIBLE_RELEASE * np.maximum(ref.speed, INFEASIBLE_MIN_SPEED)
                        * self._reach()))
-            # ... and the path ahead asks no more of the tyres than they carry (at short steps
-            # a car's carry starts on SUMO's turn rate only: released where the path's
-            # curvature was within its steering, a taxi in a 75 deg junction turn at 8 m/s, 8.7
-            # m/s^2, ran 2.6 m wide at full lock)
-            keep |= demand > INFEASIBLE_RELEASE * self._a_lat
+            # ... and the path ahead asks little of the tyres (a carry started on SUMO's turn
+            # rate ended where the path's curvature was within the steering: a taxi handed back
+            # in a 75 deg junction turn at 8 m/s, 8.7 m/s^2, ran 2.6 m wide at full lock)
+            keep |= sustained > INFEASIBLE_GRIP_KEEP * self._a_lat
             if self.interpolating:
                 # ... and, between long steps' samples, once the carried body no longer turns faster
                 # than its tyres carry (the chord of a body whose back is still in the corner turns
                 # at up to 1.2 rad/s at 14 m/s: released then, cars spun round)
                 keep |= np.abs(obs.yaw_rate * obs.speed) > INFEASIBLE_RELEASE * self._a_lat
             # ... and a two-wheeler (placed upright) not in a turn it would have to lean into, now
-            # in SUMO's turn rate or ahead on its path (SUMO holds a motorcycle's angle for a few
+            # in SUMO's turn rate or ahead on its path's 8 m windows (over 4 m a lane shape's
+            # 2 deg corners held a motorcycle at 14 m/s; SUMO holds a motorcycle's angle for a few
             # steps in a junction turn, then jumps it: handed back upright when the rate read 0
             # with 30 deg of a 10 m arc still ahead at 8.6 m/s, it over-turned 20 deg and fell)
             keep |= (self.kind == M.KIND_BIKE) & ((np.abs(yaw_rate * ref.speed) > GUARD_BIKE_RELEASE_ALAT)
-                                                  | (demand > GUARD_BIKE_RELEASE_ALAT))
+                                                  | (sustained > GUARD_BIKE_RELEASE_ALAT))
             now = cand & (start | (was & keep))
         guard = self._contact_guard(ref, prev, obs, held, was)
         now |= guard
