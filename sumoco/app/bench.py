@@ -153,7 +153,8 @@ def cli_main(args) -> int:
         from sumoco.app.generated_bench import run_generated_bench
 
         rows = run_generated_bench(getattr(args, "duration", None) or 60.0, quick=quick,
-                                   out_root=getattr(args, "out", None))
+                                   out_root=getattr(args, "out", None), pack=getattr(args, "pack", None),
+                                   nets=tuple(getattr(args, "net", None) or ()))
     elif args.what == "scale":
         from sumoco.app.scale_bench import run_scale_bench
 

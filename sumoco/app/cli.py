@@ -86,8 +86,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
     p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway",
                                     "scenarios", "generated", "scale", "viewer"])
-    p.add_argument("--pack", help="scenarios: folder of the scenario pack (default ../shared/scenarios "
+    p.add_argument("--pack", help="scenarios, generated: folder of the scenario pack (default ../shared/scenarios "
                                   "beside the repository)")
+    p.add_argument("--net", action="append", default=[],
+                   help="generated: also run every default vClass and persons on this SUMO network file "
+                        "(repeatable)")
     p.add_argument("--json", action="store_true", help="print JSON rows (the default)")
     p.add_argument("--config", help="soak: run config (default configs/soak.toml)")
     p.add_argument("--minutes", type=float, default=60.0, help="soak: wall-clock minutes to run")
