@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -875,6 +876,36 @@ def test_a_car_carried_through_a_bend_beyond_its_tyres_is_handed_back_driving_st
     assert f.counters["carries_infeasible"] > 0, f.counters
     assert f.counters["placements_divergence"] == 0 and f.counters["placements_flip"] == 0, f.counters
     assert len(after) > 10 and max(after) < 0.3, max(after)
+
+
+def test_a_standing_agent_beside_a_tightly_turning_lane_stays_where_sumo_has_it():
+    """SUMO's steps of one bicycle, recorded in a generated grid scenario (sublane model at
+    0.2 m, 0.05 s steps; ``tests/data``): it rides through a junction and waits 7 s 1.3 m
+    beside the centre line of a lane whose shape zigzags at 0.8 m, so its path starts off the
+    bicycle and turns tighter than that offset. Checked both ways round: projected on that
+    path, the bicycle was behind its reference, drove on to 1.2 m/s while SUMO had it
+    waiting and was placed for divergence; now it waits within 0.5 m of SUMO's pose."""
+    d = np.load(Path(__file__).parent / "data" / "bicycle_waiting_beside_a_zigzag_lane.npz")
+    t, cols, pxy, poff = d["t"], d["cols"], d["path_xy"], d["path_offsets"]
+    f = _fleet()
+    m0 = circle_traffic(1, 0)
+    f32 = lambda a: np.array([a], np.float32)  # noqa: E731
+    worst, fastest = 0.0, 0.0
+    for k in range(len(t)):
+        x, y, angle, speed, accel, la_x, la_y = cols[k]
+        pts = pxy[poff[k]:poff[k + 1]]
+        a = replace(m0.agents, x=np.array([x]), y=np.array([y]), angle=f32(angle), speed=f32(speed), accel=f32(accel),
+                    la_x=f32(la_x), la_y=f32(la_y), flags=np.array([8 if k == 0 else 0], np.uint8),
+                    path_offsets=np.array([0, len(pts)], np.uint32), path_xy=pts,
+                    cls=np.array([int(AgentClass.BICYCLE)], m0.agents.cls.dtype),
+                    length=np.array([1.6], m0.agents.length.dtype), width=np.array([0.65], m0.agents.width.dtype))
+        _run_step(f, replace(m0, step=k, time=float(t[k] - t[0]), step_length=0.05, agents=a))
+        if t[k] > 94.0:  # SUMO has it waiting from 93.8 s on
+            snap = f.snapshot()
+            worst = max(worst, math.hypot(float(snap.x[0]) - x, float(snap.y[0]) - y))
+            fastest = max(fastest, abs(float(snap.speed[0])))
+    assert f.counters["placements_divergence"] == 0, f.counters
+    assert worst < 0.5 and fastest < 0.3, (worst, fastest)
 
 
 @pytest.mark.parametrize("blocked", [False, True])
