@@ -1023,8 +1023,13 @@ class Fleet:
             # 2 deg corners held a motorcycle at 14 m/s; SUMO holds a motorcycle's angle for a few
             # steps in a junction turn, then jumps it: handed back upright when the rate read 0
             # with 30 deg of a 10 m arc still ahead at 8.6 m/s, it over-turned 20 deg and fell)
+            # ... nor while SUMO brakes it so hard that, with the turn ahead, its tyres are past
+            # the share of their grip a carry ends at (handed back upright at 13 m/s while SUMO
+            # braked it at 10 m/s^2 into a 5.6 m/s^2 bend, a motorcycle fell to the outside)
             keep |= (self.kind == M.KIND_BIKE) & ((np.abs(yaw_rate * ref.speed) > GUARD_BIKE_RELEASE_ALAT)
-                                                  | (sustained > GUARD_BIKE_RELEASE_ALAT))
+                                                  | (sustained > GUARD_BIKE_RELEASE_ALAT)
+                                                  | (np.hypot(sustained, np.maximum(-ref.accel, 0.0))
+                                                     > INFEASIBLE_RELEASE * self._a_lat))
             now = cand & (start | (was & keep))
         guard = self._contact_guard(ref, prev, obs, held, was)
         now |= guard

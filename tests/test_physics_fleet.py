@@ -850,6 +850,39 @@ def test_a_carried_two_wheeler_is_not_handed_back_while_its_path_still_turns():
     assert roll_max < math.radians(35.0), math.degrees(roll_max)
 
 
+def test_a_carried_two_wheeler_is_not_handed_back_while_sumo_brakes_it_beyond_its_grip():
+    """SUMO takes a bicycle at 9 m/s into a junction's 4 m corner (carried, upright) and
+    brakes it at 6.5 m/s^2 from within it onto the straight: it stays carried while SUMO brakes it
+    beyond 0.75 of what its tyres and lean carry (handed back upright while SUMO braked it
+    hard into a bend, a motorcycle fell to the outside), then rides on."""
+    f = _fleet()
+    m0 = circle_traffic(1, 0)
+    arcs = [(4.0, 45.0)]
+    arc_end = sum(R * np.radians(t) for R, t in arcs)
+    dt, v, s, accel = 0.05, 9.0, -9.0, 0.0
+    braking_modes = []
+    for k in range(120):
+        accel = -6.5 if (s > 1.0 and v > 1.2) else 0.0
+        front, back = _arcs_xy(s, arcs)[0], _arcs_xy(s - 1.6, arcs)[0]
+        pts = _arcs_xy(s + np.arange(0.0, 40.0, 1.0), arcs).astype(np.float32)
+        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
+        a = replace(m0.agents, x=np.array([front[0]]), y=np.array([front[1]]),
+                    angle=f32(90.0 - np.degrees(np.arctan2(front[1] - back[1], front[0] - back[0]))),
+                    speed=f32(v), accel=f32(accel), la_x=f32(pts[7, 0]), la_y=f32(pts[7, 1]),
+                    flags=np.array([8 if k == 0 else 0], np.uint8), path_offsets=np.array([0, len(pts)], np.uint32),
+                    path_xy=pts, cls=np.array([int(AgentClass.BICYCLE)], m0.agents.cls.dtype),
+                    length=np.array([1.6], m0.agents.length.dtype), width=np.array([0.65], m0.agents.width.dtype))
+        _run_step(f, replace(m0, step=k, time=k * dt, step_length=dt, agents=a))
+        if accel < 0.0 and s > arc_end + 2.0:  # braking, past the corner
+            braking_modes.append(int(f.mode[0]))
+        v = max(v + accel * dt, 0.0)
+        s += v * dt
+    assert f.counters["carries_infeasible"] > 0, f.counters
+    assert braking_modes and all(m == AgentMode.KINEMATIC for m in braking_modes), braking_modes
+    assert f.mode[0] == AgentMode.PHYSICAL  # rides on once SUMO no longer brakes it
+    assert f.counters["placements_flip"] == 0 and f.counters["placements_divergence"] == 0, f.counters
+
+
 def test_a_car_carried_through_a_bend_beyond_its_tyres_is_handed_back_driving_straight_on():
     """SUMO takes a car through a 90 deg bend of 12 m radius at 13.4 m/s (15 m/s^2) in 0.1 s
     steps, with a lane shape's 20 deg corner where the bend meets the straight: carried, then
