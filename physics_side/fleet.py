@@ -65,7 +65,8 @@ INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m]
 INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle's reach starts a carry ...
 INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within this share of it
 INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] ... and SUMO's body angle is this close to the path's heading
-INFEASIBLE_GRIP_KEEP = 0.5  # [1] ... and the path ahead (8 m windows) asks less than this share of the tyres' lateral acceleration
+# [1] ... and the path ahead (8 m windows) asks less than this share of the tyres' lateral acceleration
+INFEASIBLE_GRIP_KEEP = 0.5
 # Or seen in SUMO's turn rate: faster than INFEASIBLE_RATE_MARGIN x full lock at its speed
 # (SUMO's angle is the chord back to front, which turns faster than the bumper's path
 # entering a bend), moving faster than INFEASIBLE_MIN_SPEED [m/s], INFEASIBLE_OFF_M [m] off
@@ -87,16 +88,18 @@ GRIP_WINDOW_K = 2
 # this share of their tyres' grip: a 7.1 m truck SUMO took through a 12 m junction turn at
 # 8.5 m/s (5-9 m/s^2) steered to full lock, its body fell 17 deg behind SUMO's angle and
 # its rear swung into a car. Cars at this share were carried on their approach to the
-# demo's turns (its reference car tracked worse): they are carried only beyond CAR_GRIP_SHARE. Two-wheelers are carried (upright) beyond the lean
-# their tyres and riders hold (``_a_lat``; motorcycles at MOTORCYCLE_GRIP_SHARE): SUMO takes bicycles through junction turns at
+# demo's turns (its reference car tracked worse): they are carried only beyond CAR_GRIP_SHARE.
+# Two-wheelers are carried (upright) beyond the lean their tyres and riders hold (``_a_lat``;
+# motorcycles at MOTORCYCLE_GRIP_SHARE): SUMO takes bicycles through junction turns at
 # 7-9 m/s^2 and its angle jumps there; driven, they fell over and were placed back. They are
 # handed back only once SUMO turns them at less than GUARD_BIKE_RELEASE_ALAT (upright mid-arc,
 # a motorcycle rolled to 54 deg).
 HEAVY_GRIP_SHARE = 0.6
 # Cars beyond their tyres' friction itself (INFEASIBLE_MARGIN x this share of the steering's
-# A_LAT_SHARE of it: 12.6 of 12.75 m/s^2) over the 8 m windows: SUMO takes a curved lane (not a junction) at 13.4
-# m/s through 90 deg in 1.5 s (15 m/s^2); driven, a taxi steered at its grip's 11 deg, ran 6 m
-# wide and was placed back. Below it cars stay driven (the demo's turns ask 4-7 m/s^2)
+# A_LAT_SHARE of it: 12.6 of 12.75 m/s^2) over the 8 m windows: SUMO takes a curved lane (not
+# a junction) at 13.4 m/s through 90 deg in 1.5 s (15 m/s^2); driven, a taxi steered at its
+# grip's 11 deg, ran 6 m wide and was placed back. Below it cars stay driven (the demo's
+# turns ask 4-7 m/s^2)
 CAR_GRIP_SHARE = 1.2
 # [m/s^2] ... at the least speed SUMO can brake them to before each window (its emergency
 # deceleration; at their own speed cars were carried on their approach to the demo's turns)
@@ -857,11 +860,10 @@ class Fleet:
         four-wheel-steered limit ran 6 m wide). Computed with the agents' parameters (``_params``)."""
         return self._reach_c
 
-    def _path_tightness(self, ref: Reference) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _path_tightness(self, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``), and the
-        largest lateral acceleration [m/s^2] its path ahead asks at its speed: over the grip
-        check's 4 m windows, and over the 8 m ones (cars: at the least speed SUMO can brake
-        them to). The reach's share is the mean
+        largest lateral acceleration [m/s^2] its path's 8 m windows ahead ask at its speed
+        (cars at short steps: at the least speed SUMO can brake them to). The reach's share is the mean
         curvature of 8 m windows starting up to 1 s of travel ahead. Between the samples of
         long steps also as a share of its tyres' grip at the step's speed (see above); at
         short steps as a share of ``_short_grip_share`` of it (heavy vehicles, two-wheelers,
@@ -876,22 +878,21 @@ class Fleet:
             v = np.maximum(v, ref.step_speed)
         ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
         tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / self._reach()
-        kg = GRIP_WINDOW_K
-        kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
-        demand = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0) * v * v
         # over the 8 m windows, at short steps at the least speed SUMO can brake a car to by
         # each window (a lane shape's 15 deg corner within 4 m asked 12.6 m/s^2 at 14 m/s:
         # carried for 0.3 s, a van was handed back steering into it and spun)
         v2 = v * v - (0.0 if self.interpolating else 2.0 * self._grip_brake * grid[:-k])
         sustained = np.where(grid[:-k] <= ahead, kappa * np.maximum(v2, 0.0), 0.0).max(axis=0)
         if self.interpolating or self._any_short_grip:
-            grip = demand / self._a_lat
+            kg = GRIP_WINDOW_K
+            kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
+            grip = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0) * v * v / self._a_lat
             if not self.interpolating:  # short steps: at each vehicle's share
                 share = self._short_grip_share
                 grip = np.where(share > 0, grip / np.maximum(share, 1e-9), 0.0)
                 grip = np.where(self._grip_brake > 0, sustained / (self._a_lat * CAR_GRIP_SHARE), grip)
             tight = np.maximum(tight, grip)
-        return tight, demand, sustained
+        return tight, sustained
 
     def _kin_pose(self, at: ReferencePoint, tau: float) -> tuple[np.ndarray, ReferencePoint]:
         """Body angle [rad] of kinematic agents placed at ``at`` (``tau`` [s] past the sample),
@@ -992,7 +993,7 @@ class Fleet:
         cand = (self.mode == AgentMode.PHYSICAL) & (self.kind != M.KIND_PED)
         now = np.zeros(self.n, bool)
         if self.cfg.carry_infeasible and cand.any():
-            tight, demand, sustained = self._path_tightness(ref)
+            tight, sustained = self._path_tightness(ref)
             start = tight > INFEASIBLE_MARGIN
             if not self.interpolating:  # (between the samples of long steps SUMO's rate is a chord's)
                 start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
