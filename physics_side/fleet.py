@@ -1014,11 +1014,12 @@ class Fleet:
             # rate ended where the path's curvature was within the steering: a taxi handed back
             # in a 75 deg junction turn at 8 m/s, 8.7 m/s^2, ran 2.6 m wide at full lock)
             keep |= sustained > INFEASIBLE_GRIP_KEEP * self._a_lat
-            if self.interpolating:
-                # ... and, between long steps' samples, once the carried body no longer turns faster
-                # than its tyres carry (the chord of a body whose back is still in the corner turns
-                # at up to 1.2 rad/s at 14 m/s: released then, cars spun round)
-                keep |= np.abs(obs.yaw_rate * obs.speed) > INFEASIBLE_RELEASE * self._a_lat
+            # ... and once the carried body no longer turns faster than its tyres carry (between
+            # long steps' samples the chord of a body whose back is still in the corner turns at
+            # up to 1.2 rad/s at 14 m/s: released then, cars spun round; at short steps a bus
+            # carried through a lane shape's S at 11 m/s, handed back turning at 0.8 rad/s
+            # where the S turned the other way, spun 40 deg off)
+            keep |= np.abs(obs.yaw_rate * obs.speed) > INFEASIBLE_RELEASE * self._a_lat
             # ... and a two-wheeler (placed upright) not in a turn it would have to lean into, now
             # in SUMO's turn rate or ahead on its path's 8 m windows (over 4 m a lane shape's
             # 2 deg corners held a motorcycle at 14 m/s; SUMO holds a motorcycle's angle for a few
