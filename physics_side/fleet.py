@@ -922,8 +922,8 @@ class Fleet:
         kappa = wrap_pi(h[1] - h[0]) / KIN_CURVATURE_M
         if not self.interpolating:
             # ... and no tighter than its tyres carry at its speed: placed turning at a lane
-            # shape's corner at 14 m/s (wheels at 37 deg, 3.4 rad/s), a van handed back there
-            # spun round and was placed back 6 m behind
+            # shape's corner at 14 m/s (a trailer's wheels at 37 deg), vans and trailers handed
+            # back there spun round and were placed back 6 m behind
             lim = np.where(self.kind == M.KIND_PED, np.inf, self._a_lat / np.maximum(at.speed, 1.0) ** 2)
             kappa = np.clip(kappa, -lim, lim)
         at = replace(at, curvature=kappa)
