@@ -1307,6 +1307,9 @@ class Fleet:
             if rear is not None:
                 grip_sat &= fixed
             drive = np.where(grip_sat & (obs.speed > vr) & (np.abs(self.err_lat) > GRIP_SAT_LAT_M), 0.0, drive)
+        if self._any_bike:  # a leaning two-wheeler's tyres carry less drive
+            drive = np.where(self.kind == M.KIND_BIKE,
+                             C.lean_traction_limit(drive, obs.roll, self._a_lat, p.max_drive), drive)
         vi = g.veh_idx
         stab = None
         if len(vi) and self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)

@@ -403,3 +403,18 @@ def test_lane_change_feed_forward_uses_the_cars_own_speed():
                         np.radians(35.0) * one, 2500.0 * one, 5000.0 * one)
     cmd = C.control_default(obs, p, ref, 0.0, 0.02, DefaultControl(), C.ControlState.zeros(1))
     assert abs(float(cmd.steer[0])) < 1e-3, cmd.steer  # (0.17 rad with SUMO's speed)
+
+
+def test_a_leaning_two_wheeler_gets_only_the_drive_its_tyres_carry_beside_the_lean():
+    """Upright: the drive asked for; leaning at the lean limit's lateral acceleration (a
+    motorcycle's 42 deg): 0.31 of the maximum (the 0.95 cap); half of it: sqrt(0.75) of it;
+    braking (negative drive) and smaller requests pass unchanged."""
+    a_lat = np.full(4, C.G * math.tan(math.radians(42.0)))
+    max_drive = np.full(4, 500.0)
+    half = math.atan(0.5 * math.tan(math.radians(42.0)))
+    roll = np.array([0.0, math.radians(42.0), -half, math.radians(42.0)])
+    out = C.lean_traction_limit(np.array([500.0, 500.0, 500.0, -80.0]), roll, a_lat, max_drive)
+    assert out[0] == pytest.approx(500.0)
+    assert out[1] == pytest.approx(500.0 * math.sqrt(1.0 - 0.95 ** 2))
+    assert out[2] == pytest.approx(500.0 * math.sqrt(0.75))
+    assert out[3] == pytest.approx(-80.0)
