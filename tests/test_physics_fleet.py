@@ -27,6 +27,23 @@ def _with(msg, **cols):
     return replace(msg, agents=replace(msg.agents, **cols))
 
 
+def _one_agent(m0, k: int, x: float, y: float, angle: float, speed: float, accel: float, pts: np.ndarray,
+               la: tuple[float, float] | None = None, cls: AgentClass | None = None, size: tuple[float, float] | None = None):
+    """``m0``'s one agent at (x, y) with SUMO angle [deg], speed, acceleration and path
+    ``pts`` (look-ahead point: the path's 8th point unless ``la``), inserted on step 0; of
+    class ``cls`` and (length, width) ``size`` [m] when given."""
+    f32 = lambda v: np.array([v], np.float32)  # noqa: E731
+    la_x, la_y = la if la is not None else (pts[7, 0], pts[7, 1])
+    a = replace(m0.agents, x=np.array([x]), y=np.array([y]), angle=f32(angle), speed=f32(speed), accel=f32(accel),
+                la_x=f32(la_x), la_y=f32(la_y), flags=np.array([8 if k == 0 else 0], np.uint8),
+                path_offsets=np.array([0, len(pts)], np.uint32), path_xy=np.asarray(pts, np.float32))
+    if cls is not None:
+        a = replace(a, cls=np.array([int(cls)], a.cls.dtype))
+    if size is not None:
+        a = replace(a, length=np.array([size[0]], a.length.dtype), width=np.array([size[1]], a.width.dtype))
+    return a
+
+
 def _run_step(fleet, msg):
     fleet.apply_step(msg)
     for _ in range(fleet.rates.ticks_per_step):
@@ -599,11 +616,7 @@ def test_a_car_at_its_tyres_limit_does_not_speed_up_to_catch_up():
         front, back = _bend_xy(s)[0], _bend_xy(s - 4.5)[0]
         chord = np.arctan2(front[1] - back[1], front[0] - back[0])
         pts = _bend_xy(s + np.arange(0.0, 40.0, 1.0)).astype(np.float32)
-        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
-        a = replace(m0.agents, x=np.array([front[0]]), y=np.array([front[1]]), angle=f32(90.0 - np.degrees(chord)),
-                    speed=f32(v), accel=f32(1.0), la_x=f32(pts[7, 0]), la_y=f32(pts[7, 1]),
-                    flags=np.array([8 if k == 0 else 0], np.uint8), path_offsets=np.array([0, len(pts)], np.uint32),
-                    path_xy=pts)
+        a = _one_agent(m0, k, front[0], front[1], 90.0 - np.degrees(chord), v, 1.0, pts)
         f.apply_step(replace(m0, step=k, time=k * 0.1, step_length=0.1, agents=a))
         for _ in range(f.rates.ticks_per_step):
             f.tick()
@@ -651,11 +664,7 @@ def test_a_turn_beyond_the_tyres_at_one_second_steps_is_carried_not_driven_wide(
         front, back = _bend_xy(s, R, turn_deg)[0], _bend_xy(s - 4.5, R, turn_deg)[0]
         chord = np.arctan2(front[1] - back[1], front[0] - back[0])
         pts = _bend_xy(s + np.arange(0.0, 60.0, 1.0), R, turn_deg).astype(np.float32)
-        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
-        a = replace(m0.agents, x=np.array([front[0]]), y=np.array([front[1]]), angle=f32(90.0 - np.degrees(chord)),
-                    speed=f32(v), accel=f32(0.0), la_x=f32(pts[7, 0]), la_y=f32(pts[7, 1]),
-                    flags=np.array([8 if k == 0 else 0], np.uint8), path_offsets=np.array([0, len(pts)], np.uint32),
-                    path_xy=pts)
+        a = _one_agent(m0, k, front[0], front[1], 90.0 - np.degrees(chord), v, 0.0, pts)
         f.apply_step(replace(m0, step=k, time=k * L, step_length=L, agents=a))
         assert f.interpolating
         for _ in range(ticks_to(0.0, L, f.dt)):
@@ -832,12 +841,7 @@ def test_a_carried_two_wheeler_is_not_handed_back_while_its_path_still_turns():
         if k % 4 == 0:
             angle = 90.0 - np.degrees(np.arctan2(front[1] - back[1], front[0] - back[0]))
         pts = _arcs_xy(s + np.arange(0.0, 40.0, 1.0), arcs).astype(np.float32)
-        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
-        a = replace(m0.agents, x=np.array([front[0]]), y=np.array([front[1]]), angle=f32(angle),
-                    speed=f32(v), accel=f32(0.0), la_x=f32(pts[7, 0]), la_y=f32(pts[7, 1]),
-                    flags=np.array([8 if k == 0 else 0], np.uint8), path_offsets=np.array([0, len(pts)], np.uint32),
-                    path_xy=pts, cls=np.array([int(AgentClass.BICYCLE)], m0.agents.cls.dtype),
-                    length=np.array([1.6], m0.agents.length.dtype), width=np.array([0.65], m0.agents.width.dtype))
+        a = _one_agent(m0, k, front[0], front[1], angle, v, 0.0, pts, cls=AgentClass.BICYCLE, size=(1.6, 0.65))
         _run_step(f, replace(m0, step=k, time=k * dt, step_length=dt, agents=a))
         if 4.0 < s < arc_end - 5.0:
             in_arc_modes.append((round(s, 1), int(f.mode[0])))
@@ -865,13 +869,8 @@ def test_a_carried_two_wheeler_is_not_handed_back_while_sumo_brakes_it_beyond_it
         accel = -6.5 if (s > 1.0 and v > 1.2) else 0.0
         front, back = _arcs_xy(s, arcs)[0], _arcs_xy(s - 1.6, arcs)[0]
         pts = _arcs_xy(s + np.arange(0.0, 40.0, 1.0), arcs).astype(np.float32)
-        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
-        a = replace(m0.agents, x=np.array([front[0]]), y=np.array([front[1]]),
-                    angle=f32(90.0 - np.degrees(np.arctan2(front[1] - back[1], front[0] - back[0]))),
-                    speed=f32(v), accel=f32(accel), la_x=f32(pts[7, 0]), la_y=f32(pts[7, 1]),
-                    flags=np.array([8 if k == 0 else 0], np.uint8), path_offsets=np.array([0, len(pts)], np.uint32),
-                    path_xy=pts, cls=np.array([int(AgentClass.BICYCLE)], m0.agents.cls.dtype),
-                    length=np.array([1.6], m0.agents.length.dtype), width=np.array([0.65], m0.agents.width.dtype))
+        angle = 90.0 - np.degrees(np.arctan2(front[1] - back[1], front[0] - back[0]))
+        a = _one_agent(m0, k, front[0], front[1], angle, v, accel, pts, cls=AgentClass.BICYCLE, size=(1.6, 0.65))
         _run_step(f, replace(m0, step=k, time=k * dt, step_length=dt, agents=a))
         if accel < 0.0 and s > arc_end + 2.0:  # braking, past the corner
             braking_modes.append(int(f.mode[0]))
@@ -897,11 +896,7 @@ def test_a_car_carried_through_a_bend_beyond_its_tyres_is_handed_back_driving_st
         front, back = _arcs_xy(s, arcs)[0], _arcs_xy(s - 4.5, arcs)[0]
         chord = np.arctan2(front[1] - back[1], front[0] - back[0])
         pts = _arcs_xy(s + np.arange(0.0, 40.0, 1.0), arcs).astype(np.float32)
-        f32 = lambda a: np.array([a], np.float32)  # noqa: E731
-        a = replace(m0.agents, x=np.array([front[0]]), y=np.array([front[1]]), angle=f32(90.0 - np.degrees(chord)),
-                    speed=f32(v), accel=f32(0.0), la_x=f32(pts[7, 0]), la_y=f32(pts[7, 1]),
-                    flags=np.array([8 if k == 0 else 0], np.uint8), path_offsets=np.array([0, len(pts)], np.uint32),
-                    path_xy=pts)
+        a = _one_agent(m0, k, front[0], front[1], 90.0 - np.degrees(chord), v, 0.0, pts)
         _run_step(f, replace(m0, step=k, time=k * dt, step_length=dt, agents=a))
         if s > arc_end and f.mode[0] == AgentMode.PHYSICAL:
             after.append(math.hypot(float(f.err_lon[0]), float(f.err_lat[0])))
@@ -922,16 +917,11 @@ def test_a_standing_agent_beside_a_tightly_turning_lane_stays_where_sumo_has_it(
     t, cols, pxy, poff = d["t"], d["cols"], d["path_xy"], d["path_offsets"]
     f = _fleet()
     m0 = circle_traffic(1, 0)
-    f32 = lambda a: np.array([a], np.float32)  # noqa: E731
     worst, fastest = 0.0, 0.0
     for k in range(len(t)):
         x, y, angle, speed, accel, la_x, la_y = cols[k]
         pts = pxy[poff[k]:poff[k + 1]]
-        a = replace(m0.agents, x=np.array([x]), y=np.array([y]), angle=f32(angle), speed=f32(speed), accel=f32(accel),
-                    la_x=f32(la_x), la_y=f32(la_y), flags=np.array([8 if k == 0 else 0], np.uint8),
-                    path_offsets=np.array([0, len(pts)], np.uint32), path_xy=pts,
-                    cls=np.array([int(AgentClass.BICYCLE)], m0.agents.cls.dtype),
-                    length=np.array([1.6], m0.agents.length.dtype), width=np.array([0.65], m0.agents.width.dtype))
+        a = _one_agent(m0, k, x, y, angle, speed, accel, pts, la=(la_x, la_y), cls=AgentClass.BICYCLE, size=(1.6, 0.65))
         _run_step(f, replace(m0, step=k, time=float(t[k] - t[0]), step_length=0.05, agents=a))
         if t[k] > 94.0:  # SUMO has it waiting from 93.8 s on
             snap = f.snapshot()
