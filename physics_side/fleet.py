@@ -860,7 +860,7 @@ class Fleet:
         four-wheel-steered limit ran 6 m wide). Computed with the agents' parameters (``_params``)."""
         return self._reach_c
 
-    def _path_tightness(self, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
+    def _path_tightness(self, ref: Reference, roll: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Each vehicle's tightest path ahead as a share of its reach (``_reach``), and the
         largest lateral acceleration [m/s^2] its path's 8 m windows ahead ask at its speed
         (cars at short steps: at the least speed SUMO can brake them to). The reach's share is the mean
@@ -885,8 +885,16 @@ class Fleet:
         sustained = np.where(grid[:-k] <= ahead, kappa * np.maximum(v2, 0.0), 0.0).max(axis=0)
         if self.interpolating or self._any_short_grip:
             kg = GRIP_WINDOW_K
-            kap = np.abs(wrap_pi(h[kg:] - h[:-kg])) / (kg * INFEASIBLE_GRID_M)
-            grip = np.where(grid[:-kg] <= ahead, kap, 0.0).max(axis=0) * v * v / self._a_lat
+            kap = wrap_pi(h[kg:] - h[:-kg]) / (kg * INFEASIBLE_GRID_M)  # (+ left)
+            demand = np.where(grid[:-kg] <= ahead, kap, 0.0) * v * v  # [m/s^2] + left
+            grip = np.abs(demand).max(axis=0) / self._a_lat
+            if not self.interpolating and roll is not None and self._any_bike:
+                # a two-wheeler leaning one way into a turn the other way swings its lean across
+                # both: SUMO's S through a junction (left at 4 m/s, then right at 8-9 m/s^2 at 8
+                # m/s) flipped a motorcycle still leaning 28 deg into the left part
+                lean = -C.G * np.tan(np.clip(roll, -1.0, 1.0))  # [m/s^2] + left (roll < 0: leaning left)
+                swing = np.abs(demand - lean).max(axis=0) / self._a_lat
+                grip = np.where(self.kind == M.KIND_BIKE, np.maximum(grip, swing), grip)
             if not self.interpolating:  # short steps: at each vehicle's share
                 share = self._short_grip_share
                 grip = np.where(share > 0, grip / np.maximum(share, 1e-9), 0.0)
@@ -925,6 +933,10 @@ class Fleet:
             # shape's corner at 14 m/s (a trailer's wheels at 37 deg), vans and trailers handed
             # back there spun round and were placed back 6 m behind
             lim = np.where(self.kind == M.KIND_PED, np.inf, self._a_lat / np.maximum(at.speed, 1.0) ** 2)
+            # ... turning as the body does, at SUMO's rate (a long body's chord turns otherwise than
+            # its bumper's path: a trailer carried through a junction's S, placed turning right at
+            # its bumper's 1 rad/s while its body turned left, was handed back spinning and placed)
+            kappa = np.where(self.kind == M.KIND_PED, kappa, rate / np.maximum(at.speed, 1.0))
             kappa = np.clip(kappa, -lim, lim)
         at = replace(at, curvature=kappa)
         if not self.interpolating or not self.infeasible.any():  # (agents kinematic by preset: SUMO's)
@@ -993,7 +1005,7 @@ class Fleet:
         cand = (self.mode == AgentMode.PHYSICAL) & (self.kind != M.KIND_PED)
         now = np.zeros(self.n, bool)
         if self.cfg.carry_infeasible and cand.any():
-            tight, sustained = self._path_tightness(ref)
+            tight, sustained = self._path_tightness(ref, obs.roll)
             start = tight > INFEASIBLE_MARGIN
             if not self.interpolating:  # (between the samples of long steps SUMO's rate is a chord's)
                 start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
@@ -1307,9 +1319,10 @@ class Fleet:
             if rear is not None:
                 grip_sat &= fixed
             drive = np.where(grip_sat & (obs.speed > vr) & (np.abs(self.err_lat) > GRIP_SAT_LAT_M), 0.0, drive)
-        if self._any_bike:  # a leaning two-wheeler's tyres carry less drive
-            drive = np.where(self.kind == M.KIND_BIKE,
-                             C.lean_traction_limit(drive, obs.roll, self._a_lat, p.max_drive), drive)
+        if self._any_bike:  # a leaning two-wheeler's tyres carry less drive and braking
+            bike = self.kind == M.KIND_BIKE
+            drive = np.where(bike, C.lean_traction_limit(drive, obs.roll, self._a_lat, p.max_drive), drive)
+            brake = np.where(bike, C.lean_traction_limit(brake, obs.roll, self._a_lat, p.max_brake), brake)
         vi = g.veh_idx
         stab = None
         if len(vi) and self._any_bike:  # only bicycles have a stabiliser (the world skips the rest)
