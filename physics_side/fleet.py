@@ -933,10 +933,15 @@ class Fleet:
             # shape's corner at 14 m/s (a trailer's wheels at 37 deg), vans and trailers handed
             # back there spun round and were placed back 6 m behind
             lim = np.where(self.kind == M.KIND_PED, np.inf, self._a_lat / np.maximum(at.speed, 1.0) ** 2)
-            # ... turning as the body does, at SUMO's rate (a long body's chord turns otherwise than
-            # its bumper's path: a trailer carried through a junction's S, placed turning right at
-            # its bumper's 1 rad/s while its body turned left, was handed back spinning and placed)
-            kappa = np.where(self.kind == M.KIND_PED, kappa, rate / np.maximum(at.speed, 1.0))
+            # ... and never against SUMO's own turn of the body: in an S the bumper's path turns
+            # one way while a long body's chord still turns the other (a trailer carried through
+            # a junction's S, placed turning right at its bumper's 1 rad/s while its chord turned
+            # left, was handed back spinning and placed); there, and for bodies kinematic by
+            # preset (never handed back), it turns at SUMO's rate. (At SUMO's rate everywhere,
+            # buses handed back after a turn, their chord still turning, lagged up to 0.7 m.)
+            carried = self.infeasible if len(self.infeasible) == self.n else np.zeros(self.n, bool)
+            own = ((kappa * rate < 0.0) | ~carried) & (self.kind != M.KIND_PED)
+            kappa = np.where(own, rate / np.maximum(at.speed, 1.0), kappa)
             kappa = np.clip(kappa, -lim, lim)
         at = replace(at, curvature=kappa)
         if not self.interpolating or not self.infeasible.any():  # (agents kinematic by preset: SUMO's)
