@@ -933,15 +933,21 @@ class Fleet:
             # shape's corner at 14 m/s (a trailer's wheels at 37 deg), vans and trailers handed
             # back there spun round and were placed back 6 m behind
             lim = np.where(self.kind == M.KIND_PED, np.inf, self._a_lat / np.maximum(at.speed, 1.0) ** 2)
-            # ... and never against SUMO's own turn of the body: in an S the bumper's path turns
-            # one way while a long body's chord still turns the other (a trailer carried through
-            # a junction's S, placed turning right at its bumper's 1 rad/s while its chord turned
-            # left, was handed back spinning and placed); there, and for bodies kinematic by
-            # preset (never handed back), it turns at SUMO's rate. (At SUMO's rate everywhere,
-            # buses handed back after a turn, their chord still turning, lagged up to 0.7 m.)
+            # ... and neither against nor faster than SUMO's own turn of the body: in an S the
+            # bumper's path turns one way while a long body's chord still turns the other (a
+            # trailer placed turning right at its bumper's 1 rad/s while its chord turned left
+            # was handed back spinning and placed), and a van placed turning at its bumper's
+            # path in a junction turn, faster than SUMO turned it, was handed back over-rotating
+            # and fell 4 m behind. Bodies kinematic by preset (never handed back) turn at SUMO's
+            # rate; carried ones where it turns the same way as their bumper's path at the slower
+            # of both (at SUMO's rate everywhere, buses handed back after a turn with their
+            # chord still turning lagged up to 0.7 m)
+            k_sumo = rate / np.maximum(at.speed, 1.0)
             carried = self.infeasible if len(self.infeasible) == self.n else np.zeros(self.n, bool)
-            own = ((kappa * rate < 0.0) | ~carried) & (self.kind != M.KIND_PED)
-            kappa = np.where(own, rate / np.maximum(at.speed, 1.0), kappa)
+            both = kappa * k_sumo
+            slower = np.where(both > 0.0, np.sign(kappa) * np.minimum(np.abs(kappa), np.abs(k_sumo)),
+                              np.where(both < 0.0, k_sumo, 0.0))
+            kappa = np.where(self.kind == M.KIND_PED, kappa, np.where(carried, slower, k_sumo))
             kappa = np.clip(kappa, -lim, lim)
         at = replace(at, curvature=kappa)
         if not self.interpolating or not self.infeasible.any():  # (agents kinematic by preset: SUMO's)
