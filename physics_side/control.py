@@ -263,14 +263,14 @@ def traction_limit(drive: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, g
     return np.minimum(drive, grip_torque * np.sqrt(1.0 - use * use))
 
 
-def lean_traction_limit(drive: np.ndarray, roll: np.ndarray, a_lat: np.ndarray, max_drive: np.ndarray) -> np.ndarray:
-    """Drive (or brake) torque [N*m] of a two-wheeler leaning at ``roll`` [rad]: its tyres carry
-    the lean's lateral acceleration g tan(roll) as a share of what its lean limit allows
-    (``a_lat`` [m/s^2], at most 0.95), and of ``max_drive`` [N*m] only the rest of the friction
+def lean_traction_limit(torque: np.ndarray, roll: np.ndarray, a_lat: np.ndarray, max_torque: np.ndarray) -> np.ndarray:
+    """Drive or brake ``torque`` [N*m] of a two-wheeler leaning at ``roll`` [rad]: its tyres
+    carry the lean's lateral acceleration g tan(roll) as a share of what its lean limit allows
+    (``a_lat`` [m/s^2], at most 0.95), and of ``max_torque`` [N*m] only the rest of the friction
     circle: at full throttle out of a turn a motorcycle's roll swung +-35 deg and past 50; braked
     at SUMO's 10 m/s^2 while leaning 40 deg, one fell."""
     use = np.minimum(np.abs(np.tan(roll)) * G / np.maximum(a_lat, 1e-6), 0.95)
-    return np.minimum(drive, max_drive * np.sqrt(1.0 - use * use))
+    return np.minimum(torque, max_torque * np.sqrt(1.0 - use * use))
 
 
 def curve_speed_cut(
