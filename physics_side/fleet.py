@@ -527,8 +527,17 @@ class Fleet:
             if slow.any():
                 _, side = tracking_error(x, y, _Pose(old_ref.x[p0], old_ref.y[p0], old_ref.yaw[p0]))
                 hop = slow & (np.abs(side) > self.cfg.sideways_jump_m)
+        # a pedestrian SUMO moves further than it walks (onto a walking area or crossing: 1.3 m
+        # in one 0.1 s step) is placed there: running after it, one ran into a bus; followed
+        # between samples as motion, one ran 3.5 m past its crossing's entry
+        ped_hop = np.zeros(len(ids), bool)
+        if old_ref is not None and old_ref.n and len(ids) and len(self.kind):
+            p0 = np.maximum(prev, 0)
+            moved = np.hypot(x - old_ref.x[p0], y - old_ref.y[p0])
+            reach = np.maximum(old_ref.speed[p0], a.speed[rows]) * (msg.time - old_ref.t_k) + PED_HOP_M
+            ped_hop = (prev >= 0) & (self.kind[p0] == M.KIND_PED) & (moved > reach)
         if self.interpolating:
-            ref = self._interpolation(msg, rows, ids, flags, cur, yaw_rate, old_ref is not None, hop)
+            ref = self._interpolation(msg, rows, ids, flags, cur, yaw_rate, old_ref is not None, hop | ped_hop)
         self._sample_ref = cur
         self._prev_batch, self._prev_time = a, msg.time
         self._prev_rows = {aid: int(r) for aid, r in zip(ids, rows)}
@@ -575,13 +584,7 @@ class Fleet:
         is_new = np.zeros(len(ids), bool)
         is_new[new] = True
         jumped = ((flags & AgentFlag.JUMPED) != 0) & ~is_new & physical
-        if old_ref is not None and old_ref.n and len(ids):
-            # a pedestrian SUMO moves further than it walks (onto a walking area or crossing:
-            # 1.3 m in one 0.1 s step) is placed there too: running after it, one ran into a bus
-            p0 = np.maximum(prev, 0)
-            moved = np.hypot(x - old_ref.x[p0], y - old_ref.y[p0])
-            reach = np.maximum(old_ref.speed[p0], a.speed[rows]) * (msg.time - old_ref.t_k) + PED_HOP_M
-            jumped |= (prev >= 0) & (self.kind == M.KIND_PED) & (moved > reach) & ~is_new & physical
+        jumped |= ped_hop & ~is_new & physical
         # A slow vehicle's sideways hop (above) is placed like a teleport (counted as a jump);
         # faster lane changes are driven (the paper's error peaks at lane changes) ...
         carry = np.zeros(len(ids), bool)

@@ -152,19 +152,20 @@ def test_classes_modes_ego_and_riders(caplog):
     assert np.abs(snap.err_lon[[0, 3]]).max() < 0.05 and np.abs(snap.err_lat[[0, 3]]).max() < 0.05
 
 
-def test_a_pedestrian_sumo_moves_further_than_it_walks_is_placed_there():
+@pytest.mark.parametrize("reference, step_s", [("auto", 0.1), ("interpolate", 0.1), ("auto", 0.5)])
+def test_a_pedestrian_sumo_moves_further_than_it_walks_is_placed_there(reference, step_s):
     """SUMO moves a pedestrian onto a walking area 1.3 m at once (one 0.1 s step at 1.2 m/s):
     it is placed there (a jump), not left running after it at twice its speed; ordinary
-    walking is never placed."""
-    f = _fleet()
+    walking is never placed. Interpolating, the jump is no motion to follow between the
+    samples either (followed, a pedestrian of the demo ran 3.5 m past its crossing's entry;
+    steps of 0.5 s are interpolated by default)."""
+    f = _fleet(reference=reference)
     ped = np.array([AgentClass.PEDESTRIAN], np.uint8)
     worst = 0.0
     for k in range(30):
-        x = 100.0 + 1.2 * k * 0.1 + (1.3 if k >= 15 else 0.0)
-        msg = _line_step(k, [x], [1.2])
-        f.apply_step(_with(msg, cls=ped, length=np.array([0.3], np.float32), width=np.array([0.5], np.float32)))
-        for _ in range(f.rates.ticks_per_step):
-            f.tick()
+        x = 100.0 + 1.2 * k * step_s + (1.3 if k >= 15 else 0.0)
+        msg = _line_step(k, [x], [1.2], step_s=step_s)
+        _run_step(f, _with(msg, cls=ped, length=np.array([0.3], np.float32), width=np.array([0.5], np.float32)))
         if k >= 15:
             worst = max(worst, float(np.hypot(f.err_lon, f.err_lat).max()))
     from physics_side import models as M
