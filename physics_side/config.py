@@ -37,7 +37,7 @@ class PhysicsConfig:
     presets: dict[str, str] = field(default_factory=dict)  # per type, e.g. {pedestrian="kinematic"}
     all_wheel_drive: tuple[str, ...] = ()  # car-like types driven on all four wheels
     divergence_m: float = 6.0  # [m] front-bumper distance to the SUMO pose that forces a placement
-    sideways_jump_m: float = 1.0  # [m] a slow agent whose SUMO pose moves sideways more than this in one step is placed (0 = off)
+    sideways_jump_m: float = 1.0  # [m] a slow agent whose SUMO pose moves sideways more than this (and than max_side_speed x the step) in one step is placed (0 = off)
     sideways_slide_m: float = 0.5  # [m] a slow agent this far off a SUMO pose that slides sideways (lane change in a queue) is placed
     max_side_speed: float = 3.0  # [m/s] SUMO sideways motion up to this is extrapolated (continuous lane change); faster is a hop
     sideways_jump_speed: float = 5.0  # [m/s] "slow" for sideways_jump_m (SUMO's instant lane changes in queues)

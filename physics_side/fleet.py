@@ -518,7 +518,9 @@ class Fleet:
         # SUMO moves a slow vehicle sideways at once when it changes lanes without a
         # lane-change duration (queues at junctions) or parks off the lane (a bus bay): no
         # vehicle can drive that without hitting its neighbours, so it is placed like a
-        # teleport (counted as a jump), at its new pose also when interpolating
+        # teleport (counted as a jump), at its new pose also when interpolating. At long steps a
+        # hop is beyond max_side_speed over the step: 1.3 m in a 1 s step is a slow lane change
+        # (carried along it below); placed as a hop, a bus in Hamburg was 1.1 m off SUMO
         slow = hop = np.zeros(len(ids), bool)
         if self.cfg.sideways_jump_m > 0 and old_ref is not None and old_ref.n and len(ids):
             p0 = np.maximum(prev, 0)
@@ -526,7 +528,8 @@ class Fleet:
             slow = (prev >= 0) & (old_ref.speed[p0] < vmax) & (a.speed[rows] < vmax)
             if slow.any():
                 _, side = tracking_error(x, y, _Pose(old_ref.x[p0], old_ref.y[p0], old_ref.yaw[p0]))
-                hop = slow & (np.abs(side) > self.cfg.sideways_jump_m)
+                reach = max(self.cfg.sideways_jump_m, self.cfg.max_side_speed * (msg.time - old_ref.t_k))
+                hop = slow & (np.abs(side) > reach)
         # a pedestrian SUMO moves further than it walks (onto a walking area or crossing: 1.3 m
         # in one 0.1 s step) is placed there: running after it, one ran into a bus; followed
         # between samples as motion, one ran 3.5 m past its crossing's entry

@@ -721,17 +721,20 @@ def test_a_turn_beyond_the_tyres_at_one_second_steps_is_carried_not_driven_wide(
     assert abs(((snap.heading[0] - 90.0 + turn_deg) + 180.0) % 360.0 - 180.0) < 3.0, snap.heading  # on the last leg
 
 
-def test_a_slow_vehicle_sumo_moves_sideways_within_a_long_step_is_carried_along():
+@pytest.mark.parametrize("side_speed", [0.8, 1.3])
+def test_a_slow_vehicle_sumo_moves_sideways_within_a_long_step_is_carried_along(side_speed):
     """At 1 s steps SUMO moves a crawling vehicle (0.5 m/s) 0.8 m sideways per step (a lane
-    change in a queue, under the 1 m of a hop): no vehicle drives 0.8 m sideways over 0.5 m of
-    travel, so it is carried along SUMO's motion (one placement for the slide) instead of
-    standing still and being placed off its lane at the next sample (a bus in Bologna, 1.4 m)."""
+    change in a queue): no vehicle drives 0.8 m sideways over 0.5 m of travel, so it is
+    carried along SUMO's motion (one placement for the slide) instead of standing still and
+    being placed off its lane at the next sample (a bus in Bologna, 1.4 m). 1.3 m per 1 s step
+    is such a slide too, no hop: a hop is beyond ``max_side_speed`` times the step (placed at
+    the next sample's pose at the interval's start, a bus in Hamburg was 1.1 m off SUMO)."""
     from physics_side.config import ticks_to
 
     f = _fleet()
     worst = 0.0
     for k in range(8):
-        msg, off = _lane_change_step(k, 1.0, 0.5, 0.8, t0=2.0)
+        msg, off = _lane_change_step(k, 1.0, 0.5, side_speed, t0=2.0)
         f.apply_step(msg)
         assert f.interpolating
         for _ in range(ticks_to(0.0, 1.0, f.dt)):
