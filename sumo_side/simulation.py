@@ -62,6 +62,11 @@ TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT, TL_PROGRAM)
 #: [m] beyond speed x step length, a position change this large is a jump (flag JUMPED);
 #: larger than one lane width so that SUMO's instant lane changes stay ordinary motion.
 JUMP_MARGIN_M = 5.0
+#: [m] the same for a walking person (no lane changes): SUMO's pedestrian model moves a
+#: person from a walking area onto a crossing 1-3 m at once (3.2 m in one 0.1 s step at
+#: 1.1 m/s); unflagged, every engine following it slid the body across, and the step counted
+#: as tracking error
+PERSON_JUMP_MARGIN_M = 0.5
 #: [s] ``next`` of a traffic light that has no switch scheduled (SPEC.md: |next| <= 1e9)
 NO_SWITCH_S = 1e9
 
@@ -538,13 +543,16 @@ class SumoSim:
         self.vtypes.collect(vtype_all)  # bounded table: drops types nobody uses any more
         xy = np.concatenate([vxy, pxy])
         # A position change no motion explains (a person starting to wait at a stop far
-        # from where it walked, a stage change, moveToXY) is a jump: physics must place,
-        # not steer. The margin covers SUMO's instant lane changes (one lane width).
+        # from where it walked, a stage change, moveToXY, a walker put onto a crossing) is a
+        # jump: physics must place, not steer. A vehicle's margin covers SUMO's instant lane
+        # changes (one lane width).
         jumped_pos = np.zeros(n, bool)
         if known.any() and len(self._prev_xy):
             pk = prev_index[known]
             moved = np.hypot(*(xy[known] - self._prev_xy[pk]).T)
-            reach = np.maximum(speed_all[known], self._prev_speed[pk]) * dt + JUMP_MARGIN_M
+            margin = np.full(n, JUMP_MARGIN_M)
+            margin[nv:][~riding] = PERSON_JUMP_MARGIN_M
+            reach = np.maximum(speed_all[known], self._prev_speed[pk]) * dt + margin[known]
             jumped_pos[known] = moved > reach
         # A new route id is a reroute (object-array compare: one C loop, no Python per agent).
         jv = prev_index[:nv]

@@ -6,7 +6,7 @@ import numpy as np
 
 from protocol.messages import AgentFlag
 from sumo_side.config import SumoConfig
-from sumo_side.simulation import JUMP_MARGIN_M, SumoSim
+from sumo_side.simulation import JUMP_MARGIN_M, PERSON_JUMP_MARGIN_M, SumoSim
 from tests.harness import PAPER_CFG
 
 
@@ -37,6 +37,39 @@ def test_person_reaching_its_stop_is_jumped_but_lane_changes_are_not():
     assert all(j for t, d, j in rider_jumps if d > JUMP_MARGIN_M + 2.0)
     assert not any(j for _, _, j in ref_jumps), "ref's lane changes must not count as jumps"
     assert max(d for _, d, _ in ref_jumps) > 1.5  # a lane change happened (lateral hop)
+
+
+def test_a_walker_sumo_puts_onto_a_crossing_is_jumped_ordinary_walking_is_not():
+    """SUMO's pedestrian model moves a person from a walking area onto a crossing about 1 m at
+    once (the demo's ped_3 at 20.6 s, at 1.4 m/s in a 0.1 s step): flagged JUMPED, so every
+    engine places it instead of sliding it across; walking steps never are."""
+    sim = SumoSim(SumoConfig(sumocfg=PAPER_CFG), seed=42)
+    sim.start()
+    try:
+        prev: dict[str, tuple[np.ndarray, float]] = {}
+        hops, walks = [], []
+        for _ in range(300):  # 30 s
+            sim.step()
+            snap = sim.read()
+            for i, name in enumerate(snap.ids):
+                if i < snap.n_vehicles or snap.flags[i] & AgentFlag.INSIDE_VEHICLE:  # (persons follow the vehicles)
+                    prev.pop(name, None)
+                    continue
+                xy, v = np.array([snap.x[i], snap.y[i]]), float(snap.speed[i])
+                if name in prev:
+                    moved = float(np.hypot(*(xy - prev[name][0])))
+                    walk = max(v, prev[name][1]) * 0.1
+                    jumped = bool(snap.flags[i] & AgentFlag.JUMPED)
+                    if moved > walk + PERSON_JUMP_MARGIN_M:
+                        hops.append((name, snap.time, moved, jumped))
+                    elif moved <= walk + 0.05:
+                        walks.append(jumped)
+                prev[name] = (xy, v)
+    finally:
+        sim.close()
+    assert any(n == "ped_3" and abs(t - 20.6) < 0.05 for n, t, _, _ in hops), hops
+    assert all(j for _, _, _, j in hops), hops
+    assert len(walks) > 1000 and not any(walks)
 
 
 def test_static_data_maps_every_signal_link_to_its_lanes():
