@@ -65,6 +65,11 @@ INFEASIBLE_AHEAD_M = (2.0, 20.0)  # [m]
 INFEASIBLE_MARGIN = 0.9  # [1] a path this much tighter than the vehicle's reach starts a carry ...
 INFEASIBLE_RELEASE = 0.75  # [1] ... which ends once the path ahead is within this share of it
 INFEASIBLE_STRAIGHT_DEG = 10.0  # [deg] ... and SUMO's body angle is this close to the path's heading
+# [deg] a vehicle SUMO inserts moving with its body angle this far off its path's heading is
+# carried from its first step (its chord back to front where a curved lane meets a straight
+# one: a truck inserted at 13 m/s 33 deg off the lane it drove along, placed on that angle,
+# ran 3.8 m wide before it had turned onto its lane)
+SPAWN_OFF_DEG = 20.0
 # [1] ... and the path ahead (8 m windows) asks less than this share of the tyres' lateral acceleration
 INFEASIBLE_GRIP_KEEP = 0.5
 # Or seen in SUMO's turn rate: faster than INFEASIBLE_RATE_MARGIN x full lock at its speed
@@ -1027,6 +1032,8 @@ class Fleet:
             if not self.interpolating:  # (between the samples of long steps SUMO's rate is a chord's)
                 start |= ((ref.speed > INFEASIBLE_MIN_SPEED) & (dist > INFEASIBLE_OFF_M)
                           & (np.abs(yaw_rate) > INFEASIBLE_RATE_MARGIN * ref.speed * self._reach()))
+            start |= ((prev < 0) & (ref.speed > INFEASIBLE_MIN_SPEED)
+                      & (np.abs(wrap_pi(ref.yaw - ref.start_heading)) > math.radians(SPAWN_OFF_DEG)))
             # over once the path ahead is in reach and the body is straight on it (a long
             # vehicle's rear is still in the turn when its bumper is out: SUMO's chord angle)
             # and the carried body itself has turned onto SUMO's angle (SUMO's angle jumps where a
