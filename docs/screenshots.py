@@ -48,7 +48,7 @@ def main() -> int:
     cfg.write_text(f'[run]\nid = "shot"\ntiming = "realtime"\nduration_s = 600.0\n\n'
                    f'[viewer]\nport = {vport}\ntoken = "{TOKEN}"\n')
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cli = [sys.executable, "-m", "sumoco.app.cli"]
+    cli = [sys.executable, "-m", "sumoco.cli"]
     logs = [open(work / f"{n}.log", "wb") for n in ("sumo", "physics", "view")]
     procs = [
         subprocess.Popen([*cli, "sumo", "--config", str(cfg), "--sumocfg", a.sumocfg, "--listen", ep],

@@ -1,7 +1,7 @@
 """Typed configuration of the physics side: ``[physics]``, ``[control.paper]``, ``[control.default]``.
 
 Every knob has its unit; ``load_physics_config`` reads the tables of a run config (see
-``sumoco.common.config``), and ``check_rates`` validates the control / MuJoCo step ratio once
+``runtime.config``), and ``check_rates`` validates the control / MuJoCo step ratio once
 at start-up. The SUMO step length is not configured: every step message carries its own,
 and the daemon simulates up to each step's end time (``ticks_to``), whatever its length.
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from protocol.errors import ConfigError
-from sumoco.common.config import from_dict, section
+from runtime.config import from_dict, section
 
 PRESETS = ("paper", "default", "kinematic")
 MIN_STEP_S = 0.001  # [s] shortest SUMO step length the physics side follows

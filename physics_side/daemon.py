@@ -47,8 +47,8 @@ from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepAck, StepMessage
 from protocol.tables import StaticTracker
-from sumoco.common.config import RunConfig
-from sumoco.common.queues import DropOldest
+from runtime.config import RunConfig
+from runtime.queues import DropOldest
 
 log = logging.getLogger("physics")
 
@@ -473,9 +473,9 @@ def build_fleet(settings: PhysicsSettings, realtime: bool = False) -> Fleet:
 
 def cli_main(args) -> int:
     """``sumoco physics --config X.toml [--preset P] [--instance I] [--listen ...] [--timing ...]``."""
-    from sumoco.common.config import apply_cli, load_common
-    from sumoco.common.hotpath import freeze_startup_objects, tune_allocator
-    from sumoco.common.transport import open_session
+    from runtime.config import apply_cli, load_common
+    from runtime.hotpath import freeze_startup_objects, tune_allocator
+    from runtime.transport import open_session
 
     if not args.config:
         raise ConfigError("sumoco physics: --config is required")

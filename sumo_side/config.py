@@ -1,8 +1,8 @@
 """``[sumo]`` table of a run config: everything the SUMO side daemon needs besides
-``[run]`` and ``[zenoh]`` (those come from ``sumoco.common.config.load_common``).
+``[run]`` and ``[zenoh]`` (those come from ``runtime.config.load_common``).
 
 Every knob has its unit in the comment; unknown keys and wrong types are ConfigErrors
-naming the file and key (``sumoco.common.config.section``). Paths resolve against the TOML file.
+naming the file and key (``runtime.config.section``). Paths resolve against the TOML file.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.errors import ConfigError
-from sumoco.common.config import load_toml, section
+from runtime.config import load_toml, section
 
 
 @dataclass(frozen=True)

@@ -49,8 +49,8 @@ from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.ego import EgoManager
 from sumo_side.mapmesh import MapService
 from sumo_side.simulation import SumoSim
-from sumoco.common.queues import LatestPerKey
-from sumoco.common.config import CommonConfig, RunConfig, apply_cli, load_common, replace
+from runtime.queues import LatestPerKey
+from runtime.config import CommonConfig, RunConfig, apply_cli, load_common, replace
 
 log = logging.getLogger("sumo_side")
 
@@ -579,8 +579,8 @@ def load_configs(args) -> tuple[CommonConfig, SumoConfig]:
 
 def cli_main(args) -> int:
     """``sumoco sumo``: start SUMO, open Zenoh, run until done or SIGINT/SIGTERM."""
-    from sumoco.common.hotpath import tune_allocator
-    from sumoco.common.transport import open_session
+    from runtime.hotpath import tune_allocator
+    from runtime.transport import open_session
 
     common, scfg = load_configs(args)
     keys = Keys(common.zenoh.root, common.run.id)

@@ -1,9 +1,11 @@
 """sumoco: SUMO traffic driven in MuJoCo, over Eclipse Zenoh.
 
-Sub-packages by layer (imports point down only, checked by ``lint-imports``):
-``sumoco.app`` (commands) -> ``sumo_side`` / ``physics_side`` -> ``sumoco.testing``
-(synthetic traffic) -> ``sumoco.common`` (config, sessions, logging, exit codes) ->
-``protocol`` (the wire).
+The application layer, on top of ``sumo_side`` / ``physics_side`` -> ``synthetic``
+(synthetic traffic) -> ``runtime`` (config, sessions, logging, exit codes) -> ``protocol``
+(the wire); imports point down only, checked by ``lint-imports``. Grouped by concern:
+``cli`` (the ``sumoco`` command), ``orchestrate`` (demo, router, certificates, map export),
+``bench`` (every ``sumoco bench`` row), ``recording`` (MCAP record and replay), ``viewing``
+(browser viewer, WebSocket gateway, Foxglove), ``analysis`` (summary, report, figures).
 """
 
 from importlib.metadata import PackageNotFoundError, version

@@ -2,6 +2,6 @@
 
 import sys
 
-from sumoco.app.cli import main
+from sumoco.cli import main
 
 sys.exit(main())

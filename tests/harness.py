@@ -19,8 +19,8 @@ from protocol.codec import decode
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepMessage
-from sumoco.common.config import SecurityConfig, ZenohConfig
-from sumoco.common.transport import free_tcp_port, open_session
+from runtime.config import SecurityConfig, ZenohConfig
+from runtime.transport import free_tcp_port, open_session
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_CFG = ROOT / "configs" / "scenarios" / "paper" / "paper.sumocfg"
@@ -65,7 +65,7 @@ class Daemon:
         log_dir.mkdir(parents=True, exist_ok=True)
         self._f = self.log.open("wb")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "sumoco.app.cli", *args],
+            [sys.executable, "-m", "sumoco.cli", *args],
             stdout=self._f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=ROOT,
         )

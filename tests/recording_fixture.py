@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from protocol.keys import Keys
-from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig
-from sumoco.common.config import ZenohConfig
-from sumoco.common.transport import open_session
-from sumoco.testing.feed import FakePublisher
-from sumoco.testing.synthetic import FakeRun
+from sumoco.recording.record import LiveRecorder, McapRecorder, RecordConfig
+from runtime.config import ZenohConfig
+from runtime.transport import open_session
+from synthetic.feed import FakePublisher
+from synthetic.traffic import FakeRun
 from tests.harness import endpoint, wait_until
 
 

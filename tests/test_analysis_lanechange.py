@@ -9,7 +9,7 @@ from protocol.messages import (
     AgentBatch, AgentMode, JunctionTable, LaneTable, PhysicsAgents, PhysicsState, StaticData, StepMessage,
     TrafficLights,
 )
-from sumoco.app.analysis import (
+from sumoco.analysis.summary import (
     LANE_CHANGE_AFTER_S, LANE_CHANGE_BEFORE_S, Analysis, build_run_data, lane_change_cover, lane_change_events,
     summarise,
 )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sumoco.app.analysis import _hermite
+from sumoco.analysis.summary import _hermite
 
 
 def test_reference_between_samples_follows_the_curve_not_the_chord():
@@ -30,7 +30,7 @@ def test_error_at_samples_ignores_motion_between_samples():
     """At SUMO's sample times the reference is exact: a physics agent on every sample but
     accelerating smoothly in between (not at SUMO's constant speed per step) has no error there."""
     from protocol.messages import AgentMode
-    from sumoco.app.analysis import PhysTable, RefTable, sample_errors
+    from sumoco.analysis.summary import PhysTable, RefTable, sample_errors
 
     rt = np.arange(0.0, 4.0, 1.0)
     s = 0.5 * 2.0 * rt**2  # 2 m/s^2 from rest

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sumoco.app.analysis import ErrorHistogram, analyse_recording, load_run, summarise
-from sumoco.app.record import open_recording, read_recording
-from sumoco.app.record_bench import synthetic_recording
+from sumoco.analysis.summary import ErrorHistogram, analyse_recording, load_run, summarise
+from sumoco.recording.record import open_recording, read_recording
+from sumoco.bench.record import synthetic_recording
 
 
 def test_histogram_percentiles_within_their_precision():

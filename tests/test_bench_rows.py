@@ -23,7 +23,7 @@ def _no_constant(name: str):
 
 
 def _bench(what: str, timeout_s: float) -> list[dict]:
-    out = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "bench", what, "--quick", "--json"], cwd=ROOT,
+    out = subprocess.run([sys.executable, "-m", "sumoco.cli", "bench", what, "--quick", "--json"], cwd=ROOT,
                          capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
     assert out.returncode == 0, out.stderr[-4000:]
     rows = json.loads(out.stdout, parse_constant=_no_constant)

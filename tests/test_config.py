@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from protocol.errors import ConfigError
-from sumoco.common.config import RunConfig, ZenohConfig, from_dict, load_common, section, load_toml
+from runtime.config import RunConfig, ZenohConfig, from_dict, load_common, section, load_toml
 
 
 def _write(tmp_path: Path, text: str) -> Path:

@@ -9,7 +9,7 @@ import numpy as np
 
 from sumo_side.config import load_sumo_config
 from sumo_side.simulation import SumoSim
-from sumoco.app.figures import lad_min_sweep, turn_passage
+from sumoco.analysis.figures import lad_min_sweep, turn_passage
 from tests.harness import PAPER_CFG, ROOT
 
 REF_ID = "ref"

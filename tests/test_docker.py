@@ -80,7 +80,7 @@ def test_compose_services_run_as_local_processes(tmp_path, monkeypatch):
     compose.yaml as local processes (router, SUMO with the bundled scenario, two shards)."""
     yaml = pytest.importorskip("yaml")
     from protocol.keys import Keys
-    from sumoco.common.transport import free_tcp_port
+    from runtime.transport import free_tcp_port
     from tests.harness import Daemon, Probe, wait_until
 
     services = yaml.safe_load((DOCKER / "compose.yaml").read_text())["services"]
@@ -116,7 +116,7 @@ def test_compose_services_run_as_local_processes(tmp_path, monkeypatch):
 
 
 def test_cli_takes_settings_from_environment(monkeypatch):
-    from sumoco.app.cli import build_parser, _env_list
+    from sumoco.cli import build_parser, _env_list
 
     monkeypatch.setenv("SUMOCO_CONNECT", "tcp/router:7447, tcp/other:7447")
     assert _env_list("SUMOCO_CONNECT") == ["tcp/router:7447", "tcp/other:7447"]

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from sumoco.app.analysis import WALL_CLOCK_FIELDS
+from sumoco.analysis.summary import WALL_CLOCK_FIELDS
 from tests.harness import ROOT
 
 pytestmark = pytest.mark.integration
@@ -29,7 +29,7 @@ def _config(tmp_path):
 
 def _demo(cfg, out):
     r = subprocess.run(
-        [sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--out", str(out),
+        [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(out),
          "--duration", str(SIM_S), "--quiet"],
         capture_output=True, text=True, timeout=240, cwd=ROOT,
     )
@@ -111,7 +111,7 @@ def test_demo_meets_its_numeric_limits(two_runs):
 def test_report_rebuilt_from_recording_equals_live(two_runs):
     tmp, a, _ = two_runs
     out = tmp / "rebuilt"
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "report", str(tmp / "a" / "run.mcap"),
+    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "report", str(tmp / "a" / "run.mcap"),
                         "--out", str(out), "--no-sweep"], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     rebuilt = json.loads((out / "summary.json").read_text())
@@ -120,7 +120,7 @@ def test_report_rebuilt_from_recording_equals_live(two_runs):
 
 
 def test_truncated_recording_still_reports(two_runs):
-    from sumoco.app.report import write_report
+    from sumoco.analysis.report import write_report
 
     tmp, a, _ = two_runs
     raw = (tmp / "a" / "run.mcap").read_bytes()
@@ -157,7 +157,7 @@ def test_ctrl_c_stops_every_daemon(tmp_path):
     cfg = _config(tmp_path)
     out = tmp_path / "out"
     demo = subprocess.Popen(
-        [sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--out", str(out),
+        [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(out),
          "--run", run_id, "--timing", "realtime", "--duration", "300"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT,
     )
@@ -205,7 +205,7 @@ def test_demo_runs_a_scenario_the_user_brings(tmp_path):
     cfg_path = make_testnet(tmp_path / "net")
     cfg = _config(tmp_path)
     r = subprocess.run(
-        [sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--out", str(tmp_path / "own"),
+        [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(tmp_path / "own"),
          "--sumocfg", str(cfg_path), "--duration", "15", "--quiet"],
         capture_output=True, text=True, timeout=240, cwd=ROOT,
     )
@@ -223,7 +223,7 @@ def test_demo_runs_a_scenario_the_user_brings(tmp_path):
 def test_a_users_scenario_gets_its_own_run_folder(tmp_path):
     from pathlib import Path
 
-    from sumoco.app.demo import default_out
+    from sumoco.orchestrate.demo import default_out
 
     cfg = tmp_path / "city" / "run.sumocfg"
     assert default_out(None) == Path("runs/demo")

@@ -26,7 +26,7 @@ pytestmark = pytest.mark.integration
 
 
 def _demo(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "sumoco.app.cli", "demo", "--quiet", *args],
+    return subprocess.run([sys.executable, "-m", "sumoco.cli", "demo", "--quiet", *args],
                           capture_output=True, text=True, timeout=timeout, cwd=ROOT)
 
 
@@ -103,7 +103,7 @@ def test_a_crashed_daemon_is_named_with_its_signal_exit_2(tmp_path):
     net = make_testnet(tmp_path / "net")
     out = tmp_path / "out"
     demo = subprocess.Popen(
-        [sys.executable, "-m", "sumoco.app.cli", "demo", "--sumocfg", str(net), "--out", str(out),
+        [sys.executable, "-m", "sumoco.cli", "demo", "--sumocfg", str(net), "--out", str(out),
          "--run", run, "--timing", "realtime", "--duration", "120"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
     )
@@ -127,8 +127,8 @@ def test_a_port_taken_between_choosing_and_listening_is_retried(tmp_path, monkey
     """The SUMO side's port is taken by someone else: the demo starts the daemons again."""
     import socket
 
-    import sumoco.app.demo as demo_mod
-    from sumoco.common.config import load_common, replace, section
+    import sumoco.orchestrate.demo as demo_mod
+    from runtime.config import load_common, replace, section
 
     blocker = socket.socket()
     blocker.bind(("127.0.0.1", 0))

@@ -71,7 +71,7 @@ def runs(tmp_path_factory) -> dict:
     done = {"t0": time.time()}
     for case, sumocfg, begin, duration, _ in CASES:
         out = tmp / case
-        argv = [sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--out", str(out),
+        argv = [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(out),
                 "--sumocfg", str(PACK / sumocfg), "--duration", str(duration), "--quiet"]
         if begin is not None:
             argv += ["--begin", str(begin)]

@@ -72,7 +72,7 @@ presets = ["default"]
 lad_sweep = false
 """)
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "demo", "--config", str(cfg), "--sumocfg",
+    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--sumocfg",
                         str(scenario), "--out", str(out), "--duration", str(sim_s), "--quiet"],
                        capture_output=True, text=True, timeout=240, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-3000:]

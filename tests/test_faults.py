@@ -29,7 +29,7 @@ import pytest
 from protocol.codec import decode
 from protocol.keys import Keys
 from protocol.messages import AgentFlag, AgentMode
-from sumoco.app.record import open_recording
+from sumoco.recording.record import open_recording
 from tests.harness import PAPER_CFG, Daemon, Probe, assert_exit_codes, endpoint, wait_until
 
 pytestmark = pytest.mark.integration
@@ -232,11 +232,11 @@ def test_d_a_full_disk_stops_the_recorder_with_a_clear_error_and_a_complete_file
     try:
         (disk / "filler").write_bytes(b"\0" * (10 << 20))  # 6 MiB left, 4 MiB of them the reserve
         ep = endpoint()
-        feed = subprocess.Popen([sys.executable, "-m", "sumoco.testing.feed", "--listen", ep, "--run", "fd",
+        feed = subprocess.Popen([sys.executable, "-m", "synthetic.feed", "--listen", ep, "--run", "fd",
                                  "--agents", "1000", "--hz", "20"], stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
         out = disk / "run.mcap"
-        rec = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "record", "--connect", ep, "--run", "fd",
+        rec = subprocess.run([sys.executable, "-m", "sumoco.cli", "record", "--connect", ep, "--run", "fd",
                               "--duration", "60", "--out", str(out), "--quiet"],
                              capture_output=True, text=True, timeout=90)
         assert rec.returncode == 1, rec.stderr

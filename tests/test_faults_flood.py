@@ -20,10 +20,10 @@ import zenoh
 from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import AgentFlag, EgoPose, StepAck
-from sumoco.app.soak import rss_mb
-from sumoco.common.config import ZenohConfig
-from sumoco.common.queues import DropOldest, LatestPerKey
-from sumoco.common.transport import open_session
+from sumoco.bench.soak import rss_mb
+from runtime.config import ZenohConfig
+from runtime.queues import DropOldest, LatestPerKey
+from runtime.transport import open_session
 from tests.harness import Daemon, endpoint, wait_until
 from tests.sumo_testnet import make_testnet
 

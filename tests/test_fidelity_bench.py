@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from sumoco.app.fidelity_bench import DEMO_SUMOCFG, run_one
+from sumoco.bench.fidelity import DEMO_SUMOCFG, run_one
 
 
 def test_fidelity_rows_at_a_long_step_length():

@@ -9,10 +9,10 @@ import struct
 import pytest
 from websockets.sync.client import connect
 
-from sumoco.common.config import ZenohConfig
-from sumoco.common.transport import open_session
-from sumoco.testing.feed import FakePublisher
-from sumoco.testing.synthetic import FakeRun
+from runtime.config import ZenohConfig
+from runtime.transport import open_session
+from synthetic.feed import FakePublisher
+from synthetic.traffic import FakeRun
 from tests.harness import Daemon, endpoint, wait_until
 
 pytestmark = pytest.mark.integration
@@ -54,11 +54,11 @@ def test_live_scene_reaches_a_foxglove_websocket_client(tmp_path, command):
 
 
 def test_view_foxglove_runs_the_foxglove_command_and_plain_view_stays_the_browser_view():
-    from sumoco.app.cli import _COMMANDS, build_parser
+    from sumoco.cli import _COMMANDS, build_parser
 
     p = build_parser()
     fox = p.parse_args(["view", "--foxglove", "--port", "0", "--scene-hz", "2"])
     assert (fox.cmd, fox.port, fox.scene_hz) == ("foxglove", 0, 2.0)
-    assert _COMMANDS[fox.cmd] == _COMMANDS["foxglove"] == "sumoco.app.foxglove_live:cli_main"
+    assert _COMMANDS[fox.cmd] == _COMMANDS["foxglove"] == "sumoco.viewing.foxglove_live:cli_main"
     assert p.parse_args(["view", "--max-hz", "5"]).cmd == "view"
     assert p.parse_args(["foxglove"]).cmd == "foxglove"

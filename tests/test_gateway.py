@@ -20,11 +20,11 @@ from protocol.codec import decode, encode
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import CameraPose, EgoPose, StaticData, StepMessage
-from sumoco.app.gateway import Gateway, GatewayConfig, pack_frame, unpack_frame
-from sumoco.common.config import ZenohConfig
-from sumoco.common.transport import open_session
-from sumoco.testing.feed import FakePublisher
-from sumoco.testing.synthetic import FakeRun
+from sumoco.viewing.gateway import Gateway, GatewayConfig, pack_frame, unpack_frame
+from runtime.config import ZenohConfig
+from runtime.transport import open_session
+from synthetic.feed import FakePublisher
+from synthetic.traffic import FakeRun
 from tests.harness import ROOT, Daemon, endpoint, wait_until
 
 KEYS = Keys("sumoco", "synth")

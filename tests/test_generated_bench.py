@@ -8,8 +8,8 @@ import re
 
 from pathlib import Path
 
-from sumoco.app.generated_bench import NETWORKS, REAL_NETWORKS, STEP_S, VCLASS_PERIOD_S, generate
-from sumoco.app.scenario_bench import default_pack
+from sumoco.bench.generated import NETWORKS, REAL_NETWORKS, STEP_S, VCLASS_PERIOD_S, generate
+from sumoco.bench.scenarios import default_pack
 
 DEMO_NET = Path(__file__).resolve().parents[1] / "configs" / "scenarios" / "paper" / "paper.net.xml"
 

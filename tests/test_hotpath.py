@@ -1,10 +1,10 @@
-"""Process settings for long runs (``sumoco.common.hotpath``)."""
+"""Process settings for long runs (``runtime.hotpath``)."""
 
 from __future__ import annotations
 
 import time
 
-from sumoco.common import hotpath
+from runtime import hotpath
 
 
 class _FakeLibc:

@@ -193,12 +193,12 @@ def test_bad_network_file_is_a_config_error_naming_it(tmp_path):
 
 def test_cli_exports_and_reports_errors(tmp_path):
     out = tmp_path / "m" / "map.glb"
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "map", "export", str(PAPER_NET), "--out", str(out),
+    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "map", "export", str(PAPER_NET), "--out", str(out),
                         "--quiet"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert out.stat().st_size > 10_000 and "16 signal heads" in r.stdout
     assert out.read_bytes()[:4] == b"glTF"
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "map", "export", str(tmp_path / "nope.net.xml"),
+    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "map", "export", str(tmp_path / "nope.net.xml"),
                         "--out", str(out)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "nope.net.xml" in r.stderr and "not found" in r.stderr
 
@@ -247,8 +247,8 @@ def test_sumo_side_serves_the_map_once_per_hash(tmp_path):
     import msgpack
 
     from protocol.keys import Keys
-    from sumoco.common.config import ZenohConfig
-    from sumoco.common.transport import open_session
+    from runtime.config import ZenohConfig
+    from runtime.transport import open_session
     from tests.harness import PAPER_CFG, Daemon, endpoint, wait_until
 
     ep = endpoint()
@@ -273,7 +273,7 @@ def test_sumo_side_serves_the_map_once_per_hash(tmp_path):
             assert again["glb"] is None and again["sha256"] == doc["sha256"]
             assert ask("sha256=0000")["glb"] == want.glb
             # The viewer's feed takes the SUMO side's map (not one rebuilt from static data).
-            from sumoco.app.viewer.server import LatestStore, ViewerConfig, ZenohFeed
+            from sumoco.viewing.viewer.server import LatestStore, ViewerConfig, ZenohFeed
 
             store = LatestStore()
             feed = ZenohFeed(s, Keys("sumoco", "maptest"), store, ViewerConfig()).start()

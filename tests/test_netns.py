@@ -154,7 +154,7 @@ def _start(name: str, args: list[str], logs, ns: str | None):
     logs.mkdir(parents=True, exist_ok=True)
     f = (logs / f"{name}.log").open("wb")
     prefix = ["ip", "netns", "exec", ns] if ns else []  # ip execs the command: same pid, signals reach it
-    p = subprocess.Popen([*prefix, sys.executable, "-m", "sumoco.app.cli", *args], stdout=f, stderr=subprocess.STDOUT,
+    p = subprocess.Popen([*prefix, sys.executable, "-m", "sumoco.cli", *args], stdout=f, stderr=subprocess.STDOUT,
                          stdin=subprocess.DEVNULL, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"))
     p.name, p.logfile = name, logs / f"{name}.log"
     p.tail = lambda: p.logfile.read_text(errors="replace")[-3000:]
@@ -187,7 +187,7 @@ def _run(tmp_path, net: Net | None, cut_s: float = 0.0) -> tuple[dict, dict]:
     cfg = _config(tmp_path)
     logs = tmp_path / "logs"
     if net is None:
-        from sumoco.common.transport import free_tcp_port
+        from runtime.transport import free_tcp_port
 
         port = free_tcp_port()
         router_listen = [f"tcp/127.0.0.1:{port}"]

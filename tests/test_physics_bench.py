@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from physics_side.bench import run_physics_bench
-from sumoco.testing.synthetic import circle_traffic
+from sumoco.bench.physics import run_physics_bench
+from synthetic.traffic import circle_traffic
 
 
 def test_circle_traffic_keeps_cars_apart():

@@ -8,7 +8,7 @@ import pytest
 
 from physics_side.config import check_rates, load_physics_config, ticks_to
 from protocol.errors import ConfigError
-from sumoco.common.config import load_toml
+from runtime.config import load_toml
 
 
 def _load(tmp_path: Path, text: str):

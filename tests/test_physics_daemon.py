@@ -1,7 +1,7 @@
 """The physics daemon as a real OS process against a fake SUMO side in the test.
 
 The test's Zenoh session plays the SUMO side: it declares the SUMO liveliness token and
-publishes synthetic StepMessages (cars on circular lanes, ``physics_side.bench``);
+publishes synthetic StepMessages (cars on circular lanes, ``sumoco.bench.physics``);
 the daemon (``sumoco physics``) runs in lockstep and must: acknowledge every step,
 report the agents of each step in PhysicsState, drop agents that left, count a
 malformed step as rejected and carry on, bring agents to a safe stop (mode STOPPING)
@@ -20,7 +20,7 @@ try:  # tests/ as a package or as rootdir-relative modules
     from tests.harness import Daemon, Probe, endpoint, wait_until
 except ImportError:  # pragma: no cover
     from harness import Daemon, Probe, endpoint, wait_until
-from sumoco.testing.synthetic import circle_traffic
+from synthetic.traffic import circle_traffic
 from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import AgentMode, StepAck
@@ -59,8 +59,8 @@ def test_daemon_lockstep_liveliness_and_rejects(tmp_path):
     cfg.write_text(CONFIG.format(run=run))
     sumo_ep = endpoint()
     # the fake SUMO side listens; the daemon and the probe connect to it
-    from sumoco.common.config import ZenohConfig
-    from sumoco.common.transport import open_session
+    from runtime.config import ZenohConfig
+    from runtime.transport import open_session
 
     sumo = open_session(ZenohConfig(listen=(sumo_ep,)))
     acks: list[StepAck] = []
@@ -158,8 +158,8 @@ def test_daemon_realtime_paces_ticks_by_the_wall_clock(tmp_path):
     keys = Keys("sumoco", run)
     cfg = tmp_path / "physics.toml"
     cfg.write_text(CONFIG.format(run=run).replace('timing = "lockstep"', 'timing = "realtime"'))
-    from sumoco.common.config import ZenohConfig
-    from sumoco.common.transport import open_session
+    from runtime.config import ZenohConfig
+    from runtime.transport import open_session
 
     sumo_ep = endpoint()
     sumo = open_session(ZenohConfig(listen=(sumo_ep,)))
@@ -201,8 +201,8 @@ def test_late_joiner_queries_static_data_for_an_unknown_static_version(tmp_path)
     from dataclasses import replace
 
     from protocol.golden_vectors import valid_messages
-    from sumoco.common.config import ZenohConfig
-    from sumoco.common.transport import open_session
+    from runtime.config import ZenohConfig
+    from runtime.transport import open_session
 
     run = "phys-static-test"
     keys = Keys("sumoco", run)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sumoco.testing.synthetic import circle_traffic
+from synthetic.traffic import circle_traffic
 from physics_side.config import PhysicsConfig, PhysicsSettings, ticks_to
 from physics_side import fleet as fleet_mod
 from physics_side.daemon import build_fleet

@@ -12,7 +12,7 @@ from physics_side.daemon import build_fleet
 from physics_side.lod import HYSTERESIS, DetailSplit, DetailZones
 from protocol.errors import ConfigError
 from protocol.messages import AgentMode
-from sumoco.testing.synthetic import circle_traffic
+from synthetic.traffic import circle_traffic
 
 
 def test_zones_regions_egos_and_hysteresis():
@@ -73,7 +73,7 @@ def test_daemon_publishes_far_agents_as_kinematic_without_simulating_them():
     from physics_side.daemon import PhysicsDaemon
     from protocol.codec import encode
     from protocol.keys import Keys
-    from sumoco.common.config import RunConfig
+    from runtime.config import RunConfig
 
     cx, cy = 1000.0 + 300.0 * np.cos(0.6), 1000.0 + 300.0 * np.sin(0.6)
     settings = PhysicsSettings(physics=replace(
@@ -102,9 +102,9 @@ def test_viewer_camera_is_an_interest_point_of_a_real_physics_daemon(tmp_path):
     from protocol.codec import decode, encode
     from protocol.keys import Keys
     from protocol.messages import CameraPose
-    from sumoco.app.camera import CameraPublisher
-    from sumoco.common.config import ZenohConfig
-    from sumoco.common.transport import open_session
+    from sumoco.viewing.camera import CameraPublisher
+    from runtime.config import ZenohConfig
+    from runtime.transport import open_session
     from tests.harness import Daemon, Probe, endpoint, wait_until
 
     run, r = "lod-camera", 30.0

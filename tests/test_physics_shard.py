@@ -7,7 +7,7 @@ import pytest
 
 from physics_side.shard import HALO_M, TILE_M, ShardFilter, parse_shard, shard_instance, shard_of_instance, subset
 from protocol.errors import ConfigError
-from sumoco.testing.synthetic import circle_traffic
+from synthetic.traffic import circle_traffic
 
 
 def test_names_and_arguments():

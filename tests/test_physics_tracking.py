@@ -1,5 +1,5 @@
 """Tracking on synthetic 10 Hz SUMO references, every agent type, through the daemon's
-code path (``Fleet``) without Zenoh (``physics_side.experiments``).
+code path (``Fleet``) without Zenoh (``sumoco.analysis.experiments``).
 
 Errors are front-bumper distances to the exact reference curve at the same time, the
 maximum over the whole run: agents spawn at the reference pose and speed, so there is
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from physics_side.experiments import lad_sweep, lane_change, paper_route, straight, track_reference, turn90
+from sumoco.analysis.experiments import lad_sweep, lane_change, paper_route, straight, track_reference, turn90
 from protocol.messages import AgentClass
 
 VEHICLES = [AgentClass.PASSENGER, AgentClass.TAXI, AgentClass.BUS, AgentClass.BICYCLE]
@@ -138,7 +138,7 @@ def test_paper_lookahead_from_the_path_equals_the_sent_point():
 
 def test_trajectory_from_10hz_samples():
     """A recorded 10 Hz track (here: the synthetic turn's samples) works as a reference."""
-    from physics_side.experiments import Trajectory
+    from sumoco.analysis.experiments import Trajectory
 
     t = np.arange(0.0, TURN.duration, 0.1)
     ref = TURN.at(t)
@@ -151,7 +151,7 @@ def test_report_lad_min_sweep_shows_the_papers_trend():
     """The report's Fig. 9 replays a recorded 10 Hz reference car under the paper preset for
     LAD_min 5..8 m: the sweep really varies LAD_min (the seed's speed / 3.6 makes LAD =
     LAD_min at city speeds) and a larger LAD_min cuts the right turn more (paper Fig. 9)."""
-    from sumoco.app.figures import lad_min_sweep
+    from sumoco.analysis.figures import lad_min_sweep
 
     route = turn90(radius=10.0, v=8.0)  # 8 m/s: with the printed formula LAD = v for every LAD_min <= 8
     t = np.arange(0.0, route.duration, 0.1)
@@ -168,7 +168,7 @@ def test_report_lad_min_sweep_shows_the_papers_trend():
 def _sumo_emergency_stop(v: float = 3.3, stop_at: float = 5.0, crawl_m: float = 0.2, duration: float = 30.0):
     """SUMO at 1 s Euler steps: cruising at ``v``, then at rest ``crawl_m`` further one step
     later (no brake can do that: 3.3 m/s to rest in 0.2 m is 27 m/s^2)."""
-    from physics_side.experiments import PATH_AHEAD_M, Trajectory
+    from sumoco.analysis.experiments import PATH_AHEAD_M, Trajectory
 
     hz = 1000.0
     t = np.arange(0.0, duration + 1e-9, 1.0 / hz)
@@ -222,7 +222,7 @@ def test_a_u_turn_beyond_the_steering_is_shown_kinematic_then_driven_again(cls):
     from dataclasses import replace
 
     from physics_side.config import PhysicsSettings
-    from physics_side.experiments import u_turn
+    from sumoco.analysis.experiments import u_turn
     from protocol.messages import AgentMode
 
     traj = u_turn()

@@ -1,5 +1,5 @@
 """Motorcycles and mopeds (SUMO's default vTypes, OTHER on the wire) through the daemon's code
-path (``Fleet``, ``physics_side.experiments.track_reference``) at SUMO's 0.05 s steps: pulling
+path (``Fleet``, ``sumoco.analysis.experiments.track_reference``) at SUMO's 0.05 s steps: pulling
 away, stopping and junction turns at SUMO's own accelerations stay upright and on its track.
 
 Measured before the fix (the bicycle's stabiliser gains on a 280 kg model, 85 % front brakes,
@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from physics_side import experiments as E
+from sumoco.analysis import experiments as E
 from physics_side.config import PhysicsConfig, PhysicsSettings
 from protocol.messages import AgentClass
 

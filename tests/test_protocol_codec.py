@@ -17,7 +17,7 @@ from protocol import (
 from protocol.codec import STEP_AGENT_COLUMNS
 from protocol.golden_vectors import valid_messages
 from protocol.messages import SumoStatus
-from sumoco.testing.synthetic import synthetic_step
+from synthetic.traffic import synthetic_step
 
 
 #: Fields sent as float32 offsets from the agent's float64 position: equal to 1 mm.

@@ -14,7 +14,7 @@ import pytest
 import protocol.codec as codec
 from protocol.errors import ProtocolError
 from protocol.messages import TrafficLights
-from sumoco.testing.synthetic import synthetic_step
+from synthetic.traffic import synthetic_step
 
 
 def _equal(a, b) -> None:

@@ -13,8 +13,8 @@ from protocol import ProtocolError, decode, encode
 from protocol.codec import DEFAULT_LIMITS, DecodeLimits
 from protocol.golden_vectors import valid_messages
 from protocol.keys import Keys
-from sumoco.common.config import ConfigError, RunConfig, from_dict
-from sumoco.testing.synthetic import synthetic_step
+from runtime.config import ConfigError, RunConfig, from_dict
+from synthetic.traffic import synthetic_step
 
 
 def test_limits_follow_the_configured_maximum_agents():
@@ -112,7 +112,7 @@ class _NoFile:
 
 def test_recorder_peeks_and_compacts_within_the_run_limits():
     from protocol.codec import peek
-    from sumoco.app.record import LiveRecorder, RecordConfig
+    from sumoco.recording.record import LiveRecorder, RecordConfig
 
     def _peek(payload, key, limits=DEFAULT_LIMITS):  # one number, or None
         return peek(payload, (key,), limits).get(key)
@@ -140,7 +140,7 @@ def test_recorder_peeks_and_compacts_within_the_run_limits():
 
 
 def test_scene_decodes_steps_with_the_run_limits_and_static_data_with_the_default_ones():
-    from sumoco.app import scene
+    from sumoco.viewing import scene
 
     if not scene.available():
         pytest.skip("foxglove-sdk is not installed")
@@ -154,7 +154,7 @@ def test_scene_decodes_steps_with_the_run_limits_and_static_data_with_the_defaul
 
 
 def test_gateway_upstream_is_decoded_with_the_tightest_limits():
-    from sumoco.app.gateway import MAX_UPSTREAM_BYTES, UPSTREAM_LIMITS
+    from sumoco.viewing.gateway import MAX_UPSTREAM_BYTES, UPSTREAM_LIMITS
 
     ego = msgpack.unpackb(encode(valid_messages()["ego"]), raw=False)
     assert decode(msgpack.packb(ego), UPSTREAM_LIMITS) == valid_messages()["ego"]
@@ -169,7 +169,7 @@ def test_viewer_map_reply_decoded_within_limits():
     import hashlib
     from types import SimpleNamespace
 
-    from sumoco.app.viewer.server import LatestStore, ViewerConfig, ZenohFeed
+    from sumoco.viewing.viewer.server import LatestStore, ViewerConfig, ZenohFeed
 
     glb = b"glTF" + b"\x00" * 60
     good = msgpack.packb({"v": [1, 2], "kind": "map", "sha256": hashlib.sha256(glb).hexdigest(), "glb": glb})

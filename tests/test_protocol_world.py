@@ -183,7 +183,7 @@ def test_utm_golden_vector_decodes_to_1_mm(world):
 
 def test_utm_round_trip_of_random_traffic_to_1_mm():
     """Paths 100 m long around agents spread over a UTM zone survive encode/decode to 1 mm."""
-    from sumoco.testing.synthetic import synthetic_step
+    from synthetic.traffic import synthetic_step
 
     rng = np.random.default_rng(7)
     msg = synthetic_step(300, seed=7, path_points=8)
@@ -250,7 +250,7 @@ def test_spec_only_client_decodes_golden_vectors_like_the_codec():
 
 def test_position_encoding_bench_compares_both_encodings():
     """The numbers behind SPEC.md 6: offsets are smaller than float64 and just as precise."""
-    from sumoco.app.bench import run_position_encoding_bench
+    from sumoco.bench.cli import run_position_encoding_bench
 
     (row,) = run_position_encoding_bench(sizes=(200,), repeat=2)
     assert row["offsets_bytes_per_agent"] < 0.7 * row["f64_bytes_per_agent"]

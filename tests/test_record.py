@@ -14,7 +14,7 @@ import pytest
 from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import PhysicsState, StaticData, StepMessage
-from sumoco.app.record import kind_of_topic, read_recording
+from sumoco.recording.record import kind_of_topic, read_recording
 from tests.harness import PAPER_CFG, ROOT, Daemon, assert_exit_codes, endpoint
 
 pytestmark = pytest.mark.integration
@@ -30,7 +30,7 @@ def test_record_live_run_to_mcap(tmp_path):
     out = tmp_path / "run.mcap"
     try:
         r = subprocess.run(
-            [sys.executable, "-m", "sumoco.app.cli", "record", "--config", str(cfg), "--connect", sumo_ep,
+            [sys.executable, "-m", "sumoco.cli", "record", "--config", str(cfg), "--connect", sumo_ep,
              "--listen", endpoint(), "--out", str(out), "--duration", "6", "--quiet"],
             capture_output=True, text=True, timeout=60, cwd=ROOT,
         )
@@ -97,7 +97,7 @@ class _SlowRecorder:
 def test_recorder_never_blocks_the_transport_and_counts_drops():
     import time
 
-    from sumoco.app.record import LiveRecorder, RecordConfig
+    from sumoco.recording.record import LiveRecorder, RecordConfig
 
     keys = Keys("sumoco", "unit")
     slow = _SlowRecorder()
@@ -118,10 +118,10 @@ def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
     """SPEC 3.2: when a step's `sv` moves on, the recorder asks again; replay serves each version."""
     import dataclasses
 
-    from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig
-    from sumoco.common.config import ZenohConfig
-    from sumoco.common.transport import open_session
-    from sumoco.testing.synthetic import FakeRun
+    from sumoco.recording.record import LiveRecorder, McapRecorder, RecordConfig
+    from runtime.config import ZenohConfig
+    from runtime.transport import open_session
+    from synthetic.traffic import FakeRun
     from tests.harness import wait_until
 
     fake = FakeRun(grid=1, n=8, run="sv")
@@ -150,7 +150,7 @@ def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
     # Replay: while steps of version 1 are replayed, the queryable answers version 1.
     import threading
 
-    from sumoco.app.replay import Replayer
+    from sumoco.recording.replay import Replayer
 
     ep = endpoint()
     with open_session(ZenohConfig(listen=(ep,))) as a, open_session(ZenohConfig(listen=(endpoint(),),
@@ -175,10 +175,10 @@ def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
 def test_recorder_records_the_network_of_a_restarted_sumo_side(tmp_path):
     """A SUMO side restarted under the same run id starts again at step 0 and static version
     0: a different network is recorded again, the same one is not written twice."""
-    from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig
-    from sumoco.common.config import ZenohConfig
-    from sumoco.common.transport import open_session
-    from sumoco.testing.synthetic import FakeRun
+    from sumoco.recording.record import LiveRecorder, McapRecorder, RecordConfig
+    from runtime.config import ZenohConfig
+    from runtime.transport import open_session
+    from synthetic.traffic import FakeRun
     from tests.harness import wait_until
 
     keys = Keys("sumoco", "rs")

@@ -10,9 +10,9 @@ import pytest
 
 from protocol.codec import decode, encode
 from protocol.keys import Keys
-from sumoco.app.record import McapRecorder, open_recording, read_recording
-from sumoco.app.record_codec import (PHYSICS_FIELDS, STEP_FIELDS, CompactDecoder, CompactEncoder, CompactError)
-from sumoco.testing.synthetic import FakeRun
+from sumoco.recording.record import McapRecorder, open_recording, read_recording
+from sumoco.recording.codec import (PHYSICS_FIELDS, STEP_FIELDS, CompactDecoder, CompactEncoder, CompactError)
+from synthetic.traffic import FakeRun
 
 
 def _subset(msg, keep: np.ndarray):

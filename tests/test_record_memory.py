@@ -19,12 +19,12 @@ import pytest
 
 from protocol.codec import decode
 from protocol.keys import Keys
-from sumoco.app import scene as scene_mod
-from sumoco.app.record import LiveRecorder, McapRecorder, RecordConfig, read_recording
-from sumoco.common.config import ZenohConfig
-from sumoco.common.transport import open_session
-from sumoco.testing.feed import FakePublisher
-from sumoco.testing.synthetic import FakeRun
+from sumoco.viewing import scene as scene_mod
+from sumoco.recording.record import LiveRecorder, McapRecorder, RecordConfig, read_recording
+from runtime.config import ZenohConfig
+from runtime.transport import open_session
+from synthetic.feed import FakePublisher
+from synthetic.traffic import FakeRun
 from tests.harness import endpoint, wait_until
 
 pytestmark = pytest.mark.integration

@@ -14,9 +14,9 @@ import pytest
 from protocol.codec import decode
 from protocol.keys import Keys
 from protocol.messages import StaticData, StepMessage
-from sumoco.app.record import read_recording
-from sumoco.common.config import ZenohConfig
-from sumoco.common.transport import open_session
+from sumoco.recording.record import read_recording
+from runtime.config import ZenohConfig
+from runtime.transport import open_session
 from tests.harness import PAPER_CFG, ROOT, Daemon, endpoint, wait_until
 from tests.recording_fixture import make_recording
 
@@ -139,7 +139,7 @@ def test_replay_at_four_times_speed_waits_for_a_subscriber_and_ends(recording, t
     when: list[float] = []
     with open_session(ZenohConfig(listen=(ep,))) as s:
         s.declare_subscriber(KEYS.step, lambda smp: (got.append(smp.payload.to_bytes()), when.append(time.monotonic())))
-        r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "replay", str(recording), "--speed", "4",
+        r = subprocess.run([sys.executable, "-m", "sumoco.cli", "replay", str(recording), "--speed", "4",
                             "--connect", ep, "--listen", endpoint(), "--wait-subscriber", "10", "--quiet"],
                            capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert r.returncode == 0, r.stderr
@@ -152,9 +152,9 @@ def test_replay_at_four_times_speed_waits_for_a_subscriber_and_ends(recording, t
 
 
 def test_replay_rejects_a_missing_file_and_a_bad_speed(tmp_path, recording):
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "replay", str(tmp_path / "nope.mcap")],
+    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "replay", str(tmp_path / "nope.mcap")],
                        capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert r.returncode == 2 and "nope.mcap" in r.stderr and "not found" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "sumoco.app.cli", "replay", str(recording), "--speed", "0"],
+    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "replay", str(recording), "--speed", "0"],
                        capture_output=True, text=True, timeout=30, cwd=ROOT)
     assert r.returncode == 2 and "speed" in r.stderr

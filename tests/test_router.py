@@ -18,10 +18,10 @@ import zenoh
 from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import EgoPose, StepAck
-from sumoco.app.router import router_config
-from sumoco.common.config import SecurityConfig, ZenohConfig
-from sumoco.common.transport import open_session
-from sumoco.testing.synthetic import synthetic_step
+from sumoco.orchestrate.router import router_config
+from runtime.config import SecurityConfig, ZenohConfig
+from runtime.transport import open_session
+from synthetic.traffic import synthetic_step
 from tests.harness import ROOT, Daemon, endpoint, wait_until
 
 pytestmark = pytest.mark.integration
@@ -125,7 +125,7 @@ def test_two_routers_form_a_mesh(tmp_path):
 
 
 def test_secure_routers_mesh_with_tls_and_stop_a_forged_step_at_the_first_router(tmp_path):
-    from sumoco.app.certs import init_certs
+    from sumoco.orchestrate.certs import init_certs
 
     certs = tmp_path / "certs"
     init_certs(certs, renderers=("ego",))

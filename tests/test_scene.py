@@ -8,8 +8,8 @@ import foxglove
 
 from protocol.codec import encode
 from protocol.keys import Keys
-from sumoco.app.scene import LatestWorker, ScenePublisher
-from sumoco.testing.synthetic import FakeRun
+from sumoco.viewing.scene import LatestWorker, ScenePublisher
+from synthetic.traffic import FakeRun
 
 
 def test_latest_worker_drops_the_oldest_and_keeps_the_newest():

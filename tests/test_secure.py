@@ -25,11 +25,11 @@ from protocol.codec import decode, encode
 from protocol.errors import ConfigError
 from protocol.keys import Keys
 from protocol.messages import CameraPose, EgoPose, PhysicsState, StepAck
-from sumoco.app.certs import init_certs
-from sumoco.app.cli import main as cli
-from sumoco.common.config import SecurityConfig, ZenohConfig, load_common
-from sumoco.common.transport import access_control, open_session, zenoh_config
-from sumoco.testing.synthetic import synthetic_step
+from sumoco.orchestrate.certs import init_certs
+from sumoco.cli import main as cli
+from runtime.config import SecurityConfig, ZenohConfig, load_common
+from runtime.transport import access_control, open_session, zenoh_config
+from synthetic.traffic import synthetic_step
 from tests.harness import PAPER_CFG, ROOT, Daemon, Probe, endpoint, wait_until
 
 FORGED_STEP = 900_000  # a step index the real run never reaches

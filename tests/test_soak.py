@@ -6,7 +6,7 @@ import math
 import os
 from pathlib import Path
 
-from sumoco.app.soak import _summary, heap_mb, rss_mb
+from sumoco.bench.soak import _summary, heap_mb, rss_mb
 
 
 def test_heap_is_part_of_rss_and_gone_processes_are_nan():

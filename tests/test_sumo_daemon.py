@@ -23,8 +23,8 @@ import zenoh
 from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import AgentFlag, EgoPose, StaticData, StepAck, StepMessage
-from sumoco.common.config import ZenohConfig
-from sumoco.common.transport import free_tcp_port, open_session
+from runtime.config import ZenohConfig
+from runtime.transport import free_tcp_port, open_session
 from tests.sumo_testnet import EXPECTED_IDS, make_testnet
 
 pytestmark = pytest.mark.integration
@@ -39,7 +39,7 @@ class SumoProcess:
         self.log = log
         self._f = log.open("wb")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "sumoco.app.cli", "sumo", *args],
+            [sys.executable, "-m", "sumoco.cli", "sumo", *args],
             stdout=self._f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             env=env or dict(os.environ, PYTHONUNBUFFERED="1"), cwd=ROOT,
         )

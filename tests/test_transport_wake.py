@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
-from sumoco.common.transport import Wake
+from runtime.transport import Wake
 
 
 def test_wake_behaves_as_an_event():

@@ -28,11 +28,11 @@ import pytest
 from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import StaticData, StepMessage, TlsLinks, VType
-from sumoco.common.config import ZenohConfig
-from sumoco.common.transport import free_tcp_port, open_session
-from sumoco.app.viewer.server import LatestStore, Mailbox, ViewerConfig, ViewerServer
-from sumoco.testing.feed import FakePublisher
-from sumoco.testing.synthetic import FakeRun
+from runtime.config import ZenohConfig
+from runtime.transport import free_tcp_port, open_session
+from sumoco.viewing.viewer.server import LatestStore, Mailbox, ViewerConfig, ViewerServer
+from synthetic.feed import FakePublisher
+from synthetic.traffic import FakeRun
 
 ROOT = Path(__file__).resolve().parents[1]
 GOLDEN = ROOT / "protocol" / "golden"
@@ -174,7 +174,7 @@ def test_feed_fetches_static_when_sumo_appears_late_and_again_after_a_restart():
     SUMO side comes back (new liveliness token) with a different network."""
     from protocol.codec import decode_as
     from protocol.messages import StaticData
-    from sumoco.app.viewer.server import ZenohFeed
+    from sumoco.viewing.viewer.server import ZenohFeed
 
     zport = free_tcp_port()
     cfg = ViewerConfig(static_timeout_s=0.5, static_attempts=2)
@@ -267,7 +267,7 @@ class LiveRun:
         )
         self.log_path = tmp / "view.log"
         self._log = self.log_path.open("wb")
-        self.proc = subprocess.Popen([sys.executable, "-m", "sumoco.app.cli", "view", "--config", str(cfg)],
+        self.proc = subprocess.Popen([sys.executable, "-m", "sumoco.cli", "view", "--config", str(cfg)],
                                      cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
         self.base = f"http://127.0.0.1:{self.port}/"
         self.url = f"{self.base}2d.html?token={TOKEN}"  # the 2D page (tests/test_viewer3d.py: the 3D one)
@@ -663,7 +663,7 @@ def test_viewer_config_table_and_overrides(tmp_path):
     from types import SimpleNamespace
 
     from protocol.errors import ConfigError
-    from sumoco.app.viewer.server import load_config
+    from sumoco.viewing.viewer.server import load_config
 
     cfg = tmp_path / "v.toml"
     cfg.write_text('[run]\nid = "r1"\n\n[viewer]\nport = 9001\nmax_hz = 12.0\n')

@@ -21,8 +21,8 @@ import zenoh
 from protocol.codec import decode
 from protocol.keys import Keys
 from protocol.messages import CameraPose
-from sumoco.testing.feed import FakePublisher
-from sumoco.testing.synthetic import FakeRun
+from synthetic.feed import FakePublisher
+from synthetic.traffic import FakeRun
 from tests.test_viewer import LiveRun, browser, wait_for  # noqa: F401  (browser is a fixture)
 
 _STATS = ("const s = window.sumoco3d; if (!s) return null; const o = {};"
@@ -512,7 +512,7 @@ def test_vendored_three_is_the_pinned_npm_package_with_its_licence():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    vendor = root / "sumoco" / "app" / "viewer" / "static" / "vendor" / "three"
+    vendor = root / "sumoco" / "viewing" / "viewer" / "static" / "vendor" / "three"
     lock = json.loads((root / "package-lock.json").read_text())
     pinned = lock["packages"]["node_modules/three"]["version"]
     assert json.loads((root / "package.json").read_text())["dependencies"]["three"] == pinned

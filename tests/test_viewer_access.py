@@ -20,8 +20,8 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from sumoco.app.viewer.server import LatestStore, ViewerConfig, ViewerServer
-from sumoco.common.transport import free_tcp_port
+from sumoco.viewing.viewer.server import LatestStore, ViewerConfig, ViewerServer
+from runtime.transport import free_tcp_port
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "access-test-token-0123456789"
@@ -129,7 +129,7 @@ def test_random_token_per_start_and_bad_configured_token_is_refused():
 
 def test_sumoco_view_prints_the_url_with_its_token(tmp_path):
     port, zport = free_tcp_port(), free_tcp_port()
-    proc = subprocess.Popen([sys.executable, "-m", "sumoco.app.cli", "view", "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "sumoco.cli", "view", "--port", str(port),
                              "--listen", f"tcp/127.0.0.1:{zport}", "--run", "urltest", "--quiet"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"))

@@ -1,0 +1,220 @@
+"""Zenoh session set-up shared by every sumoco process.
+
+Embedded default: peer mode, multicast scouting off, explicit loopback endpoints, so two
+daemons on one machine find each other without a router and nothing leaves 127.0.0.1.
+Scale-out: mode "client" with ``connect`` pointing at routers (``sumoco router`` or zenohd).
+
+Secure profile (``[zenoh.security] certs = DIR``, see ``configs/secure.toml``): every link
+is TLS with mutual authentication (each process presents the certificate of its role,
+made by ``sumoco certs init DIR``), ``tcp/`` endpoints are used as ``tls/`` ones, and an
+access-control policy by certificate common name decides what each role may send:
+``access_control`` below. Every process loads the same policy and applies it to what it
+receives, so a refused message never reaches the daemon it was aimed at.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import threading
+from pathlib import Path
+
+import zenoh
+
+from protocol.errors import ConfigError, SumocoError
+from runtime.config import SecurityConfig, ZenohConfig
+
+log = logging.getLogger(__name__)
+
+#: Roles with one certificate each (CN = role); renderers have one per ego id. The gateway
+#: relays engines that have no Zenoh binding; it checks its WebSocket clients' token itself.
+#: ``router`` is ``sumoco router``: access control applies per link by the CN of the peer
+#: at its other end, so what a router forwards carries the router's CN, not its sender's.
+ROLES = ("sumo", "physics", "viewer", "gateway", "router")
+
+#: Every message kind Zenoh's access control knows (Zenoh >= 1.0 names).
+_ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
+                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
+
+
+def renderer_role(ego_id: str) -> str:
+    """Certificate common name of the renderer that drives ego ``ego_id``."""
+    return f"renderer-{ego_id}"
+
+
+def access_control(root: str, sec: SecurityConfig) -> dict:
+    """The role policy as Zenoh's ``access_control`` table (deny unless allowed).
+
+    Ingress rules say what a peer of a role may send us: every role may subscribe and
+    query; only ``sumo`` may put steps, serve static data, the map and status and hold the SUMO
+    liveliness token; only ``physics`` may put states and acks and hold physics tokens;
+    ``renderer-<id>`` may put ego poses on ``ego/<id>`` alone; ``gateway`` may put ego poses
+    for any id (it relays engines that hold its token, SPEC 10); ``viewer``, ``gateway`` and every
+    ``renderer-<id>`` may put cameras and hold camera tokens under their own role only
+    (``viewer/<role>/*/camera``, ``viewer/<role>/*/alive``, SPEC 3.7).
+    ``router`` may send everything under the root: a router applies this same policy to
+    what its own clients send it (by their CN) and then forwards under its own CN, so the
+    check happens at the first hop; router-to-router links of a mesh pass it on as it is.
+    Egress is open to every authenticated role: anyone with a certificate may read.
+    """
+    r = root
+
+    def rule(rid: str, flow: str, messages, keys) -> dict:
+        return {"id": rid, "permission": "allow", "flows": [flow], "messages": list(messages),
+                "key_exprs": list(keys)}
+
+    rules = [
+        rule("receive", "egress", _ALL_MESSAGES, [f"{r}/**"]),
+        rule("read", "ingress", ("declare_subscriber", "declare_liveliness_subscriber", "liveliness_query",
+                                 "query"), [f"{r}/**"]),
+        rule("sumo-put", "ingress", ("put", "delete"), [f"{r}/*/sumo/step"]),
+        rule("sumo-serve", "ingress", ("declare_queryable", "reply"),
+             [f"{r}/*/sumo/static", f"{r}/*/sumo/map", f"{r}/*/sumo/status"]),
+        rule("sumo-token", "ingress", ("liveliness_token",), [f"{r}/*/sumo/alive"]),
+        rule("physics-put", "ingress", ("put", "delete"), [f"{r}/*/physics/*/state", f"{r}/*/physics/*/ack"]),
+        rule("physics-token", "ingress", ("liveliness_token",), [f"{r}/*/physics/*/alive"]),
+        rule("gateway-ego", "ingress", ("put", "delete"), [f"{r}/*/ego/*"]),
+        rule("router-forward", "ingress", _ALL_MESSAGES, [f"{r}/**"]),
+    ]
+    grants = {"sumo": ["sumo-put", "sumo-serve", "sumo-token"], "physics": ["physics-put", "physics-token"],
+              "viewer": [], "gateway": ["gateway-ego"], "router": ["router-forward"]}
+    for ego in sec.renderers:
+        rules.append(rule(f"ego-{ego}", "ingress", ("put", "delete"), [f"{r}/*/ego/{ego}"]))
+        grants[renderer_role(ego)] = [f"ego-{ego}"]
+    for role in ["viewer", "gateway", *(renderer_role(e) for e in sec.renderers)]:
+        rules.append(rule(f"camera-{role}", "ingress", ("put", "delete"), [f"{r}/*/viewer/{role}/*/camera"]))
+        rules.append(rule(f"camera-token-{role}", "ingress", ("liveliness_token",), [f"{r}/*/viewer/{role}/*/alive"]))
+        grants[role] = [*grants[role], f"camera-{role}", f"camera-token-{role}"]
+    subjects, policies = [], []
+    for role, own in grants.items():
+        # By certificate only: user/password authenticates the connecting side alone, so a
+        # peer that connected to us could not match a username subject on its own side.
+        subjects.append({"id": role, "cert_common_names": [role]})
+        policies.append({"id": role, "rules": ["receive", "read", *own], "subjects": [role]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def _role_files(sec: SecurityConfig, role: str) -> tuple[Path, Path, Path]:
+    d = sec.certs
+    files = (d / "ca.pem", d / f"{role}.pem", d / f"{role}.key")
+    for f in files:
+        if not f.is_file():
+            raise ConfigError(f"zenoh.security.certs: {f} not found (role {role!r}); make the certificates "
+                              f"with `sumoco certs init {d}`")
+    return files
+
+
+def _password_of(users: Path, role: str) -> str:
+    try:
+        lines = users.read_text().splitlines()
+    except OSError as e:
+        raise ConfigError(f"zenoh.security.users: cannot read {users} ({e.strerror})") from None
+    for line in lines:
+        user, sep, password = line.partition(":")
+        if sep and user == role:
+            return password
+    raise ConfigError(f"zenoh.security.users: {users} has no line for user {role!r}")
+
+
+def _as_tls(endpoint: str) -> str:
+    return "tls/" + endpoint[4:] if endpoint.startswith("tcp/") else endpoint
+
+
+def _secure(conf: zenoh.Config, cfg: ZenohConfig, role: str) -> None:
+    sec = cfg.security
+    ca, cert, key = _role_files(sec, role)
+    tls = {
+        "root_ca_certificate": str(ca),
+        "listen_certificate": str(cert), "listen_private_key": str(key),
+        "connect_certificate": str(cert), "connect_private_key": str(key),
+        "enable_mtls": True,  # a peer without a certificate from our CA cannot open a link
+        "verify_name_on_connect": True,
+    }
+    for k, v in tls.items():
+        conf.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
+    if sec.users is not None:
+        usr = {"user": role, "password": _password_of(sec.users, role), "dictionary_file": str(sec.users)}
+        for k, v in usr.items():
+            conf.insert_json5(f"transport/auth/usrpwd/{k}", json.dumps(v))
+    if sec.acl:
+        conf.insert_json5("access_control", json.dumps(access_control(cfg.root, sec)))
+
+
+def zenoh_config(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Config:
+    """Translate our typed ``[zenoh]`` table into a ``zenoh.Config``.
+
+    ``role`` picks the certificate in the secure profile (``sumo``, ``physics``,
+    ``viewer`` or ``renderer-<ego id>``); without ``[zenoh.security]`` it is unused.
+    """
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(cfg.mode))
+    # An empty listen list would make a peer listen on every interface: keep it on loopback.
+    listen = list(cfg.listen) or (["tcp/127.0.0.1:0"] if cfg.mode != "client" else [])
+    connect = list(cfg.connect)
+    if cfg.security.enabled:
+        listen, connect = [_as_tls(e) for e in listen], [_as_tls(e) for e in connect]
+        _secure(conf, cfg, role)
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    conf.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    # Bounds what one peer can make us buffer while reassembling a message (default 1 GiB).
+    conf.insert_json5("transport/link/rx/max_message_size", json.dumps(int(cfg.max_message_mb * (1 << 20))))
+    return conf
+
+
+def open_session(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Session:
+    """Open a session; ``role`` names this process in the secure profile (least: viewer)."""
+    zenoh.try_init_log_from_env()
+    log.debug("opening zenoh session mode=%s listen=%s connect=%s%s", cfg.mode, cfg.listen, cfg.connect,
+              f" (TLS as {role!r})" if cfg.security.enabled else "")
+    try:
+        return zenoh.open(zenoh_config(cfg, role))
+    except zenoh.ZError as e:  # e.g. a listen port taken meanwhile: one line, not a traceback
+        raise SumocoError(f"cannot open the Zenoh session ({' '.join(str(e).split())})") from None
+
+
+def free_tcp_port() -> int:
+    """A currently free TCP port on 127.0.0.1 (for tests and the demo's endpoints)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Wake:
+    """``threading.Event``'s ``set`` / ``wait`` / ``clear`` / ``is_set`` on one C-level lock.
+
+    For a daemon's main loop woken by Zenoh callbacks: ``threading.Event`` runs a
+    ``Condition`` in Python on both sides (a waiter lock allocated per wait, a notify loop
+    under a second lock), which after an idle wait costs tens of microseconds of cold
+    code per step. Here the flag *is* the lock: unlocked = set. ``set`` releases it (from
+    any thread, never blocks), ``wait`` acquires and releases it again (blocking in C,
+    the GIL released), ``clear`` takes it without blocking.
+    """
+
+    __slots__ = ("_lock",)
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._lock.acquire()  # starts cleared
+
+    def set(self) -> None:
+        try:
+            self._lock.release()
+        except RuntimeError:  # already set
+            pass
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """True once set (it stays set), False after ``timeout`` [s]; None waits forever."""
+        if self._lock.acquire(timeout=-1 if timeout is None else max(0.0, timeout)):
+            self.set()
+            return True
+        return False
+
+    def clear(self) -> None:
+        self._lock.acquire(blocking=False)
+
+    def is_set(self) -> bool:
+        return not self._lock.locked()

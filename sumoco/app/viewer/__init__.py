@@ -1,1 +1,0 @@
-"""Live browser viewer of a run (``sumoco view``): see ``sumoco.app.viewer.server``."""

@@ -1,0 +1,229 @@
+"""End-to-end latency against raw Zenoh moving the same bytes between the same two processes.
+
+One publisher process (this one) and one subscriber process (``python -m
+sumoco.bench.e2e --sub``) exchange two interleaved streams in the same run, on two
+keys with the SUMO daemon's publisher settings (``STEP_PUT``):
+
+- ``raw``: the already-encoded step bytes. Sent stamp just before ``put``; received stamp
+  in the subscriber callback once the payload is Python bytes (``to_bytes``, which any
+  Python receiver needs). This is the limit: Zenoh alone.
+- ``e2e``: the same step as the SUMO side sends it. Sent stamp just before ``encode``
+  (the message built from numpy columns just before, as the bridge does); received stamp once the physics side's receive
+  path has decoded it: callback -> ``to_bytes`` -> bounded ``DropOldest`` queue -> wake the
+  main loop (``runtime.transport.Wake``) -> ``decode_as`` with the daemon's limits
+  (``physics_side.daemon``).
+
+Both processes run with the daemons' process settings (``runtime.hotpath``). CLOCK_MONOTONIC is shared by all processes of one host, so the difference of
+two stamps is the one-way latency. Messages alternate raw / e2e half a period apart, so
+machine load hits both streams alike; the row carries both and their ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from protocol.codec import DecodeLimits, decode_as, encode
+from protocol.keys import Keys
+from protocol.messages import StepMessage
+from runtime.config import ZenohConfig
+from runtime.hotpath import freeze_startup_objects, tune_allocator
+from runtime.queues import DropOldest
+from runtime.transport import Wake, free_tcp_port, open_session
+from synthetic.traffic import synthetic_step
+
+KEYS = Keys("sumocobench", "e2e")
+RAW_KEY = f"{KEYS.base}/raw/step"
+#: The SUMO daemon's step publisher settings (sumo_side.daemon): never dropped, not batched.
+STEP_PUT = {"congestion_control": zenoh.CongestionControl.BLOCK, "express": True}
+
+
+def _percentiles(a: np.ndarray) -> tuple[float | None, float | None, float | None]:
+    if not len(a):
+        return None, None, None
+    return (round(float(np.percentile(a, 50)), 4), round(float(np.percentile(a, 99)), 4),
+            round(float(a.max()), 4))
+
+
+def _median_ms(ns: list[int], skip: int) -> float | None:
+    a = np.asarray(ns, float)[skip:]
+    return round(float(np.median(a)) / 1e6, 4) if len(a) else None
+
+
+def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agents: int) -> None:
+    cfg = ZenohConfig(listen=(f"tcp/127.0.0.1:{free_tcp_port()}",), connect=(connect,), shared_memory=shm)
+    raw_at: list[int] = []
+    e2e_at: dict[int, int] = {}
+    decode_ns: list[int] = []
+    decode_cpu_ns: list[int] = []
+    handoff_ns: list[int] = []
+    steps: DropOldest[tuple[bytes, int]] = DropOldest(64, 256 << 20, size=lambda item: len(item[0]))
+    wake = Wake()  # as PhysicsDaemon._wake
+    stop = threading.Event()
+    limits = DecodeLimits.for_agents(max_agents)
+
+    def on_raw(sample: zenoh.Sample) -> None:
+        sample.payload.to_bytes()
+        raw_at.append(time.monotonic_ns())  # Zenoh keeps one publisher's order: index = arrival
+
+    def on_step(sample: zenoh.Sample) -> None:  # as PhysicsDaemon._on_step
+        data = sample.payload.to_bytes()
+        steps.put((data, time.monotonic_ns()))
+        wake.set()
+
+    def main_loop() -> None:  # as PhysicsDaemon.run in lockstep: wait, take one step, decode
+        while not stop.is_set():
+            if not steps:
+                wake.wait(0.05)
+                wake.clear()
+                continue
+            data, landed = steps.get()
+            t0 = time.monotonic_ns()
+            handoff_ns.append(t0 - landed)
+            c0 = time.thread_time_ns()
+            msg = decode_as(data, StepMessage, limits)
+            t1 = time.monotonic_ns()
+            e2e_at[msg.step] = t1
+            decode_ns.append(t1 - t0)
+            decode_cpu_ns.append(time.thread_time_ns() - c0)
+
+    tune_allocator()
+    freeze_startup_objects()
+    with open_session(cfg) as s:
+        worker = threading.Thread(target=main_loop, daemon=True)
+        worker.start()
+        subs = [s.declare_subscriber(RAW_KEY, on_raw), s.declare_subscriber(KEYS.step, on_step)]
+        tok = s.liveliness().declare_token(KEYS.physics_alive)
+        deadline = time.monotonic() + timeout_s
+        while (len(raw_at) < count or len(e2e_at) < count) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stop.set()
+        worker.join(1.0)
+        tok.undeclare()
+        for sub in subs:
+            sub.undeclare()
+    json.dump({"raw": raw_at, "e2e": e2e_at, "decode_ns": decode_ns, "decode_cpu_ns": decode_cpu_ns,
+               "handoff_ns": handoff_ns}, sys.stdout)
+
+
+def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
+            path_points: int = 12) -> dict:
+    """One row: raw and end-to-end latency at ``agents``, measured in the same run."""
+    load_before = os.getloadavg()[0]
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    cfg = ZenohConfig(listen=(ep,), shared_memory=shm)
+    def build(i: int):
+        # Built just before it is sent, as the SUMO side's bridge builds each step: the
+        # arrays are fresh in cache for both streams (a few seeds: no repeat is cheaper).
+        return synthetic_step(agents, seed=i % 4, step=i, path_points=path_points)
+
+    nbytes = len(encode(build(0)))
+    raw_sent: list[int] = []
+    e2e_sent: list[int] = []
+    encode_ns: list[int] = []
+    encode_cpu_ns: list[int] = []
+    tune_allocator()
+    freeze_startup_objects()
+    with open_session(cfg) as s:
+        pub_raw = s.declare_publisher(RAW_KEY, **STEP_PUT)
+        pub = s.declare_publisher(KEYS.step, **STEP_PUT)
+        alive = s.liveliness().declare_subscriber(KEYS.physics_alive, history=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "sumoco.bench.e2e", "--sub", ep, "--count", str(steps),
+             "--timeout", str(steps * period_s + 30), "--max-agents", str(agents)] + (["--shm"] if shm else []),
+            stdout=subprocess.PIPE,
+        )
+        try:
+            if alive.recv() is None:  # blocks until the subscriber's token arrives
+                raise RuntimeError("subscriber never came up")
+            deadline = time.monotonic() + 10.0
+            while not (pub.matching_status.matching and pub_raw.matching_status.matching):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("subscriber's subscriptions never reached the publisher")
+                time.sleep(0.01)
+            half = period_s / 2
+            nxt = time.monotonic()
+            for i in range(steps):
+                nxt += half
+                wire = encode(build(i))
+                raw_sent.append(time.monotonic_ns())
+                pub_raw.put(wire)
+                time.sleep(max(0.0, nxt - time.monotonic()))
+                nxt += half
+                msg = build(i)
+                t0 = time.monotonic_ns()
+                e2e_sent.append(t0)
+                c0 = time.thread_time_ns()
+                data = encode(msg)
+                encode_cpu_ns.append(time.thread_time_ns() - c0)
+                encode_ns.append(time.monotonic_ns() - t0)
+                pub.put(data)
+                time.sleep(max(0.0, nxt - time.monotonic()))
+            out, _ = proc.communicate(timeout=steps * period_s + 60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            gc.unfreeze()
+    got = json.loads(out or b"{}")
+    raw_at = got.get("raw", [])
+    e2e_at = {int(k): v for k, v in got.get("e2e", {}).items()}
+    raw = np.array([(raw_at[i] - raw_sent[i]) / 1e6 for i in range(warmup, min(steps, len(raw_at)))])
+    e2e = np.array([(e2e_at[i] - e2e_sent[i]) / 1e6 for i in range(warmup, steps) if i in e2e_at])
+    r50, r99, rmax = _percentiles(raw)
+    e50, e99, emax = _percentiles(e2e)
+    dec = np.asarray(got.get("decode_ns", []), float)[warmup:] / 1e6
+    enc = np.asarray(encode_ns, float)[warmup:] / 1e6
+    hand = np.asarray(got.get("handoff_ns", []), float)[warmup:] / 1e6
+    return {
+        "agents": agents,
+        "path_points_per_agent": path_points,
+        "shm": shm,
+        "bytes": nbytes,
+        "sent": steps,
+        "received_raw": len(raw_at),
+        "received_e2e": len(e2e_at),
+        "raw_ms_p50": r50, "raw_ms_p99": r99, "raw_ms_max": rmax,
+        "latency_ms_p50": e50, "latency_ms_p99": e99, "latency_ms_max": emax,
+        "ratio_p50": round(e50 / r50, 3) if e50 and r50 else None,
+        "ratio_p99": round(e99 / r99, 3) if e99 and r99 else None,
+        "encode_ms_p50": round(float(np.median(enc)), 4) if len(enc) else None,
+        "decode_ms_p50": round(float(np.median(dec)), 4) if len(dec) else None,
+        "handoff_ms_p50": round(float(np.median(hand)), 4) if len(hand) else None,
+        # CPU time of the same calls: wall minus CPU is time spent waiting for a core
+        "encode_cpu_ms_p50": _median_ms(encode_cpu_ns, warmup),
+        "decode_cpu_ms_p50": _median_ms(got.get("decode_cpu_ns", []), warmup),
+        # 1-minute load average before and after the row: other processes share the cores,
+        # and every cost here after an idle wait is cold-cache cost, which load inflates
+        "loadavg_1m": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+    }
+
+
+def run_e2e_bench(sizes=(100, 1000), quick: bool = False) -> list[dict]:
+    """Rows for steps without paths and with the SUMO side's 12 path points per agent,
+    over TCP and shared memory."""
+    steps = 60 if quick else 300
+    return [measure(n, shm, steps=steps, path_points=pts) for n in sizes for pts in (0, 12) for shm in (False, True)]
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sub")
+    ap.add_argument("--count", type=int, default=100)
+    ap.add_argument("--timeout", type=float, default=60)
+    ap.add_argument("--max-agents", type=int, default=10_000)
+    ap.add_argument("--shm", action="store_true")
+    a = ap.parse_args()
+    if a.sub:
+        _subscriber(a.sub, a.shm, a.count, a.timeout, a.max_agents)
+    else:
+        print(json.dumps(run_e2e_bench(), indent=1))

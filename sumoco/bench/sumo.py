@@ -1,0 +1,202 @@
+"""``sumoco bench sumo``: per-step cost of the SUMO side at ~250 and ~2,500 agents.
+
+For each size a grid scenario (``sumo_side.scenarios.make_grid_scenario``) runs in
+libsumo until the network holds about that many vehicles; then, per step, it measures
+
+- ``sumo_step_ms``: SUMO's own ``simulationStep``;
+- ``bridge_ms``: everything else the daemon does per step (``read`` of the subscriptions,
+  look-ahead and paths, building and encoding the message, publishing it on a real
+  loopback Zenoh session with a subscriber attached, and the garbage-collector tick),
+  with the daemon's code (``Bridge``, ``HotLoopGC``);
+- ``encode_ms`` / ``decode_ms`` of the published message, and its size per agent with
+  and without path polylines.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from protocol.codec import decode, encode
+from sumo_side.bridge import Bridge
+from sumo_side.config import SumoConfig
+from sumo_side.daemon import HotLoopGC
+from sumo_side.simulation import SumoSim
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def cache_dir() -> Path:
+    d = ROOT / "runs" / "scenarios"
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+    except OSError:
+        return Path(tempfile.gettempdir()) / "sumoco-scenarios"
+
+
+class _Sink:
+    """A subscriber in a second Zenoh session: counts what arrives."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.bytes = 0
+        self._lock = threading.Lock()
+
+    def __call__(self, sample) -> None:
+        n = len(sample.payload)
+        with self._lock:
+            self.count += 1
+            self.bytes += n
+
+
+def _sessions():
+    from runtime.config import ZenohConfig
+    from runtime.transport import free_tcp_port, open_session
+
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    pub_s = open_session(ZenohConfig(listen=(ep,)))
+    sub_s = open_session(ZenohConfig(connect=(ep,), listen=()))
+    return pub_s, sub_s
+
+
+def bench_one(sumocfg: Path, target: int, steps: int, warmup_max: int = 3000, seed: int = 42) -> dict:
+    import zenoh
+
+    from protocol.keys import Keys
+
+    cfg = SumoConfig(sumocfg=sumocfg)
+    sim = SumoSim(cfg, seed=seed, run_id="bench")
+    sim.start()
+    pub_s, sub_s = _sessions()
+    keys = Keys("sumoco", "bench")
+    sink = _Sink()
+    sub = sub_s.declare_subscriber(keys.step, sink)
+    publisher = pub_s.declare_publisher(
+        keys.step, congestion_control=zenoh.CongestionControl.BLOCK, express=True
+    )
+    deadline = time.monotonic() + 10.0
+    while not publisher.matching_status and time.monotonic() < deadline:
+        time.sleep(0.01)
+    try:
+        bridge = Bridge(sim, cfg, "bench")
+        # Warm up: let the network fill to the target size (and the path cache with it).
+        k = 0
+        for k in range(warmup_max):
+            sim.step()
+            snap = sim.read()
+            bridge.build(k, snap)
+            if snap.n >= 0.97 * target:
+                break
+        warm_steps = k + 1
+        t_sumo, t_read, t_build, t_enc, t_pub, t_gc = ([] for _ in range(6))
+        agents, nbytes = [], []
+        walks0 = bridge.planner.resolved
+        msg = None
+        perf = time.perf_counter
+        with HotLoopGC() as hot_gc:
+            for i in range(steps):
+                k += 1
+                t0 = perf()
+                sim.step()
+                t1 = perf()
+                snap = sim.read()
+                t2 = perf()
+                msg = bridge.build(k, snap)
+                t3 = perf()
+                data = encode(msg)
+                t4 = perf()
+                publisher.put(data)
+                t5 = perf()
+                # the daemon collects once per status period (1 s); here once per 10 steps
+                # (1 s of simulated time at 0.1 s steps), its time counted as bridge time
+                if i % 10 == 9:
+                    hot_gc.tick()
+                t6 = perf()
+                t_sumo.append(t1 - t0)
+                t_read.append(t2 - t1)
+                t_build.append(t3 - t2)
+                t_enc.append(t4 - t3)
+                t_pub.append(t5 - t4)
+                t_gc.append(t6 - t5)
+                agents.append(snap.n)
+                nbytes.append(len(data))
+        # codec figures on the last message, with and without paths
+        a = msg.agents
+        no_paths = dataclasses.replace(
+            msg, agents=dataclasses.replace(a, path_offsets=np.zeros(0, np.uint32),
+                                            path_xy=np.zeros((0, 2), np.float32))
+        )
+        data_np = encode(no_paths)
+        data_wp = encode(msg)
+        n = max(a.n, 1)
+
+        def best(fn, reps=30):
+            ts = []
+            for _ in range(reps):
+                t = perf()
+                fn()
+                ts.append(perf() - t)
+            return float(np.median(ts) * 1e3)
+
+        ms = lambda xs: round(float(np.mean(xs)) * 1e3, 3)  # noqa: E731
+        bridge_each = np.array(t_read) + np.array(t_build) + np.array(t_enc) + np.array(t_pub) + np.array(t_gc)
+        wait_end = time.monotonic() + 5.0
+        while sink.count < steps and time.monotonic() < wait_end:
+            time.sleep(0.01)
+        row = {
+            "scenario": sumocfg.parent.name,
+            "agents": int(round(float(np.mean(agents)))),
+            "agents_min": int(min(agents)),
+            "agents_max": int(max(agents)),
+            "steps": steps,
+            "warmup_steps": warm_steps,
+            "sumo_step_ms": ms(t_sumo),
+            "bridge_ms": round(float(np.mean(bridge_each)) * 1e3, 3),
+            "bridge_ms_p95": round(float(np.percentile(bridge_each, 95)) * 1e3, 3),
+            "bridge_to_sumo_ratio": round(float(np.mean(bridge_each) / max(np.mean(t_sumo), 1e-12)), 3),
+            "read_ms": ms(t_read),
+            "lookahead_build_ms": ms(t_build),
+            "encode_ms": ms(t_enc),
+            "publish_ms": ms(t_pub),
+            "gc_ms": ms(t_gc),
+            "decode_ms": round(best(lambda: decode(data_wp)), 4),
+            "bytes_per_agent": round(len(data_np) / n, 2),
+            "bytes_per_agent_with_paths": round(len(data_wp) / n, 2),
+            "path_points_per_agent": round(len(a.path_xy) / n, 2),
+            "encode_ms_no_paths": round(best(lambda: encode(no_paths)), 4),
+            "decode_ms_no_paths": round(best(lambda: decode(data_np)), 4),
+            "lane_walks_per_step": round((bridge.planner.resolved - walks0) / steps, 2),
+            "received": sink.count,
+        }
+        return row
+    finally:
+        for obj in (sub, publisher):
+            try:
+                obj.undeclare()
+            except Exception:
+                pass
+        pub_s.close()
+        sub_s.close()
+        sim.close()
+
+
+def run_sumo_bench(sizes=(250, 2500), steps: int | None = None, quick: bool = False, seed: int = 42) -> list[dict]:
+    """One row per scenario size (about ``size`` vehicles in the network)."""
+    from sumo_side.scenarios import make_grid_scenario
+
+    steps = steps or (30 if quick else 300)
+    rows = []
+    for size in sizes:
+        cfg = make_grid_scenario(cache_dir(), size, seed=seed)
+        log.info("bench sumo: %d agents target, scenario %s", size, cfg)
+        rows.append({"target_agents": size, **bench_one(Path(cfg), size, steps, seed=seed)})
+    return rows

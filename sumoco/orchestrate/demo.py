@@ -1,0 +1,412 @@
+"""``sumoco demo``: both daemons as OS processes on loopback, a bounded run, a report.
+
+The demo process is the hub: it opens a Zenoh peer session, records every key of the run
+to ``<out>/run.mcap``, starts the SUMO side and one physics process per control preset
+(``paper`` and ``default`` side by side on the same SUMO traffic), shows progress, stops
+them all cleanly (also on Ctrl-C) and writes ``summary.json``, the figures and
+``report.md`` from the recording.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from protocol.errors import ConfigError, SumocoError
+from protocol.keys import Keys
+from runtime.errors import ExitCode
+from runtime.config import CommonConfig, ZenohConfig, apply_cli, load_common, replace, section
+from sumoco.recording.record import LiveRecorder, McapRecorder, RecordConfig
+from runtime.transport import free_tcp_port, open_session
+
+log = logging.getLogger(__name__)
+
+REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    presets: tuple[str, ...] = ("paper", "default")  # one physics process per preset
+    wall_limit_s: float = 120.0  # [s] wall-clock bound of the whole run
+    startup_timeout_s: float = 60.0  # [s] for the daemons to come up
+    stop_timeout_s: float = 10.0  # [s] grace period after SIGTERM before SIGKILL
+    progress_period_s: float = 2.0  # [s] between progress lines
+    lad_sweep: bool = True  # replay the reference car for the LAD_min figure
+
+
+class _Progress:
+    """Counts what the recorder sees (runs on Zenoh's thread, read by the main loop)."""
+
+    def __init__(self) -> None:
+        self.steps = 0
+        self.states = 0
+        self.last_step_msg: bytes | None = None
+        self.lock = threading.Lock()
+
+    def __call__(self, topic: str, payload: bytes) -> None:
+        with self.lock:
+            if topic.endswith("/sumo/step"):
+                self.steps += 1
+                self.last_step_msg = payload
+            elif topic.endswith("/state"):
+                self.states += 1
+
+
+class Processes:
+    """The daemons of one run; guarantees none outlives the demo."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._files = []
+
+    def start(self, name: str, argv: list[str]) -> subprocess.Popen:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        f = (self.log_dir / f"{name}.log").open("wb")
+        self._files.append(f)
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        log.info("starting %s: %s", name, " ".join(argv[2:]))
+        p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        self.procs[name] = p
+        return p
+
+    def stop(self, names: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int | None]:
+        names = list(self.procs) if names is None else names
+        for n in names:
+            p = self.procs[n]
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        codes = {}
+        for n in names:
+            p = self.procs[n]
+            try:
+                codes[n] = p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop after SIGTERM; killing it", n)
+                p.kill()
+                codes[n] = p.wait(5)
+        return codes
+
+    def wait(self, names: list[str], timeout_s: float) -> dict[str, int]:
+        """Exit codes of the processes that end by themselves within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        codes = {}
+        for n in names:
+            try:
+                codes[n] = self.procs[n].wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not leave after the last step within %.0f s", n, timeout_s)
+        return codes
+
+    def close(self) -> None:
+        self.stop(timeout_s=5.0)
+        for f in self._files:
+            f.close()
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "sumoco.cli", *args]
+
+
+class DaemonFailed(SumocoError):
+    """A daemon of the demo crashed or failed; ``exit_code`` is the demo's."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+def _sumo_side_stats(folder: Path) -> dict | None:
+    """The SUMO side's final counters (steps, rejected, acks, egos, ...), None if it wrote none."""
+    from sumo_side.daemon import STATS_FILE
+
+    try:
+        return json.loads((folder / STATS_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _last_error_line(log_file: Path, name: str) -> str:
+    """The daemon's own one-line error (``sumoco <cmd>: ...``) from its log, if it wrote one."""
+    try:
+        lines = log_file.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    for line in reversed(lines[-200:]):
+        if line.startswith("sumoco "):
+            return line.split(": ", 1)[-1].strip()
+    return ""
+
+
+def _sumo_error(log_file: Path) -> str:
+    """SUMO's own last ``Error:`` line in a log, if any."""
+    try:
+        lines = log_file.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    errors = [ln.removeprefix("Error: ").strip() for ln in lines if ln.startswith("Error: ")]
+    return errors[-1] if errors else ""
+
+
+def _exit_text(code: int) -> str:
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def daemon_failure(name: str, code: int, log_dir: Path) -> DaemonFailed:
+    """One line naming the daemon, its signal or code and its own message; the demo's exit
+    code: 2 for a crash (signal) or a broken configuration/scenario, 1 for a failed run."""
+    log_file = log_dir / f"{name}.log"
+    own = _last_error_line(log_file, name)
+    text = f"{name} {_exit_text(code)}" + (f": {own}" if own else "") + f" (log: {log_file})"
+    return DaemonFailed(text, ExitCode.FAILURE if code == ExitCode.FAILURE else ExitCode.USAGE)
+
+
+def _wait_for(cond, timeout_s: float, what: str, procs: Processes) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        for name, p in procs.procs.items():
+            if p.poll() is not None:
+                raise daemon_failure(name, p.returncode, procs.log_dir)
+        if time.monotonic() > deadline:
+            raise DaemonFailed(f"timed out after {timeout_s:.0f} s waiting for {what} "
+                               f"(logs in {procs.log_dir})", ExitCode.FAILURE)
+        time.sleep(0.05)
+
+
+#: Start-up attempts when a chosen port was taken before a daemon could listen on it.
+PORT_ATTEMPTS = 3
+
+
+def _port_clash(procs: Processes) -> bool:
+    """A daemon ended because its listen port was taken (its log says so)."""
+    for name, p in procs.procs.items():
+        if p.poll() is None:
+            continue
+        try:
+            if "Address already in use" in (procs.log_dir / f"{name}.log").read_text(errors="replace"):
+                return True
+        except OSError:
+            pass
+    return False
+
+
+def _start_daemons(procs: Processes, common_args: list[str], hub: str, sumo_ep: str, demo: DemoConfig,
+                   out: Path, sumocfg: str | None, begin: float | None, common: CommonConfig) -> None:
+    """The SUMO side listening on ``sumo_ep`` and one physics process per preset."""
+    sumo_args = ["sumo", *common_args, "--listen", sumo_ep, "--connect", hub, "--output-dir", str(out / "sumo")]
+    for p in demo.presets:
+        sumo_args += ["--wait-for", p]
+    if sumocfg:
+        sumo_args += ["--sumocfg", str(sumocfg)]
+    if begin is not None:
+        sumo_args += ["--begin", repr(float(begin))]
+    if common.run.seed is not None:
+        sumo_args += ["--seed", str(common.run.seed)]
+    procs.start("sumo", _cli(*sumo_args))
+    for p in demo.presets:
+        procs.start(f"physics-{p}", _cli(
+            "physics", *common_args, "--instance", p, "--preset", p,
+            "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub))
+
+
+def default_out(sumocfg: str | Path | None) -> Path:
+    """``runs/demo`` for the bundled scenario, ``runs/<folder>/<name>`` for a .sumocfg."""
+    if not sumocfg:
+        return Path("runs") / "demo"
+    p = Path(sumocfg).expanduser().resolve()
+    return Path("runs") / p.parent.name / p.stem
+
+
+def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfig,
+             sumocfg: str | None = None, quiet: bool = False, begin: float | None = None,
+             record: RecordConfig | None = None) -> dict:
+    """Run the whole demo; returns the summary dict (also written to ``out/summary.json``).
+
+    ``record`` defaults to every physics state (the report's figures follow the 50 Hz ticks).
+    A daemon that crashes or fails raises ``DaemonFailed`` after the report of what was
+    recorded is written.
+    """
+    from sumoco.analysis.report import write_report
+
+    out.mkdir(parents=True, exist_ok=True)
+    keys = Keys(common.zenoh.root, common.run.id)
+    hub_port, sumo_port = free_tcp_port(), free_tcp_port()
+    hub = f"tcp/127.0.0.1:{hub_port}"
+    sumo_ep = f"tcp/127.0.0.1:{sumo_port}"
+    rec_path = out / "run.mcap"
+    progress = _Progress()
+    procs = Processes(out / "logs")
+    recorder = McapRecorder(rec_path)
+    zcfg = replace(common.zenoh, mode="peer", listen=(hub,), connect=())
+    t_start = time.monotonic()
+    interrupted = False
+    ended_by = ""
+    failure: DaemonFailed | None = None
+    codes: dict[str, int | None] = {}
+
+    def _on_sigint(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, _on_sigint)
+    # Ctrl-C stops the run even when the shell that started us ignores SIGINT (a script's
+    # background job inherits SIG_IGN, and Python then installs no KeyboardInterrupt)
+    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with open_session(zcfg) as session:
+            live = LiveRecorder(session, keys, recorder, on_message=progress,
+                                config=record or RecordConfig(physics_hz=0.0),
+                                limits=common.run.decode_limits).start()
+            alive = set()
+            tok_sub = session.liveliness().declare_subscriber(
+                f"{keys.base}/**", lambda s: (alive.add(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT
+                                               else alive.discard(str(s.key_expr))),
+                history=True)
+            common_args = ["--config", str(config_path), "--run", common.run.id,
+                           "--timing", common.run.timing, "--duration", repr(float(common.run.duration_s))]
+            if quiet:
+                common_args.append("--quiet")
+            for attempt in range(1, PORT_ATTEMPTS + 1):
+                try:
+                    _start_daemons(procs, common_args, hub, sumo_ep, demo, out, sumocfg, begin, common)
+                    _wait_for(lambda: keys.sumo_alive in alive, demo.startup_timeout_s, "the SUMO side", procs)
+                    if live.fetch_static(timeout_s=10.0) is None:
+                        log.warning("no static data from the SUMO side")
+                    want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
+                    _wait_for(lambda: want <= alive, demo.startup_timeout_s, "the physics processes", procs)
+                    break
+                except DaemonFailed as e:
+                    if procs.procs["sumo"].poll() == ExitCode.USAGE:
+                        # SUMO could not load the scenario: a configuration problem, not a run.
+                        own = (_last_error_line(procs.log_dir / "sumo.log", "sumo")
+                               .removeprefix("configuration error: ").replace("; SUMO's own messages are above", ""))
+                        said = _sumo_error(procs.log_dir / "sumo.log")
+                        raise ConfigError((own or str(e)) + (f"; SUMO said: {said}" if said else "")) from None
+                    if attempt == PORT_ATTEMPTS or not _port_clash(procs):
+                        raise
+                    # Another program took a port between choosing and listening: new ports.
+                    log.warning("a daemon's port was taken meanwhile; starting the daemons again on new ports")
+                    procs.stop(timeout_s=demo.stop_timeout_s)
+                    sumo_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+            log.info("all daemons up after %.1f s; running (wall limit %.0f s)",
+                     time.monotonic() - t_start, demo.wall_limit_s)
+            t_run = time.monotonic()
+            next_progress = t_run
+            while procs.procs["sumo"].poll() is None:
+                now = time.monotonic()
+                for name, p in procs.procs.items():
+                    if name != "sumo" and p.poll() not in (None, 0):
+                        failure = daemon_failure(name, p.returncode, procs.log_dir)
+                if failure is not None:
+                    break
+                if now - t_run > demo.wall_limit_s:
+                    log.info("wall-clock limit reached; stopping")
+                    ended_by = "wall-clock limit"
+                    break
+                if now >= next_progress:
+                    _print_progress(progress, now - t_run)
+                    next_progress = now + demo.progress_period_s
+                time.sleep(0.05)
+            # SUMO ends on its own (or on SIGTERM) with a step marked final; the physics
+            # processes acknowledge it and leave by themselves.
+            codes["sumo"] = procs.stop(["sumo"], demo.stop_timeout_s)["sumo"]
+            others = [n for n in procs.procs if n != "sumo"]
+            if codes["sumo"] == 0:
+                codes.update(procs.wait(others, demo.stop_timeout_s))
+            codes.update(procs.stop([n for n in others if n not in codes], demo.stop_timeout_s))
+            if failure is None:
+                for name, code in codes.items():
+                    if code not in (0, None):
+                        failure = daemon_failure(name, code, procs.log_dir)
+                        break
+            tok_sub.undeclare()
+            live.stop()
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted: stopping the daemons")
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        signal.signal(signal.SIGINT, old_int)
+        procs.close()
+        recorder.close()
+    try:
+        summary = write_report(rec_path, out, lad_sweep=demo.lad_sweep)
+    except Exception as e:  # nothing usable recorded: the failure below is the news
+        if failure is None:
+            raise
+        log.warning("no report: %s", e)
+        summary = {}
+    summary["daemons"] = {
+        "exit_codes": codes,
+        "completed": bool(codes) and not interrupted and failure is None and not ended_by
+        and all(c == 0 for c in codes.values()),
+        "ended_by": "interrupted" if interrupted else ended_by or (str(failure) if failure else "the run's end"),
+    }
+    summary["interrupted"] = interrupted
+    summary["sumo_side"] = _sumo_side_stats(out / "sumo")
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    if failure is not None:
+        raise failure
+    return summary
+
+
+def _print_progress(progress: _Progress, elapsed: float) -> None:
+    from protocol.codec import decode
+
+    with progress.lock:
+        steps, states, last = progress.steps, progress.states, progress.last_step_msg
+    t, n = 0.0, 0
+    if last is not None:
+        try:
+            m = decode(last)
+            t, n = m.time, m.agents.n
+        except Exception:
+            pass
+    print(f"[demo] {elapsed:6.1f} s wall | sim t={t:6.1f} s | steps {steps} | agents {n} | "
+          f"physics states {states}", file=sys.stderr, flush=True)
+
+
+def cli_main(args) -> int:
+    from sumo_side.simulation import check_sumocfg
+
+    config = Path(args.config) if args.config else REPO_CONFIGS / "demo.toml"
+    common, data, base = load_common(config)
+    common = apply_cli(common, args)
+    demo = section(data, "demo", DemoConfig, base, str(config))
+    if getattr(args, "wall", None):
+        demo = replace(demo, wall_limit_s=float(args.wall))
+    record = section(data, "record", RecordConfig, base, str(config)) if "record" in data else None
+    sumocfg = getattr(args, "sumocfg", None)
+    if sumocfg:
+        sumocfg = str(check_sumocfg(Path(sumocfg)))  # a missing or broken file: exit 2 before any daemon
+    begin = getattr(args, "begin", None)
+    if begin is not None and begin < 0:
+        raise ConfigError(f"--begin: expected >= 0 s, got {begin}")
+    out = Path(args.out) if getattr(args, "out", None) else default_out(sumocfg)
+    try:
+        summary = run_demo(config, out, common, demo, sumocfg=sumocfg, quiet=bool(args.quiet), begin=begin,
+                           record=record)
+    except DaemonFailed as e:
+        print(f"sumoco demo: {e}", file=sys.stderr)
+        return int(e.exit_code)
+    print(f"report: {out / 'report.md'}", file=sys.stderr)
+    for inst, p in summary["presets"].items():
+        e = p["error_m"]["overall"]
+        print(f"  {inst:8s} error mean {e['mean']} m, p95 {e['p95']} m, max {e['max']} m, "
+              f"collisions {p['collisions']}, placements {p['placements']}", file=sys.stderr)
+    return 130 if summary.get("interrupted") else 0

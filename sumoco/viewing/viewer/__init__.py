@@ -1,0 +1,1 @@
+"""Live browser viewer of a run (``sumoco view``): see ``sumoco.viewing.viewer.server``."""
