@@ -51,6 +51,7 @@ class AgentFlag(IntEnum):
     EGO = 2  # the externally controlled ego vehicle
     JUMPED = 4  # teleported or moved by moveToXY this step: do not track, place
     NEW = 8  # departed (entered the network) this step
+    PHYSICS_AUTHORITY = 16  # two-way coupling: physics owns this vehicle's motion, SUMO follows it
 
 
 class AgentMode(IntEnum):

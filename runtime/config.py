@@ -5,6 +5,7 @@ One TOML file configures a whole run; each part reads its own table:
 - ``[run]`` and ``[zenoh]``: defined here, shared by every process;
 - ``[sumo]``: ``sumo_side.config.SumoConfig``;
 - ``[physics]`` and ``[control.*]``: ``physics_side.config``;
+- ``[coupling]``: who owns each vehicle's motion (``CouplingConfig``, read by both sides);
 - ``[demo]``: ``sumoco.orchestrate.demo``.
 
 An unknown key or a value of the wrong type is a ``ConfigError`` that names the file,
@@ -28,7 +29,7 @@ from protocol.errors import ConfigError
 T = TypeVar("T")
 
 #: Top-level tables a config file may have.
-KNOWN_TABLES = ("run", "zenoh", "sumo", "physics", "control", "demo", "viewer", "record", "bench")
+KNOWN_TABLES = ("run", "zenoh", "coupling", "sumo", "physics", "control", "demo", "viewer", "record", "bench")
 
 
 @dataclass(frozen=True)
@@ -203,12 +204,54 @@ def replace(obj: T, **changes: Any) -> T:
     return dataclasses.replace(obj, **changes)  # type: ignore[type-var]
 
 
+#: vClasses SUMO knows (``sumo_side.netfile``'s list); a typo in ``coupling.classes`` is an error.
+VEHICLE_CLASSES = frozenset((
+    "private emergency authority army vip passenger hov taxi bus coach delivery truck trailer tram "
+    "rail_urban rail rail_electric rail_fast motorcycle moped bicycle evehicle ship container cable_car "
+    "subway aircraft wheelchair scooter drone custom1 custom2").split())
+
+
+@dataclass(frozen=True)
+class CouplingConfig:
+    """``[coupling]``: who owns each vehicle's motion (README, "Two-way coupling").
+
+    ``"sumo"`` (shadow): SUMO moves the vehicle, physics drives a body after it (and carries
+    it where SUMO's motion is beyond the vehicle). ``"physics"`` (two-way): SUMO gives the
+    intent (route, lane, target speed); physics drives; the physical pose and speed are
+    written back into SUMO before its next step. Pedestrians and egos are never
+    physics-authoritative. The SUMO side decides per vehicle and flags it on the wire.
+    """
+
+    authority: Literal["sumo", "physics"] = "sumo"  # owner of every vehicle not selected below
+    classes: tuple[str, ...] = ()  # vClasses that are physics-authoritative (with authority = "sumo")
+    types: tuple[str, ...] = ()  # vType ids that are physics-authoritative
+    ids: tuple[str, ...] = ()  # vehicle id patterns (fnmatch: "truck*") that are physics-authoritative
+    instance: str = "default"  # the physics instance whose states SUMO follows (others shadow it)
+    feedback_steps: int = 1  # [steps] realtime: a state at most this many steps old is written back
+
+    def validate(self) -> None:
+        bad = sorted(set(self.classes) - VEHICLE_CLASSES)
+        if bad:
+            raise ConfigError(f"coupling.classes: unknown vClass {bad[0]!r} (expected one of: "
+                              f"{', '.join(sorted(VEHICLE_CLASSES))})")
+        if not self.instance:
+            raise ConfigError("coupling.instance: expected a physics instance name, got ''")
+        if not 0 <= self.feedback_steps <= 10:
+            raise ConfigError(f"coupling.feedback_steps: expected 0..10, got {self.feedback_steps}")
+
+    @property
+    def two_way(self) -> bool:
+        """True when any vehicle may be physics-authoritative."""
+        return self.authority == "physics" or bool(self.classes or self.types or self.ids)
+
+
 @dataclass(frozen=True)
 class CommonConfig:
     """The tables every process reads."""
 
     run: RunConfig = field(default_factory=RunConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    coupling: CouplingConfig = field(default_factory=CouplingConfig)
 
 
 def load_common(path: str | Path) -> tuple[CommonConfig, dict[str, Any], Path]:
@@ -216,6 +259,7 @@ def load_common(path: str | Path) -> tuple[CommonConfig, dict[str, Any], Path]:
     common = CommonConfig(
         run=section(data, "run", RunConfig, base, str(path)),
         zenoh=section(data, "zenoh", ZenohConfig, base, str(path)),
+        coupling=section(data, "coupling", CouplingConfig, base, str(path)),
     )
     return common, data, base
 
@@ -237,4 +281,7 @@ def apply_cli(common: CommonConfig, args: Any) -> CommonConfig:
         zen = replace(zen, connect=tuple(args.connect))
     if getattr(args, "mode", None):
         zen = replace(zen, mode=args.mode)
-    return CommonConfig(run=run, zenoh=zen)
+    coupling = common.coupling
+    if getattr(args, "authority", None):
+        coupling = replace(coupling, authority=args.authority)
+    return CommonConfig(run=run, zenoh=zen, coupling=coupling)

@@ -1,0 +1,173 @@
+"""Two-way coupling on the SUMO side: which vehicles physics owns, and their states written back.
+
+A physics-authoritative vehicle takes from SUMO only its intent (route, lane choice, target
+speed from car following and signals); its physical pose and speed go back into SUMO
+before SUMO's next step, so every other vehicle's car following, lane changing and
+junction logic sees where it really is (README, "Two-way coupling"; SPEC.md 3.7).
+
+Write-back, per vehicle, before ``simulationStep`` of step k+1, from the physics state that
+ends step k:
+
+- ``vehicle.moveTo(lane, pos)`` on SUMO's own lane of step k, at SUMO's lane position plus
+  the physical body's offset along the path (``d_lon``). ``moveTo`` takes effect before
+  SUMO's movement phase, so step k+1 is SUMO's own model run from the physical state.
+  (``moveToXY`` is applied after the movement phase: one step of lag, sumo#11091.)
+- ``vehicle.setPreviousSpeed(speed)`` with the measured speed (not one implied by the move).
+- A position beyond the lane's ends (the body is behind SUMO's sample across a lane
+  boundary, or ahead into the next lane) falls back to ``moveToXY`` with ``keepRoute=1``
+  (mapped onto the route, so the route is never replaced by a single edge: sumo#2401);
+  counted as ``feedback_xy``.
+
+libsumo has no batched setters: everything is computed with numpy over all vehicles and
+only the calls themselves loop.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import time
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from protocol.messages import AgentFlag
+from runtime.config import CouplingConfig
+
+#: [m] an along-path offset smaller than this is not written (SUMO's pose is the physical one)
+MOVE_MIN_M = 0.01
+#: [m] a lane position this close to a lane's ends is kept inside it (SUMO refuses pos > length)
+LANE_END_MARGIN_M = 0.01
+#: [m/s] a physical speed at or below this is a stopped vehicle (``stopped`` counter)
+STOPPED_SPEED = 0.1
+
+
+class Feedback(NamedTuple):
+    """The physical state of physics-authoritative vehicles at the end of one SUMO step."""
+
+    step: int
+    ids: list[str]
+    x: np.ndarray
+    """Front-bumper centre x [m, float64]."""
+    y: np.ndarray
+    heading: np.ndarray
+    """[deg clockwise from north]."""
+    speed: np.ndarray
+    """Measured forward speed [m/s]."""
+    d_lon: np.ndarray
+    """Front bumper's offset along the path from SUMO's sample of ``step`` [m, + = ahead]."""
+
+
+@dataclass
+class FeedbackStats:
+    """What the write-back did (SUMO side ``stats()``, ``summary.json``)."""
+
+    applied_steps: int = 0  # steps whose states were written back
+    late_steps: int = 0  # steps with two-way vehicles but no state in time: SUMO kept its own motion
+    moved: int = 0  # moveTo calls (vehicle-steps)
+    moved_xy: int = 0  # moveToXY fallbacks (beyond a lane's ends)
+    speeds: int = 0  # setPreviousSpeed calls
+    unknown: int = 0  # states of vehicles SUMO no longer has (arrived meanwhile)
+    stopped: int = 0  # vehicle-steps written back at a standstill
+    feedback_s: float = 0.0  # [s] wall time spent writing back
+
+
+class Authority:
+    """Which vehicles are physics-authoritative: decided once per vehicle, kept by row."""
+
+    def __init__(self, cfg: CouplingConfig) -> None:
+        self.cfg = cfg
+        self._by_vtype = np.zeros(0, bool)
+        self._vtypes_version = -1
+        self._prev = np.zeros(0, bool)
+
+    def _vtype_rule(self, vtypes) -> np.ndarray:
+        """Per vType index: physics-authoritative by ``authority``, ``classes`` or ``types``."""
+        if vtypes.version != self._vtypes_version:
+            cfg = self.cfg
+            self._by_vtype = np.array(
+                [cfg.authority == "physics" or t.vclass in cfg.classes or t.id in cfg.types
+                 for t in vtypes.types], bool)
+            self._vtypes_version = vtypes.version
+        return self._by_vtype
+
+    def _by_id(self, ids: list[str], rows: np.ndarray) -> np.ndarray:
+        pats = self.cfg.ids
+        return np.array([any(fnmatch.fnmatchcase(ids[r], p) for p in pats) for r in rows], bool)
+
+    def flags(self, snap, vtypes, ego_flags: np.ndarray | None = None) -> np.ndarray:
+        """``AgentFlag.PHYSICS_AUTHORITY`` per agent of ``snap`` (uint8): vehicles only,
+        never an ego (``ego_flags``: the ego manager's flags of this step); ``vtypes``: the
+        SUMO side's ``VTypeTable`` (``types``, ``version``)."""
+        n, nv = snap.n, snap.n_vehicles
+        out = np.zeros(n, np.uint8)
+        keep = np.zeros(n, bool)
+        if self.cfg.two_way and nv:
+            by_type = self._vtype_rule(vtypes)
+            auth = by_type[snap.vtype[:nv]] if len(by_type) else np.zeros(nv, bool)
+            if self.cfg.ids:
+                # id patterns are matched once per vehicle, at its first step, and kept by row
+                prev = snap.prev_index
+                known = np.zeros(nv, bool) if prev is None else prev[:nv] >= 0
+                if known.any():
+                    auth[known] |= self._prev[prev[:nv][known]]
+                new = np.flatnonzero(~known)
+                if len(new):
+                    auth[new] |= self._by_id(snap.ids, new)
+            if ego_flags is not None:
+                auth &= (ego_flags[:nv] & AgentFlag.EGO) == 0
+            keep[:nv] = auth
+        self._prev = keep
+        out[keep] = AgentFlag.PHYSICS_AUTHORITY
+        return out
+
+
+class FeedbackWriter:
+    """Writes the physical states of step k into SUMO before its step k+1."""
+
+    def __init__(self, api, lane_ids: list[str], lane_lengths: np.ndarray, pos_factor: np.ndarray) -> None:
+        self.api = api
+        self.lane_ids = lane_ids
+        self.lane_lengths = np.asarray(lane_lengths, np.float64)
+        self.pos_factor = np.asarray(pos_factor, np.float64)
+        self.stats = FeedbackStats()
+
+    def apply(self, fb: Feedback, rows: np.ndarray, lane: np.ndarray, lane_pos: np.ndarray) -> None:
+        """Write ``fb`` back; ``rows[i]`` is the row of ``fb.ids[i]`` in SUMO's snapshot of
+        ``fb.step`` (-1: gone), whose ``lane`` / ``lane_pos`` columns are given."""
+        t0 = time.perf_counter()
+        st = self.stats
+        ok = rows >= 0
+        st.unknown += int((~ok).sum())
+        idx = np.flatnonzero(ok)
+        r = rows[idx]
+        ln = lane[r]
+        on_lane = ln >= 0
+        # along-path metres -> lane-position units of SUMO (junction lanes may differ)
+        factor = np.where(on_lane, self.pos_factor[np.maximum(ln, 0)], 1.0)
+        pos = lane_pos[r] + fb.d_lon[idx].astype(np.float64) / factor
+        length = np.where(on_lane, self.lane_lengths[np.maximum(ln, 0)], 0.0)
+        inside = on_lane & (pos >= 0.0) & (pos <= length)
+        move = inside & (np.abs(fb.d_lon[idx]) >= MOVE_MIN_M)
+        xy = ~inside
+        v = self.api.vehicle
+        ids = fb.ids
+        speed = fb.speed.astype(np.float64)
+        for j in np.flatnonzero(move):
+            i = idx[j]
+            v.moveTo(ids[i], self.lane_ids[ln[j]], float(min(pos[j], length[j] - LANE_END_MARGIN_M)))
+        for j in np.flatnonzero(xy):
+            i = idx[j]
+            v.moveToXY(ids[i], "", -1, float(fb.x[i]), float(fb.y[i]), float(fb.heading[i]), 1)
+        for i in idx:
+            v.setPreviousSpeed(ids[i], float(speed[i]))
+        st.moved += int(move.sum())
+        st.moved_xy += int(xy.sum())
+        st.speeds += len(idx)
+        st.stopped += int((speed[idx] <= STOPPED_SPEED).sum())
+        st.applied_steps += 1
+        st.feedback_s += time.perf_counter() - t0
+
+
+__all__ = ["Authority", "Feedback", "FeedbackStats", "FeedbackWriter", "LANE_END_MARGIN_M", "MOVE_MIN_M",
+           "STOPPED_SPEED"]

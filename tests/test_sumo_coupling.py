@@ -1,0 +1,113 @@
+"""Two-way coupling on the SUMO side: which vehicles physics owns, and the write-back into a
+real libsumo run (a vehicle held where "physics" has it makes SUMO's traffic queue behind it).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from protocol.errors import ConfigError
+from protocol.messages import AgentFlag, VType
+from runtime.config import CouplingConfig, from_dict
+from sumo_side.config import SumoConfig
+from sumo_side.coupling import Authority, Feedback, FeedbackWriter
+from sumo_side.simulation import SumoSim
+
+ROOT = Path(__file__).resolve().parents[1]
+STRAIGHT = ROOT / "configs" / "scenarios" / "straight" / "straight.sumocfg"
+PHYS = int(AgentFlag.PHYSICS_AUTHORITY)
+
+
+def _snap(ids, vtype, n_vehicles, prev_index=None):
+    n = len(ids)
+    return SimpleNamespace(n=n, n_vehicles=n_vehicles, ids=ids, vtype=np.asarray(vtype, np.int64),
+                           flags=np.zeros(n, np.uint8), prev_index=prev_index)
+
+
+VTYPES = SimpleNamespace(version=1, types=[VType("car", "passenger"), VType("lorry", "truck"),
+                                           VType("walker", "pedestrian")])
+
+
+def test_authority_by_class_type_and_id_pattern_never_persons_or_egos():
+    snap = _snap(["c0", "t0", "truck_x", "p0"], [0, 1, 0, 2], n_vehicles=3)
+    assert not Authority(CouplingConfig()).flags(snap, VTYPES).any()  # shadow mode: nobody
+    by_class = Authority(CouplingConfig(classes=("truck",))).flags(snap, VTYPES)
+    assert by_class.tolist() == [0, PHYS, 0, 0]
+    by_type = Authority(CouplingConfig(types=("car",))).flags(snap, VTYPES)
+    assert by_type.tolist() == [PHYS, 0, PHYS, 0]
+    by_id = Authority(CouplingConfig(ids=("truck*",))).flags(snap, VTYPES)
+    assert by_id.tolist() == [0, 0, PHYS, 0]
+    everyone = Authority(CouplingConfig(authority="physics"))
+    ego = np.array([0, 0, AgentFlag.EGO, 0], np.uint8)
+    assert everyone.flags(snap, VTYPES, ego).tolist() == [PHYS, PHYS, 0, 0]  # the person stays SUMO's
+
+
+def test_authority_by_id_is_decided_at_departure_and_kept_by_row():
+    a = Authority(CouplingConfig(ids=("lead",)))
+    first = a.flags(_snap(["x", "lead"], [0, 0], 2), VTYPES)
+    assert first.tolist() == [0, PHYS]
+    # next step: "lead" moved to row 0 (x arrived), a new vehicle at row 1
+    second = a.flags(_snap(["lead", "y"], [0, 0], 2, prev_index=np.array([1, -1])), VTYPES)
+    assert second.tolist() == [PHYS, 0]
+
+
+def test_coupling_config_names_what_is_wrong():
+    with pytest.raises(ConfigError, match=r"coupling.classes: unknown vClass 'lorry'"):
+        from_dict(CouplingConfig, {"classes": ["lorry"]}, "coupling")
+    with pytest.raises(ConfigError, match=r"coupling.authority: expected one of \['sumo', 'physics'\]"):
+        from_dict(CouplingConfig, {"authority": "mujoco"}, "coupling")
+    assert from_dict(CouplingConfig, {"authority": "physics"}, "coupling").two_way
+    assert not CouplingConfig().two_way
+
+
+@pytest.mark.integration
+def test_a_vehicle_held_by_physics_makes_sumo_traffic_queue_and_dissolve():
+    """The SUMO half of the stall: "lead" is written back at a fixed pose with speed 0 for
+    20 s (as physics reports a stalled car); the cars behind it stop behind it, none passes
+    it, none is teleported, and they drive on within 5 s of its release."""
+    sim = SumoSim(SumoConfig(sumocfg=STRAIGHT), run_id="t")
+    sim.start()
+    try:
+        g = sim.graph
+        writer = FeedbackWriter(sim.api, g.ids, g.lengths, g.pos_factor)
+        held_at = None
+        hold_from, hold_to = 15.0, 35.0
+        gap_min = np.inf
+        moving_again = None
+        snap = None
+        for _ in range(600):
+            if snap is not None and "lead" in snap.ids and hold_from <= snap.time < hold_to:
+                row = snap.ids.index("lead")
+                if held_at is None:
+                    held_at = float(snap.lane_pos[row])
+                # the physical body sits at held_at: its offset from SUMO's sample along the path
+                d_lon = np.array([held_at - float(snap.lane_pos[row])], np.float32)
+                fb = Feedback(0, ["lead"], snap.x[[row]], snap.y[[row]], snap.angle[[row]],
+                              np.zeros(1, np.float32), d_lon)
+                writer.apply(fb, np.array([row]), snap.lane, snap.lane_pos)
+            sim.step()
+            snap = sim.read()
+            if held_at is None or "lead" not in snap.ids:
+                continue
+            row = snap.ids.index("lead")
+            on_lead_lane = (snap.lane[: snap.n_vehicles] == snap.lane[row])
+            behind = on_lead_lane & (np.arange(snap.n_vehicles) != row)
+            if hold_from + 1 <= snap.time < hold_to:
+                assert abs(float(snap.lane_pos[row]) - held_at) < 0.1, snap.time  # SUMO keeps it where physics has it
+                if behind.any():
+                    gap_min = min(gap_min, float(held_at - snap.lane_pos[: snap.n_vehicles][behind].max()))
+            if snap.time >= hold_to and moving_again is None and behind.any():
+                follower = np.flatnonzero(behind)[np.argmax(snap.lane_pos[: snap.n_vehicles][behind])]
+                if snap.speed[follower] > 2.0:
+                    moving_again = snap.time - hold_to
+        assert held_at is not None
+        assert gap_min > 4.5  # the follower stopped behind it (its length 4.5 m), never through it
+        assert sim.counters["teleports"] == 0
+        assert moving_again is not None and moving_again <= 5.0
+        assert writer.stats.moved > 0 and writer.stats.stopped > 0 and writer.stats.moved_xy == 0
+    finally:
+        sim.close()
