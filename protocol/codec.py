@@ -29,6 +29,7 @@ from protocol.messages import (
     JunctionTable,
     LaneTable,
     PhysicsAgents,
+    PhysicsFeedback,
     PhysicsState,
     StaticData,
     StepAck,
@@ -39,7 +40,7 @@ from protocol.messages import (
     VType,
 )
 
-Message = Union[StepMessage, EgoPose, CameraPose, PhysicsState, StepAck, StaticData, SumoStatus]
+Message = Union[StepMessage, EgoPose, CameraPose, PhysicsState, PhysicsFeedback, StepAck, StaticData, SumoStatus]
 
 #: Hard limits that make a hostile or corrupt message fail fast instead of allocating.
 MAX_AGENTS = 200_000
@@ -144,6 +145,16 @@ PHYSICS_AGENT_COLUMNS: tuple[tuple[str, str], ...] = (
     ("err_lat", "<f4"),
 )
 
+FEEDBACK_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("x", "<f8"),
+    ("y", "<f8"),
+    ("heading", "<f4"),
+    ("speed", "<f4"),
+    ("d_lon", "<f4"),
+    ("d_lat", "<f4"),
+    ("contact", "<u1"),
+)
+
 TLS_LINK_COLUMNS: tuple[tuple[str, str], ...] = (
     ("tls", "<u2"),
     ("link", "<u2"),
@@ -171,6 +182,7 @@ FLOAT_BOUNDS: dict[str, tuple[float, float]] = {
     "length": (0.0, 1_000.0), "width": (0.0, 1_000.0), "z": (-1e5, 1e5),
     "drive": (-1e9, 1e9), "brake": (-1e9, 1e9),
     "err_lon": (-COORD_LIMIT, COORD_LIMIT), "err_lat": (-COORD_LIMIT, COORD_LIMIT),
+    "d_lon": (-COORD_LIMIT, COORD_LIMIT), "d_lat": (-COORD_LIMIT, COORD_LIMIT),
 }
 
 _N_CLASSES = len(AgentClass)
@@ -264,6 +276,11 @@ def encode(msg: Message) -> bytes:
             "sumo_step": int(msg.sumo_step),
             "agents": {"n": a.n, "id": list(a.ids), **_columns(a, PHYSICS_AGENT_COLUMNS)},
             "counters": {str(k): int(v) for k, v in msg.counters.items()},
+        }
+    elif isinstance(msg, PhysicsFeedback):
+        d = _head("feedback") | {
+            "run": msg.run, "step": int(msg.step), "t": float(msg.time),
+            "agents": {"n": msg.n, "id": list(msg.ids), **_columns(msg, FEEDBACK_COLUMNS)},
         }
     elif isinstance(msg, StepAck):
         d = _head("ack") | {"run": msg.run, "step": int(msg.step), "tick": int(msg.tick)}
@@ -820,6 +837,20 @@ def _decode_physics(d: dict, r: _Reader) -> PhysicsState:
     )
 
 
+def _decode_feedback(d: dict, r: _Reader) -> PhysicsFeedback:
+    a = _map(d, "agents", "")
+    n = r.count(a, "agents.", r.lim.max_agents)
+    cols = _columns_in(a, FEEDBACK_COLUMNS, n, "agents.")
+    _check_range(cols["contact"], 0, 1, "agents.contact")
+    return PhysicsFeedback(
+        run=r.str(d, "run", ""),
+        step=_int(d, "step", "", 0),
+        time=_float(d, "t", ""),
+        ids=r.strs(a, "id", "agents.", n, unique=True),
+        **cols,
+    )
+
+
 def _decode_ack(d: dict, r: _Reader) -> StepAck:
     return StepAck(run=r.str(d, "run", ""), step=_int(d, "step", "", 0), tick=_int(d, "tick", "", 0))
 
@@ -899,6 +930,7 @@ _DECODERS = {
     "camera": _decode_camera,
     "physics": _decode_physics,
     "ack": _decode_ack,
+    "feedback": _decode_feedback,
     "static": _decode_static,
     "status": _decode_status,
 }

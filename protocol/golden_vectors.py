@@ -14,7 +14,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from protocol.codec import PHYSICS_AGENT_COLUMNS, STEP_AGENT_COLUMNS, TLS_LINK_COLUMNS, encode
+from protocol.codec import FEEDBACK_COLUMNS, PHYSICS_AGENT_COLUMNS, STEP_AGENT_COLUMNS, TLS_LINK_COLUMNS, encode
 from protocol.messages import (
     AgentBatch,
     AgentClass,
@@ -25,6 +25,7 @@ from protocol.messages import (
     JunctionTable,
     LaneTable,
     PhysicsAgents,
+    PhysicsFeedback,
     PhysicsState,
     StaticData,
     StepAck,
@@ -86,7 +87,7 @@ def _step(with_paths: bool, shift: tuple[float, float] = (0.0, 0.0), with_vtypes
         length=np.array([size("car")[0], size("city_bus")[0], size("DEFAULT_PEDTYPE")[0]], f32),
         width=np.array([size("car")[1], size("city_bus")[1], size("DEFAULT_PEDTYPE")[1]], f32),
         lane=np.array([0, 1, -1], np.int32),
-        flags=np.array([0, AgentFlag.NEW, AgentFlag.INSIDE_VEHICLE], np.uint8),
+        flags=np.array([AgentFlag.PHYSICS_AUTHORITY, AgentFlag.NEW, AgentFlag.INSIDE_VEHICLE], np.uint8),
     )
     if with_paths:
         path = np.array([[50.0, -1.6], [98.0, -1.6], [112.0, -1.6],
@@ -174,6 +175,10 @@ def valid_messages() -> dict[str, object]:
         "camera": CameraPose("page1", 152.5, -40.25, time=3.5),
         "physics": _physics(),
         "ack": StepAck("golden", 41, 210),
+        # ``ref`` (physics-authoritative in ``step``) is 0.25 m behind SUMO's sample of step 41
+        "feedback": PhysicsFeedback("golden", 41, 4.2, ["ref"], np.array([49.75], f64), np.array([-1.5], f64),
+                                    np.array([90.0], f32), np.array([8.0], f32), np.array([-0.25], f32),
+                                    np.array([0.125], f32), np.array([0], np.uint8)),
         "static": _static(),
         "status": SumoStatus({"steps": 42, "rejected": 0, "acks": 42, "teleports": 0, "ego_drift_max_m": 0.0125}),
     }
@@ -181,7 +186,7 @@ def valid_messages() -> dict[str, object]:
 
 def bin_dtype(kind: str, path: str) -> str:
     """Little-endian dtype of the ``bin`` at dotted ``path`` in a message of ``kind``."""
-    cols = dict(STEP_AGENT_COLUMNS if kind == "step" else PHYSICS_AGENT_COLUMNS)
+    cols = dict({"step": STEP_AGENT_COLUMNS, "feedback": FEEDBACK_COLUMNS}.get(kind, PHYSICS_AGENT_COLUMNS))
     leaf = path.rsplit(".", 1)[-1]
     if path.startswith("agents.") and leaf in cols and path.count(".") == 1:
         return cols[leaf]

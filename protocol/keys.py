@@ -9,6 +9,7 @@
 | <root>/<run>/sumo/status    | SUMO side (query) | counters (steps, rejected, ego drift) |
 | <root>/<run>/physics/<inst>/state | physics side | PhysicsState, per control tick     |
 | <root>/<run>/physics/<inst>/ack   | physics side | StepAck (lockstep)                 |
+| <root>/<run>/physics/<inst>/feedback | physics side | PhysicsFeedback (two-way coupling) |
 | <root>/<run>/physics/<inst>/alive | physics side | liveliness token                   |
 | <root>/<run>/ego/<id>       | outside clients   | EgoPose of ego vehicle <id>           |
 | <root>/<run>/viewer/<role>/<client>/camera | viewers, renderers | CameraPose (LOD interest point) |
@@ -91,6 +92,11 @@ class Keys:
     @property
     def physics_alive(self) -> str:
         return f"{self.base}/physics/{self.physics}/alive"
+
+    @property
+    def feedback(self) -> str:
+        """Physical states of physics-authoritative vehicles, per SUMO step (two-way coupling)."""
+        return f"{self.base}/physics/{self.physics}/feedback"
 
     # Wildcards over every physics instance (the SUMO side collects acks with these).
     @property

@@ -17,7 +17,8 @@ from enum import IntEnum
 import numpy as np
 
 #: Protocol version (major, minor). A different major is rejected by the decoder.
-SCHEMA_VERSION: tuple[int, int] = (1, 2)  # 1.1: StaticData.tls_links; 1.2: anchored positions, static version
+SCHEMA_VERSION: tuple[int, int] = (1, 3)  # 1.1: StaticData.tls_links; 1.2: anchored positions, static version;
+# 1.3: two-way coupling (AgentFlag.PHYSICS_AUTHORITY, PhysicsFeedback)
 
 
 class AgentClass(IntEnum):
@@ -288,6 +289,38 @@ class StepAck:
     """Acknowledged SUMO step index."""
     tick: int
     """Physics control tick at which the step was finished."""
+
+
+@dataclass(frozen=True)
+class PhysicsFeedback:
+    """Two-way coupling: the physical state of the physics-authoritative vehicles at the end
+    of SUMO step ``step``, from the one physics instance SUMO follows (SPEC.md 3.8). The SUMO
+    side writes it into SUMO before its step ``step + 1``."""
+
+    run: str
+    step: int
+    """The SUMO step whose end this state is (the physics time equals that step's time)."""
+    time: float
+    """Physics time of the state [s]."""
+    ids: list[str]
+    x: np.ndarray
+    """Front-bumper centre x [m, float64]."""
+    y: np.ndarray
+    """Front-bumper centre y [m, float64]."""
+    heading: np.ndarray
+    """Heading [deg clockwise from north, float32]."""
+    speed: np.ndarray
+    """Measured forward speed [m/s, float32]."""
+    d_lon: np.ndarray
+    """Front bumper's offset along the path from SUMO's sample of ``step`` [m, + = ahead, float32]."""
+    d_lat: np.ndarray
+    """Front bumper's offset across the path from SUMO's sample [m, + = left, float32]."""
+    contact: np.ndarray
+    """1 when the body touches another vehicle's body in physics (a collision) [uint8]."""
+
+    @property
+    def n(self) -> int:
+        return len(self.ids)
 
 
 @dataclass(frozen=True)
