@@ -284,6 +284,8 @@ def encode(msg: Message) -> bytes:
         }
     elif isinstance(msg, StepAck):
         d = _head("ack") | {"run": msg.run, "step": int(msg.step), "tick": int(msg.tick)}
+        if msg.feedback:  # optional (1.3): absent means False
+            d["fb"] = True
     elif isinstance(msg, SumoStatus):
         d = _head("status") | {"counters": {str(k): v if isinstance(v, int) else float(v)
                                             for k, v in msg.counters.items()}}
@@ -852,7 +854,10 @@ def _decode_feedback(d: dict, r: _Reader) -> PhysicsFeedback:
 
 
 def _decode_ack(d: dict, r: _Reader) -> StepAck:
-    return StepAck(run=r.str(d, "run", ""), step=_int(d, "step", "", 0), tick=_int(d, "tick", "", 0))
+    fb = d.get("fb", False)
+    if not isinstance(fb, bool):
+        raise ProtocolError(f"expected true or false, got {fb!r}", "fb")
+    return StepAck(run=r.str(d, "run", ""), step=_int(d, "step", "", 0), tick=_int(d, "tick", "", 0), feedback=fb)
 
 
 def _decode_status(d: dict, r: _Reader) -> SumoStatus:

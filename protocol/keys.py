@@ -108,6 +108,10 @@ class Keys:
         return f"{self.base}/physics/*/ack"
 
     @property
+    def feedback_all(self) -> str:
+        return f"{self.base}/physics/*/feedback"
+
+    @property
     def physics_alive_all(self) -> str:
         return f"{self.base}/physics/*/alive"
 

@@ -289,6 +289,8 @@ class StepAck:
     """Acknowledged SUMO step index."""
     tick: int
     """Physics control tick at which the step was finished."""
+    feedback: bool = False
+    """Two-way coupling: this instance published the ``PhysicsFeedback`` of this step (since 1.3)."""
 
 
 @dataclass(frozen=True)

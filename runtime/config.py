@@ -226,7 +226,7 @@ class CouplingConfig:
     classes: tuple[str, ...] = ()  # vClasses that are physics-authoritative (with authority = "sumo")
     types: tuple[str, ...] = ()  # vType ids that are physics-authoritative
     ids: tuple[str, ...] = ()  # vehicle id patterns (fnmatch: "truck*") that are physics-authoritative
-    instance: str = "default"  # the physics instance whose states SUMO follows (others shadow it)
+    instance: str = ""  # the physics instance SUMO follows ("": the one running the `default` preset); others shadow
     feedback_steps: int = 1  # [steps] realtime: a state at most this many steps old is written back
 
     def validate(self) -> None:
@@ -234,10 +234,20 @@ class CouplingConfig:
         if bad:
             raise ConfigError(f"coupling.classes: unknown vClass {bad[0]!r} (expected one of: "
                               f"{', '.join(sorted(VEHICLE_CLASSES))})")
-        if not self.instance:
-            raise ConfigError("coupling.instance: expected a physics instance name, got ''")
+        if self.instance and not all(c.isalnum() or c in "_-." for c in self.instance):
+            raise ConfigError(f"coupling.instance: expected a physics instance name, got {self.instance!r}")
         if not 0 <= self.feedback_steps <= 10:
             raise ConfigError(f"coupling.feedback_steps: expected 0..10, got {self.feedback_steps}")
+
+    def follows(self, instance: str, preset: str) -> bool:
+        """True when physics instance ``instance`` (shards: ``<base>.<i>of<k>``) running control
+        preset ``preset`` is the one SUMO follows."""
+        if not self.two_way:
+            return False
+        if not self.instance:
+            return preset == "default"
+        base = instance.rsplit(".", 1)[0] if "of" in instance.rsplit(".", 1)[-1] else instance
+        return self.instance in (instance, base)
 
     @property
     def two_way(self) -> bool:

@@ -25,14 +25,22 @@ only the calls themselves loop.
 from __future__ import annotations
 
 import fnmatch
+import logging
 import time
+from collections import deque
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Callable
 
 import numpy as np
 
-from protocol.messages import AgentFlag
+from protocol.codec import DecodeLimits, decode
+from protocol.errors import ProtocolError
+from protocol.keys import Keys
+from protocol.messages import AgentFlag, PhysicsFeedback
 from runtime.config import CouplingConfig
+from runtime.queues import LatestPerKey
+
+log = logging.getLogger("sumo_side.coupling")
 
 #: [m] an along-path offset smaller than this is not written (SUMO's pose is the physical one)
 MOVE_MIN_M = 0.01
@@ -40,22 +48,11 @@ MOVE_MIN_M = 0.01
 LANE_END_MARGIN_M = 0.01
 #: [m/s] a physical speed at or below this is a stopped vehicle (``stopped`` counter)
 STOPPED_SPEED = 0.1
-
-
-class Feedback(NamedTuple):
-    """The physical state of physics-authoritative vehicles at the end of one SUMO step."""
-
-    step: int
-    ids: list[str]
-    x: np.ndarray
-    """Front-bumper centre x [m, float64]."""
-    y: np.ndarray
-    heading: np.ndarray
-    """[deg clockwise from north]."""
-    speed: np.ndarray
-    """Measured forward speed [m/s]."""
-    d_lon: np.ndarray
-    """Front bumper's offset along the path from SUMO's sample of ``step`` [m, + = ahead]."""
+#: [m] resolution and range of the intent-gap histogram (p50 / p95 / max in the stats)
+GAP_BIN_M = 0.001
+GAP_RANGE_M = 20.0
+#: feedback senders held at once (one per physics shard of the coupling instance)
+MAX_FEEDERS = 64
 
 
 @dataclass
@@ -132,7 +129,7 @@ class FeedbackWriter:
         self.pos_factor = np.asarray(pos_factor, np.float64)
         self.stats = FeedbackStats()
 
-    def apply(self, fb: Feedback, rows: np.ndarray, lane: np.ndarray, lane_pos: np.ndarray) -> None:
+    def apply(self, fb: PhysicsFeedback, rows: np.ndarray, lane: np.ndarray, lane_pos: np.ndarray) -> None:
         """Write ``fb`` back; ``rows[i]`` is the row of ``fb.ids[i]`` in SUMO's snapshot of
         ``fb.step`` (-1: gone), whose ``lane`` / ``lane_pos`` columns are given."""
         t0 = time.perf_counter()
@@ -169,5 +166,139 @@ class FeedbackWriter:
         st.feedback_s += time.perf_counter() - t0
 
 
-__all__ = ["Authority", "Feedback", "FeedbackStats", "FeedbackWriter", "LANE_END_MARGIN_M", "MOVE_MIN_M",
+class GapHistogram:
+    """Bounded distribution of the intent gap [m]: fixed bins, exact maximum."""
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(int(GAP_RANGE_M / GAP_BIN_M) + 1, np.int64)
+        self.max = 0.0
+
+    def add(self, gap: np.ndarray) -> None:
+        if len(gap):
+            self.max = max(self.max, float(gap.max()))
+            np.add.at(self.counts, np.minimum((gap / GAP_BIN_M).astype(np.int64), len(self.counts) - 1), 1)
+
+    def quantile(self, q: float) -> float:
+        total = int(self.counts.sum())
+        if not total:
+            return 0.0
+        i = int(np.searchsorted(np.cumsum(self.counts), q * total))
+        return round(min((i + 0.5) * GAP_BIN_M, self.max), 4)
+
+    def summary(self) -> dict[str, float]:
+        return {"p50": self.quantile(0.5), "p95": self.quantile(0.95), "max": round(self.max, 4),
+                "samples": int(self.counts.sum())}
+
+
+class SumoCoupling:
+    """The SUMO side of two-way coupling, driven by the daemon's main loop.
+
+    Per step k: ``flags`` marks the physics-authoritative vehicles of SUMO's snapshot,
+    ``remember`` keeps the snapshot's lanes for the write-back, and before step k+1
+    ``write_back`` applies the newest feedback of every instance that sends it. Zenoh's
+    thread only stores payloads (newest per sender); decoding happens on the main thread.
+    """
+
+    def __init__(self, cfg: CouplingConfig, sim, keys: Keys, limits: DecodeLimits,
+                 reject: Callable[[str, object], None]) -> None:
+        self.cfg = cfg
+        self.active = cfg.two_way
+        self.keys = keys
+        self.limits = limits
+        self.reject = reject
+        self.authority = Authority(cfg)
+        g = sim.graph
+        self.writer = FeedbackWriter(sim.api, g.ids, g.lengths, g.pos_factor)
+        self._inbox: LatestPerKey[bytes] = LatestPerKey(MAX_FEEDERS)
+        self._latest: dict[str, PhysicsFeedback] = {}
+        self._expected: dict[str, int] = {}  # instance -> newest step whose ack announced feedback
+        self._history: deque = deque(maxlen=cfg.feedback_steps + 2)  # (step, id -> row, lane, lane_pos)
+        self.gap = GapHistogram()
+        self.flagged_last = 0  # physics-authoritative vehicles in the newest snapshot
+
+    def declare(self, session):
+        """The feedback subscriber (None in shadow mode)."""
+        if not self.active:
+            return None
+        return session.declare_subscriber(self.keys.feedback_all, self._on_sample)
+
+    def _on_sample(self, sample) -> None:  # Zenoh's thread
+        self._inbox.put(str(sample.key_expr), sample.payload.to_bytes())
+
+    def announced(self, instance: str, step: int) -> None:
+        """An acknowledgement of ``step`` from ``instance`` said it sent that step's feedback."""
+        if step > self._expected.get(instance, -1):
+            self._expected[instance] = step
+
+    def _drain(self) -> None:
+        for key, payload in self._inbox.drain().items():
+            try:
+                fb = decode(payload, self.limits)
+                if not isinstance(fb, PhysicsFeedback):
+                    raise ProtocolError(f"expected feedback, got {type(fb).__name__}", "kind")
+                if fb.run != self.keys.run:
+                    raise ProtocolError(f"expected run {self.keys.run!r}, got {fb.run!r}", "run")
+            except ProtocolError as e:
+                self.reject(f"message on {key}", e)
+                continue
+            self._latest[Keys.instance_of(key)] = fb
+
+    def ready(self, step: int) -> bool:
+        """Lockstep: every instance that announced feedback of ``step`` has delivered it."""
+        if not self.active:
+            return True
+        self._drain()
+        return all(i in self._latest and self._latest[i].step >= step
+                   for i, s in self._expected.items() if s >= step)
+
+    def flags(self, snap, vtypes, ego_flags: np.ndarray | None) -> np.ndarray:
+        out = self.authority.flags(snap, vtypes, ego_flags)
+        self.flagged_last = int(np.count_nonzero(out))
+        return out
+
+    def remember(self, step: int, snap) -> None:
+        if self.active:
+            nv = snap.n_vehicles
+            self._history.append((step, {vid: i for i, vid in enumerate(snap.ids[:nv])},
+                                  snap.lane, snap.lane_pos))
+
+    def write_back(self, next_step: int) -> None:
+        """Before SUMO's step ``next_step``: write the newest feedback of each instance back
+        (in lockstep the one of ``next_step - 1``; in realtime at most ``feedback_steps`` old)."""
+        if not self.active:
+            return
+        self._drain()
+        oldest = next_step - 1 - self.cfg.feedback_steps
+        applied = False
+        for inst in list(self._latest):
+            fb = self._latest.pop(inst)
+            snap = next((h for h in self._history if h[0] == fb.step), None)
+            if fb.step < oldest or snap is None:
+                continue
+            _, index, lane, lane_pos = snap
+            rows = np.fromiter((index.get(i, -1) for i in fb.ids), np.int64, fb.n)
+            self.writer.apply(fb, rows, lane, lane_pos)
+            self.gap.add(np.hypot(fb.d_lon, fb.d_lat).astype(np.float64))
+            applied = True
+        if not applied and self.flagged_last:
+            self.writer.stats.late_steps += 1
+
+    def stats(self) -> dict:
+        st = self.writer.stats
+        return {
+            "coupling_authoritative_last": self.flagged_last,
+            "feedback_steps_applied": st.applied_steps,
+            "feedback_late": st.late_steps,
+            "feedback_moves": st.moved,
+            "feedback_moves_xy": st.moved_xy,
+            "feedback_speeds": st.speeds,
+            "feedback_unknown": st.unknown,
+            "feedback_stopped": st.stopped,
+            "feedback_ms": round(st.feedback_s * 1e3 / max(st.applied_steps, 1), 4),
+            **{f"intent_gap_{k}_m" if k != "samples" else "intent_gap_samples": v
+               for k, v in self.gap.summary().items()},
+        }
+
+
+__all__ = ["GapHistogram", "SumoCoupling", "Authority", "FeedbackStats", "FeedbackWriter", "LANE_END_MARGIN_M", "MOVE_MIN_M",
            "STOPPED_SPEED"]

@@ -46,11 +46,12 @@ from protocol.keys import Keys
 from protocol.messages import EgoPose, StepAck, SumoStatus
 from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig, sumo_config_from
+from sumo_side.coupling import SumoCoupling
 from sumo_side.ego import EgoManager
 from sumo_side.mapmesh import MapService
 from sumo_side.simulation import SumoSim
 from runtime.queues import LatestPerKey
-from runtime.config import CommonConfig, RunConfig, apply_cli, load_common, replace
+from runtime.config import CommonConfig, CouplingConfig, RunConfig, apply_cli, load_common, replace
 
 log = logging.getLogger("sumo_side")
 
@@ -130,9 +131,11 @@ class SumoDaemon:
         run: RunConfig,
         clock: Callable[[], float] = time.monotonic,
         pipeline: bool = True,
+        coupling: CouplingConfig | None = None,
     ) -> None:
         """``pipeline``: in lockstep, compute step k+1 while the physics side works on step k
-        (published only after its acknowledgements); False computes it after them."""
+        (published only after its acknowledgements); False computes it after them.
+        ``coupling``: who owns each vehicle's motion (``[coupling]``; default: SUMO, shadow mode)."""
         self.session = session
         self.keys = keys
         self.sim = sim
@@ -156,6 +159,8 @@ class SumoDaemon:
         self._lost: dict[str, float] = {}  # awaited instances whose token went: clock() when
         self._last_reject_log = -math.inf
         self._limits = run.decode_limits  # acks and ego poses are small: any bound holds them
+        # two-way coupling: physical states of physics-authoritative vehicles written back
+        self.coupling = SumoCoupling(coupling or CouplingConfig(), sim, keys, self._limits, self._reject)
         self._static_bytes = encode(sim.static_data())
         self._static_version = sim.static_version
         self._static_encoded_at = -math.inf
@@ -272,6 +277,8 @@ class SumoDaemon:
             else:
                 inst = Keys.instance_of(key)
                 self.counters.acks += 1
+                if msg.feedback:
+                    self.coupling.announced(inst, msg.step)
                 if msg.step > self._acked.get(inst, -1):
                     self._acked[inst] = msg.step
 
@@ -325,7 +332,8 @@ class SumoDaemon:
             self._stop.wait(0.02)
 
     def _all_acked(self, step: int) -> bool:
-        return all(self._acked.get(i, -1) >= step for i in self._waited)
+        """Every awaited instance acknowledged ``step`` and every announced feedback of it is here."""
+        return all(self._acked.get(i, -1) >= step for i in self._waited) and self.coupling.ready(step)
 
     # ------------------------------------------------------------------ main loop
 
@@ -344,6 +352,7 @@ class SumoDaemon:
             express=True,  # one big message per step: send it now, do not batch
         )
         ego_sub = session.declare_subscriber(keys.ego_all, zenoh.handlers.RingChannel(256))
+        feedback_sub = self.coupling.declare(session)
         ack_sub = alive_sub = None
         if lockstep:
             ack_sub = session.declare_subscriber(keys.ack_all, self._on_ack)
@@ -362,6 +371,7 @@ class SumoDaemon:
                     self._loop(publisher, ego_sub, lockstep, hot_gc)
         finally:
             for what, obj in (("ego subscriber", ego_sub), ("ack subscriber", ack_sub),
+                              ("feedback subscriber", feedback_sub),
                               ("liveliness subscriber", alive_sub),
                               ("publisher", publisher), ("queryable", queryable),
                               ("status queryable", status_q), ("map queryable", map_q),
@@ -383,11 +393,15 @@ class SumoDaemon:
         t_a = perf()
         self._drain_ego(ego_sub)
         self.ego.apply()
+        self.coupling.write_back(k)  # physical states of step k-1, before SUMO moves (SPEC 3.8)
         t_b = perf()
         self.sim.step()
         t_c = perf()
         snap = self.sim.read()
         ego_flags = self.ego.after_step(snap.ids, snap.x, snap.y, snap.arrived)
+        if self.coupling.active:
+            ego_flags = ego_flags | self.coupling.flags(snap, self.sim.vtypes, ego_flags)
+            self.coupling.remember(k, snap)
         # The last step is marked on the wire, so every peer ends on the same step.
         why = "" if self.ego.active_ids() else self.sim.finished(self.run_cfg.duration_s)
         if not why and self._stop.is_set():
@@ -430,7 +444,8 @@ class SumoDaemon:
                 # step k and published only after every acknowledgement of step k (SPEC 3.4).
                 # Nothing the physics side sends feeds SUMO; ego poses do, so with an ego
                 # the next step waits for the acknowledgement and the poses that came with it.
-                pipelined = self.pipeline and not self.ego.active_ids()
+                # Two-way coupling: step k+1 starts from the physical states of step k.
+                pipelined = self.pipeline and not self.ego.active_ids() and not self.coupling.active
                 if pipelined:
                     pending = self._produce(k + 1, ego_sub, period)
                 t_w = perf()
@@ -545,6 +560,7 @@ class SumoDaemon:
             "vtypes_dropped": self.sim.vtypes.dropped,
             "vtypes_overflow": self.sim.vtypes.overflow,
             "tls_program_switches": self.sim.tls.switches,
+            **(self.coupling.stats() if self.coupling.active else {}),
         }
 
     def _log_summary(self) -> None:
@@ -600,7 +616,7 @@ def cli_main(args) -> int:
 
     try:
         session = open_session(common.zenoh, role="sumo")
-        daemon = SumoDaemon(session, keys, sim, scfg, common.run)
+        daemon = SumoDaemon(session, keys, sim, scfg, common.run, coupling=common.coupling)
         if threading.current_thread() is threading.main_thread():
             for s in (signal.SIGINT, signal.SIGTERM):
                 previous[s] = signal.signal(s, on_signal)

@@ -44,6 +44,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--verbose", action="store_true", help="debug logging")
 
 
+def _add_authority(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--authority", choices=["sumo", "physics"],
+                   help="who owns every vehicle's motion: sumo (physics shadows SUMO) or physics (two-way: "
+                        "SUMO follows the physical states); overrides [coupling].authority")
+
+
 def _add_scenario(p: argparse.ArgumentParser) -> None:
     p.add_argument("--begin", type=float, help="start SUMO at this time [s] instead of the scenario's begin; "
                                                "--duration counts from it")
@@ -58,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sumo", help="run the SUMO side daemon")
     _add_common(p)
+    _add_authority(p)
     p.add_argument("--sumocfg", help="run this .sumocfg instead of the config's scenario")
     _add_scenario(p)
     p.add_argument("--output-dir", help="folder for SUMO's own outputs and log (default: where the scenario "
@@ -69,6 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("physics", help="run the physics side daemon")
     _add_common(p)
+    _add_authority(p)
     p.add_argument("--preset", help="control preset for every agent type (paper|default|kinematic)")
     p.add_argument("--instance", help="physics instance name in the keys (default: [physics].instance or 'main')")
     p.add_argument("--shard", help="i/k: simulate only shard i of k (spatial tiles); the instance becomes "
@@ -78,6 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="both daemons on loopback, bounded run, report")
     _add_common(p)
+    _add_authority(p)
     p.add_argument("--sumocfg", help="bring your own SUMO scenario")
     _add_scenario(p)
     p.add_argument("--out", help="output folder (default: runs/demo, or runs/<scenario name> with --sumocfg)")

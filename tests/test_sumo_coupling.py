@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from protocol.errors import ConfigError
-from protocol.messages import AgentFlag, VType
+from protocol.messages import AgentFlag, PhysicsFeedback, VType
 from runtime.config import CouplingConfig, from_dict
 from sumo_side.config import SumoConfig
-from sumo_side.coupling import Authority, Feedback, FeedbackWriter
+from sumo_side.coupling import Authority, FeedbackWriter, GapHistogram
 from sumo_side.simulation import SumoSim
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,6 +55,15 @@ def test_authority_by_id_is_decided_at_departure_and_kept_by_row():
     assert second.tolist() == [PHYS, 0]
 
 
+def test_gap_histogram_quantiles_and_exact_max():
+    h = GapHistogram()
+    h.add(np.array([0.01, 0.02, 0.03, 0.5]))
+    h.add(np.array([]))
+    s = h.summary()
+    assert s["samples"] == 4 and s["max"] == 0.5
+    assert 0.019 <= s["p50"] <= 0.021 and s["p95"] == 0.5
+
+
 def test_coupling_config_names_what_is_wrong():
     with pytest.raises(ConfigError, match=r"coupling.classes: unknown vClass 'lorry'"):
         from_dict(CouplingConfig, {"classes": ["lorry"]}, "coupling")
@@ -86,8 +95,9 @@ def test_a_vehicle_held_by_physics_makes_sumo_traffic_queue_and_dissolve():
                     held_at = float(snap.lane_pos[row])
                 # the physical body sits at held_at: its offset from SUMO's sample along the path
                 d_lon = np.array([held_at - float(snap.lane_pos[row])], np.float32)
-                fb = Feedback(0, ["lead"], snap.x[[row]], snap.y[[row]], snap.angle[[row]],
-                              np.zeros(1, np.float32), d_lon)
+                zero = np.zeros(1, np.float32)
+                fb = PhysicsFeedback("t", 0, snap.time, ["lead"], snap.x[[row]], snap.y[[row]], snap.angle[[row]],
+                                     zero, d_lon, zero, np.zeros(1, np.uint8))
                 writer.apply(fb, np.array([row]), snap.lane, snap.lane_pos)
             sim.step()
             snap = sim.read()

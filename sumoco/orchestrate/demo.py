@@ -279,6 +279,8 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
                 history=True)
             common_args = ["--config", str(config_path), "--run", common.run.id,
                            "--timing", common.run.timing, "--duration", repr(float(common.run.duration_s))]
+            if common.coupling.authority != "sumo":
+                common_args += ["--authority", common.coupling.authority]
             if quiet:
                 common_args.append("--quiet")
             for attempt in range(1, PORT_ATTEMPTS + 1):
