@@ -59,6 +59,7 @@ class SecurityConfig:
     acl: bool = True  # with certs: enforce the role access-control policy on everything received
     renderers: tuple[str, ...] = ("ego",)  # ego ids with a renderer certificate (CN renderer-<id>)
     users: Path | None = None  # `role:password` lines (`certs init --users`): user/password auth too
+    routers: bool = False  # peers also reach each other through routers: the router CN may forward
 
     @property
     def enabled(self) -> bool:

@@ -43,12 +43,12 @@ def renderer_role(ego_id: str) -> str:
     return f"renderer-{ego_id}"
 
 
-def access_control(root: str, sec: SecurityConfig) -> dict:
+def access_control(root: str, sec: SecurityConfig, routed: bool = True) -> dict:
     """The role policy as Zenoh's ``access_control`` table (deny unless allowed).
 
     Ingress rules say what a peer of a role may send us: every role may subscribe and
     query; only ``sumo`` may put steps, serve static data, the map and status and hold the SUMO
-    liveliness token; only ``physics`` may put states and acks and hold physics tokens;
+    liveliness token; only ``physics`` may put states, acks and coupling feedback and hold physics tokens;
     ``renderer-<id>`` may put ego poses on ``ego/<id>`` alone; ``gateway`` may put ego poses
     for any id (it relays engines that hold its token, SPEC 10); ``viewer``, ``gateway`` and every
     ``renderer-<id>`` may put cameras and hold camera tokens under their own role only
@@ -56,6 +56,9 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
     ``router`` may send everything under the root: a router applies this same policy to
     what its own clients send it (by their CN) and then forwards under its own CN, so the
     check happens at the first hop; router-to-router links of a mesh pass it on as it is.
+    Only where routers are part of the run (``routed``: a router or a client session, or
+    ``[zenoh.security] routers = true``): a peer-to-peer run grants a router certificate
+    nothing but reading, so a stolen or stray one cannot originate steps there.
     Egress is open to every authenticated role: anyone with a certificate may read.
     """
     r = root
@@ -72,13 +75,14 @@ def access_control(root: str, sec: SecurityConfig) -> dict:
         rule("sumo-serve", "ingress", ("declare_queryable", "reply"),
              [f"{r}/*/sumo/static", f"{r}/*/sumo/map", f"{r}/*/sumo/status"]),
         rule("sumo-token", "ingress", ("liveliness_token",), [f"{r}/*/sumo/alive"]),
-        rule("physics-put", "ingress", ("put", "delete"), [f"{r}/*/physics/*/state", f"{r}/*/physics/*/ack"]),
+        rule("physics-put", "ingress", ("put", "delete"),
+             [f"{r}/*/physics/*/state", f"{r}/*/physics/*/ack", f"{r}/*/physics/*/feedback"]),
         rule("physics-token", "ingress", ("liveliness_token",), [f"{r}/*/physics/*/alive"]),
         rule("gateway-ego", "ingress", ("put", "delete"), [f"{r}/*/ego/*"]),
         rule("router-forward", "ingress", _ALL_MESSAGES, [f"{r}/**"]),
     ]
     grants = {"sumo": ["sumo-put", "sumo-serve", "sumo-token"], "physics": ["physics-put", "physics-token"],
-              "viewer": [], "gateway": ["gateway-ego"], "router": ["router-forward"]}
+              "viewer": [], "gateway": ["gateway-ego"], "router": ["router-forward"] if routed else []}
     for ego in sec.renderers:
         rules.append(rule(f"ego-{ego}", "ingress", ("put", "delete"), [f"{r}/*/ego/{ego}"]))
         grants[renderer_role(ego)] = [f"ego-{ego}"]
@@ -122,8 +126,16 @@ def _as_tls(endpoint: str) -> str:
     return "tls/" + endpoint[4:] if endpoint.startswith("tcp/") else endpoint
 
 
+#: Link protocols the secure profile accepts: TLS (``tcp/`` endpoints are turned into ``tls/``).
+SECURE_LINKS = ("tcp/", "tls/")
+
+
 def _secure(conf: zenoh.Config, cfg: ZenohConfig, role: str) -> None:
     sec = cfg.security
+    plain = [e for e in (*cfg.listen, *cfg.connect) if not e.startswith(SECURE_LINKS)]
+    if plain:
+        raise ConfigError(f"zenoh.security: endpoint {plain[0]!r} would be a plain link outside TLS; the secure "
+                          f"profile takes tcp/ (run as tls/) or tls/ endpoints only")
     ca, cert, key = _role_files(sec, role)
     tls = {
         "root_ca_certificate": str(ca),
@@ -139,7 +151,8 @@ def _secure(conf: zenoh.Config, cfg: ZenohConfig, role: str) -> None:
         for k, v in usr.items():
             conf.insert_json5(f"transport/auth/usrpwd/{k}", json.dumps(v))
     if sec.acl:
-        conf.insert_json5("access_control", json.dumps(access_control(cfg.root, sec)))
+        routed = sec.routers or cfg.mode in ("router", "client")
+        conf.insert_json5("access_control", json.dumps(access_control(cfg.root, sec, routed)))
 
 
 def zenoh_config(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Config:

@@ -199,6 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="extra DNS name or IP the certificates are valid for (localhost and 127.0.0.1 always)")
     p.add_argument("--days", type=int, default=365, help="validity [days]")
     p.add_argument("--users", action="store_true", help="also write users.txt (random passwords per role)")
+    p.add_argument("--router", action="store_true",
+                   help="also a router certificate (only for runs through `sumoco router`: it may forward anything)")
     p.add_argument("--force", action="store_true", help="replace certificates already in DIR")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")

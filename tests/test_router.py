@@ -128,7 +128,7 @@ def test_secure_routers_mesh_with_tls_and_stop_a_forged_step_at_the_first_router
     from sumoco.orchestrate.certs import init_certs
 
     certs = tmp_path / "certs"
-    init_certs(certs, renderers=("ego",))
+    init_certs(certs, renderers=("ego",), router=True)
     cfg = tmp_path / "secure.toml"
     cfg.write_text(f'[run]\nid = "mesh"\n[zenoh]\nmode = "peer"\n[zenoh.security]\ncerts = "{certs}"\n'
                    'renderers = ["ego"]\n')

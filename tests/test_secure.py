@@ -38,7 +38,7 @@ FORGED_STEP = 900_000  # a step index the real run never reaches
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory):
     d = tmp_path_factory.mktemp("certs")
-    init_certs(d, renderers=("ego", "ego2"), users=True)
+    init_certs(d, renderers=("ego", "ego2"), users=True, router=True)
     return d
 
 
@@ -46,7 +46,8 @@ def test_certs_init_makes_a_ca_and_one_certificate_per_role(tmp_path):
     assert cli(["certs", "init", str(tmp_path), "--renderer", "ego", "--renderer", "car7", "--quiet"]) == 0
     ca = x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes())
     assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
-    for role in ("sumo", "physics", "viewer", "gateway", "router", "renderer-ego", "renderer-car7"):
+    assert not (tmp_path / "router.key").exists()  # a router certificate is opt-in (--router)
+    for role in ("sumo", "physics", "viewer", "gateway", "renderer-ego", "renderer-car7"):
         cert = x509.load_pem_x509_certificate((tmp_path / f"{role}.pem").read_bytes())
         assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == role
         assert cert.issuer == ca.subject
@@ -59,6 +60,45 @@ def test_certs_init_makes_a_ca_and_one_certificate_per_role(tmp_path):
     assert cli(["certs", "init", str(tmp_path), "--quiet"]) == 2
     assert cli(["certs", "init", str(tmp_path), "--force", "--quiet"]) == 0
     assert x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes()).serial_number != ca.serial_number
+
+
+def test_certs_init_never_writes_through_links_or_over_keys_and_keys_stay_private(tmp_path):
+    d = tmp_path / "c"
+    assert cli(["certs", "init", str(d), "--quiet"]) == 0
+    for f in d.glob("*.key"):
+        f.chmod(0o644)  # someone loosened them
+    assert cli(["certs", "init", str(d), "--force", "--quiet"]) == 0
+    assert {stat.S_IMODE(f.stat().st_mode) for f in d.glob("*.key")} == {0o600}  # new keys are private again
+    # a key path that is a symbolic link: refused, the link's target untouched (even with --force)
+    target = tmp_path / "elsewhere.txt"
+    target.write_text("precious")
+    (d / "sumo.key").unlink()
+    (d / "sumo.key").symlink_to(target)
+    assert cli(["certs", "init", str(d), "--force", "--quiet"]) == 2
+    assert target.read_text() == "precious"
+    # keys without ca.pem: refused without --force, nothing overwritten
+    e = tmp_path / "e"
+    e.mkdir()
+    (e / "sumo.key").write_text("old key")
+    assert cli(["certs", "init", str(e), "--quiet"]) == 2
+    assert (e / "sumo.key").read_text() == "old key" and not (e / "ca.pem").exists()
+    # onto a file: one line and exit 2, not a traceback
+    f = tmp_path / "a-file"
+    f.write_text("x")
+    assert cli(["certs", "init", str(f), "--quiet"]) == 2
+    assert cli(["certs", "init", str(tmp_path / "r"), "--router", "--quiet"]) == 0
+    assert (tmp_path / "r" / "router.pem").is_file()
+
+
+def test_router_rights_only_where_routers_are_part_of_the_run_and_no_plain_links():
+    sec = SecurityConfig(certs=ROOT, renderers=("ego",))
+    peer = {p["id"]: set(p["rules"]) for p in access_control("sumoco", sec, routed=False)["policies"]}
+    assert peer["router"] == {"receive", "read"}  # a peer-to-peer run: a router certificate may only read
+    routed = {p["id"]: set(p["rules"]) for p in access_control("sumoco", sec, routed=True)["policies"]}
+    assert "router-forward" in routed["router"]
+    for ep in ("udp/127.0.0.1:7447", "unixsock-stream//tmp/z.sock"):
+        with pytest.raises(ConfigError, match="plain link outside TLS"):
+            zenoh_config(ZenohConfig(listen=(ep,), security=sec), role="sumo")
 
 
 def test_secure_toml_parses_and_errors_name_the_problem(tmp_path, certs):
@@ -92,6 +132,7 @@ def test_policy_denies_unless_allowed_and_grants_each_renderer_its_own_key_only(
     put_keys = {k for r in rules.values() if "put" in r["messages"] and r["flows"] == ["ingress"]
                 and r["id"] != "router-forward" for k in r["key_exprs"]}
     assert put_keys == {"sumoco/*/sumo/step", "sumoco/*/physics/*/state", "sumoco/*/physics/*/ack",
+                        "sumoco/*/physics/*/feedback",
                         "sumoco/*/ego/a", "sumoco/*/ego/b", "sumoco/*/ego/*", "sumoco/*/viewer/viewer/*/camera",
                         "sumoco/*/viewer/gateway/*/camera",
                         "sumoco/*/viewer/renderer-a/*/camera", "sumoco/*/viewer/renderer-b/*/camera"}
@@ -260,6 +301,22 @@ def test_renderer_cannot_publish_a_step_that_physics_would_follow(run):
     assert max(st.sumo_step for st in states) < FORGED_STEP
     assert max(m.step for m in steps) < FORGED_STEP
     assert states[-1].counters.get("rejected", 0) == 0  # not even seen and rejected: never delivered
+
+
+def test_router_certificate_cannot_forge_a_step_in_a_peer_run(run):
+    attacker = run.client("router")
+    try:
+        for i in range(20):
+            attacker.put(run.keys.step, encode(synthetic_step(5, step=FORGED_STEP + i)))
+        s0 = run.viewer.last_physics().tick
+        wait_until(lambda: run.viewer.last_physics().tick > s0 + 100, 20, "physics to keep ticking",
+                   procs=[run.physics])
+    finally:
+        attacker.close()
+    with run.viewer.lock:
+        states = [st for lst in run.viewer.physics.values() for st in lst]
+    assert max(st.sumo_step for st in states) < FORGED_STEP
+    assert states[-1].counters.get("rejected", 0) == 0  # never delivered
 
 
 def test_renderer_cannot_acknowledge_steps_for_physics_and_physics_can(run):

@@ -11,12 +11,15 @@ tells roles apart by the common name (CN) of the certificate a peer presents:
 | renderer-<id>.pem  | renderer-<id>  | ego poses on ``ego/<id>`` only         |
 | viewer.pem/.key    | viewer         | nothing (subscribe and query only)     |
 | gateway.pem/.key   | gateway        | ego poses for any id (WebSocket relay) |
+| router.pem/.key    | router         | forwards for its clients (only with ``--router``) |
 
 Every role may subscribe and query. ``ca.pem`` is the trust root every process loads;
 ``ca.key`` signs the certificates and should not leave the machine that made them.
 With ``--users`` a ``users.txt`` of ``role:password`` lines (random passwords) is
 written for Zenoh's user/password authentication. Keys are ECDSA P-256 in PKCS#8 PEM,
-readable by the owner only.
+readable by the owner only. Files are created anew (``O_EXCL``, never through a symbolic
+link, mode 0600 for keys); an existing file is replaced only with ``--force``, and a
+symbolic link in the way is refused even then.
 """
 
 from __future__ import annotations
@@ -49,28 +52,48 @@ def _crypto():
 
 
 def _write(path: Path, data: bytes, private: bool = False) -> None:
-    # Create with the final mode so a key is never readable by others, not even briefly.
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600 if private else 0o644)
+    # A new file with its final mode, so that a key is never readable by others, not even
+    # briefly, and is never written through a link planted in the folder (O_EXCL, O_NOFOLLOW).
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    fd = os.open(path, flags, 0o600 if private else 0o644)
     with os.fdopen(fd, "wb") as f:
         f.write(data)
 
 
+def _clear(out: Path, names: list[str], force: bool) -> None:
+    """Refuse links and (without ``force``) existing files among ``names``; remove the rest."""
+    links = [n for n in names if (out / n).is_symlink()]
+    if links:
+        raise ConfigError(f"{out / links[0]}: is a symbolic link; refusing to write a certificate or key through it")
+    present = [n for n in names if (out / n).exists()]
+    if present and not force:
+        raise ConfigError(f"{out}: already holds {present[0]} (pass --force to replace every certificate and key)")
+    for n in present:
+        if not (out / n).is_file():
+            raise ConfigError(f"{out / n}: exists and is not a file")
+        (out / n).unlink()
+
+
 def init_certs(out: Path, renderers: tuple[str, ...] = ("ego",), hosts: tuple[str, ...] = (),
-               days: int = 365, users: bool = False, force: bool = False) -> list[Path]:
+               days: int = 365, users: bool = False, force: bool = False, router: bool = False) -> list[Path]:
     """Write ``ca.pem``/``ca.key`` and a certificate + key per role into ``out``.
 
     ``renderers``: ego ids, one certificate ``renderer-<id>`` each. ``hosts``: extra DNS
     names or IP addresses the certificates are valid for (``localhost`` and 127.0.0.1
-    always are). Returns the files written.
+    always are). ``router``: also a ``router`` certificate (only for runs through
+    ``sumoco router``: it may forward anything). Returns the files written.
     """
     x509, hashes, serialization, ec, EKU, NameOID = _crypto()
     for r in renderers:
         check_chunk(r, "renderer ego id")
     if days < 1:
         raise ConfigError(f"--days: expected >= 1, got {days}")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
-    if (out / "ca.pem").exists() and not force:
-        raise ConfigError(f"{out}: already holds ca.pem (pass --force to replace every certificate)")
+    names = [*(r for r in ROLES if r != "router" or router), *(renderer_role(r) for r in renderers)]
+    files = ["ca.key", "ca.pem", *(f"{n}.{e}" for n in names for e in ("key", "pem"))]
+    _clear(out, files + (["users.txt"] if users else []), force)
 
     now = dt.datetime.now(dt.timezone.utc)
     not_before, not_after = now - dt.timedelta(minutes=5), now + dt.timedelta(days=days)
@@ -102,7 +125,6 @@ def init_certs(out: Path, renderers: tuple[str, ...] = ("ego",), hosts: tuple[st
             sans.append(x509.IPAddress(ipaddress.ip_address(h)))
         except ValueError:
             sans.append(x509.DNSName(h))
-    names = [*ROLES, *(renderer_role(r) for r in renderers)]
     for name in names:
         key = ec.generate_private_key(ec.SECP256R1())
         cert = (
@@ -133,8 +155,9 @@ def cli_main(args) -> int:
         raise ConfigError(f"sumoco certs: unknown action {args.action!r}")
     out = Path(args.dir)
     renderers = tuple(args.renderer or ("ego",))
+    router = bool(getattr(args, "router", False))
     files = init_certs(out, renderers=renderers, hosts=tuple(args.host or ()), days=int(args.days),
-                       users=bool(args.users), force=bool(args.force))
-    roles = ", ".join([*ROLES, *(renderer_role(r) for r in renderers)])
+                       users=bool(args.users), force=bool(args.force), router=router)
+    roles = ", ".join([*(r for r in ROLES if r != "router" or router), *(renderer_role(r) for r in renderers)])
     print(f"wrote {len(files)} files to {out}: CA + certificates for {roles}", file=sys.stderr)
     return 0
