@@ -402,8 +402,10 @@ class SumoDaemon:
         if self.coupling.active:
             ego_flags = ego_flags | self.coupling.flags(snap, self.sim.vtypes, ego_flags)
             self.coupling.remember(k, snap)
-        # The last step is marked on the wire, so every peer ends on the same step.
-        why = "" if self.ego.active_ids() else self.sim.finished(self.run_cfg.duration_s)
+        # The last step is marked on the wire, so every peer ends on the same step. The
+        # duration and SUMO's end time hold whatever egos do; only an empty network does not
+        # end a run while an ego drives.
+        why = self.sim.finished(self.run_cfg.duration_s, keep_empty=bool(self.ego.active_ids()))
         if not why and self._stop.is_set():
             why = "stop requested"
         msg = self.bridge.build(k, snap, ego_flags, final=bool(why))

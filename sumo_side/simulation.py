@@ -404,15 +404,16 @@ class SumoSim:
     def time(self) -> float:
         return float(self.api.simulation.getTime())
 
-    def finished(self, duration_s: float) -> str:
+    def finished(self, duration_s: float, keep_empty: bool = False) -> str:
         """Why nothing is left to simulate ('' while there is): the run's duration (counted
-        from the begin time), SUMO's end time, or no more traffic, whichever comes first."""
+        from the begin time), SUMO's end time, or no more traffic, whichever comes first.
+        ``keep_empty``: an empty network does not end the run (an outside ego may come back)."""
         t = self.time()
         if duration_s > 0 and t >= self.begin_time + duration_s - 1e-9:
             return f"duration {duration_s:g} s reached"
         if self.end_time >= 0 and t >= self.end_time - 1e-9:
             return f"the scenario's end time {self.end_time:g} s reached"
-        if self.api.simulation.getMinExpectedNumber() <= 0:
+        if not keep_empty and self.api.simulation.getMinExpectedNumber() <= 0:
             return "no traffic left in the scenario"
         return ""
 
