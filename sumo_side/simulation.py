@@ -120,6 +120,64 @@ def _empty_f(n: int = 0) -> np.ndarray:
     return np.zeros(n, np.float64)
 
 
+@dataclass(frozen=True)
+class _Events:
+    """What SUMO reports of the last step besides the agents' variables."""
+
+    new: set[str]
+    """Vehicles and persons that departed."""
+    departed: int
+    arrived: list[str]
+    teleported: set[str]
+    """Vehicles that started or ended a teleport."""
+    teleports: int
+    """Teleports that started."""
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """One kind of agent (vehicles or persons) as read in one step, one column per variable."""
+
+    ids: list[str]
+    xy: np.ndarray
+    """Positions, shape (n, 2) [m]."""
+    angle: np.ndarray
+    """[deg], SUMO's."""
+    speed: np.ndarray
+    """[m/s]"""
+    lane_pos: np.ndarray
+    """[m]"""
+    lane: np.ndarray
+    """Lane index, -1 when none [int64]."""
+    vtype: np.ndarray
+    """vType index [int64]."""
+    signals: np.ndarray
+    """SUMO's signal bits [int64] (0 for persons)."""
+    route: list[str]
+    """Route id per vehicle (empty for persons)."""
+    riding: np.ndarray
+    """True for a person inside a vehicle (empty for vehicles)."""
+
+    @staticmethod
+    def none() -> "_Columns":
+        i64 = np.zeros(0, np.int64)
+        return _Columns([], np.zeros((0, 2)), _empty_f(), _empty_f(), _empty_f(), i64, i64, i64, [],
+                        np.zeros(0, bool))
+
+
+@dataclass(frozen=True)
+class _Previous:
+    """The previous snapshot, as far as the next one's derived quantities need it."""
+
+    ids: list[str] = field(default_factory=list)
+    speed: np.ndarray = field(default_factory=_empty_f)
+    time: float = -1.0
+    """[s] (-1: no snapshot yet)"""
+    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    route: np.ndarray = field(default_factory=lambda: np.zeros(0, object))
+    """Route id per vehicle row (object array)."""
+
+
 def check_sumocfg(path: Path) -> Path:
     """A readable, well-formed SUMO config, or a ConfigError naming the file and the problem."""
     p = Path(path).expanduser()
@@ -251,11 +309,7 @@ class SumoSim:
         self.end_time = -1.0
         self.counters = {"departed": 0, "arrived": 0, "teleports": 0, "persons_departed": 0}
         self._lane_index: dict[str, int] = {}  # lane id -> lane index, '' -> -1
-        self._prev_ids: list[str] = []
-        self._prev_speed = np.zeros(0)
-        self._prev_time = -1.0
-        self._prev_xy = np.zeros((0, 2))
-        self._prev_route = np.zeros(0, object)  # route id per vehicle row of the previous snapshot
+        self._prev = _Previous()
         self._serial = 0
 
     # ------------------------------------------------------------------ life cycle
@@ -427,7 +481,7 @@ class SumoSim:
         try:
             self.api.simulationStep()
         except self.errors as e:
-            raise SumoFailed(f"SUMO failed in the step after t={self._prev_time:g} s: {_exc_text(e)}") from None
+            raise SumoFailed(f"SUMO failed in the step after t={self._prev.time:g} s: {_exc_text(e)}") from None
 
     @property
     def errors(self) -> tuple[type[BaseException], ...]:
@@ -443,10 +497,58 @@ class SumoSim:
         try:
             return self._read()
         except self.errors as e:
-            raise SumoFailed(f"SUMO failed while reading the step after t={self._prev_time:g} s: "
+            raise SumoFailed(f"SUMO failed while reading the step after t={self._prev.time:g} s: "
                              f"{_exc_text(e)}") from None
 
     def _read(self) -> Snapshot:
+        # Reading, then what follows from the previous snapshot, then this one becomes the
+        # previous one: the order matters (vType indices grow while reading, in SUMO's order).
+        ev = self._take_events()
+        now = float(self.api.simulation.getTime())
+        veh, per = self._read_vehicles(), self._read_persons()
+        ids = veh.ids + per.ids
+        nv = len(veh.ids)
+        xy = np.concatenate([veh.xy, per.xy])
+        speed = np.concatenate([veh.speed, per.speed])
+        vtype = np.concatenate([veh.vtype, per.vtype])
+        route = np.array(veh.route, dtype=object)
+        prev, prev_index = self._prev, self._align(ids)
+        dt = now - prev.time if now > prev.time else self.step_length
+        accel = _acceleration(speed, prev.speed, prev_index, dt)
+        self.vtypes.collect(vtype)  # bounded table: drops types nobody uses any more
+        jumped = _jumped(xy, speed, prev, prev_index, dt, _jump_margins(len(ids), nv, per.riding))
+        route_changed = _route_changed(route, prev.route, prev_index, nv)
+        self._prev = _Previous(ids=ids, speed=speed, time=now, xy=xy, route=route)
+        self._serial += 1
+        teleported = _members(ids, ev.teleported)
+        if teleported is not None:
+            accel[teleported] = 0.0  # SUMO, too, reports 0 when a teleport changes the speed
+        return Snapshot(
+            time=now,
+            ids=ids,
+            x=xy[:, 0].copy(),
+            y=xy[:, 1].copy(),
+            angle=np.concatenate([veh.angle, per.angle]),
+            speed=speed,
+            accel=accel,
+            signals=np.concatenate([veh.signals, per.signals]),
+            lane=np.concatenate([veh.lane, per.lane]),
+            lane_pos=np.concatenate([veh.lane_pos, per.lane_pos]),
+            vtype=vtype,
+            flags=_flags(ids, nv, per.riding, jumped, _members(ids, ev.new), teleported),
+            mode=_modes(len(ids), nv, per.riding),
+            n_vehicles=nv,
+            tls=self.read_tls(),
+            departed=ev.departed,
+            arrived=ev.arrived,
+            teleports=ev.teleports,
+            prev_index=prev_index,
+            serial=self._serial,
+            route_changed=route_changed,
+        )
+
+    def _take_events(self) -> _Events:
+        """Departures (subscribed now), arrivals and teleports of the last step, counted."""
         api = self.api
         sim = api.simulation
         departed = sim.getDepartedIDList()
@@ -457,152 +559,87 @@ class SumoSim:
             p_departed = sim.getDepartedPersonIDList()
             for p in p_departed:
                 api.person.subscribe(p, PERSON_VARS)
-        arrived = list(sim.getArrivedIDList())
-        tele = set(sim.getStartingTeleportIDList()) | set(sim.getEndingTeleportIDList())
-        n_tele_start = sim.getStartingTeleportNumber()
-        self.counters["departed"] += len(departed)
-        self.counters["persons_departed"] += len(p_departed)
-        self.counters["arrived"] += len(arrived)
-        self.counters["teleports"] += n_tele_start
-        now = float(sim.getTime())
+        ev = _Events(
+            new={*departed, *p_departed},
+            departed=len(departed) + len(p_departed),
+            arrived=list(sim.getArrivedIDList()),
+            teleported=set(sim.getStartingTeleportIDList()) | set(sim.getEndingTeleportIDList()),
+            teleports=sim.getStartingTeleportNumber(),
+        )
+        c = self.counters
+        c["departed"] += len(departed)
+        c["persons_departed"] += len(p_departed)
+        c["arrived"] += len(ev.arrived)
+        c["teleports"] += ev.teleports
+        return ev
 
+    def _read_vehicles(self) -> _Columns:
+        """Every vehicle's subscribed variables as columns."""
+        vids, values = self._vehicle_values(list(self.api.vehicle.getIDList()))
+        nv = len(vids)
+        if not nv:
+            return _Columns.none()
+        pos, angle, speed, sig, lpos, lanes, types, route = values
+        num = np.array((angle, speed, sig, lpos), np.float64)
+        return _Columns(
+            ids=vids,
+            xy=np.fromiter(_chain(pos), np.float64, 2 * nv).reshape(nv, 2),
+            angle=num[0],
+            speed=num[1],
+            lane_pos=num[3],
+            lane=_lookup(self._lane_index, lanes),
+            vtype=self.vtypes.indices(types),  # every step, so that a vehicle.setType shows in its step
+            signals=num[2].astype(np.int64),
+            route=list(route),
+            riding=np.zeros(0, bool),
+        )
+
+    def _vehicle_values(self, vids: list[str]) -> tuple[list[str], tuple]:
+        """The vehicles that have subscription results, and one tuple per ``_VEHICLE_ROW`` variable."""
+        if not vids:
+            return vids, ()
         # One ``getSubscriptionResults`` per vehicle, not ``getAllSubscriptionResults``:
         # libsumo copies the whole result map for the latter (measured at 10,000 vehicles:
         # 30 ms against 60-70 ms for the same dicts). The dicts are fresh and cache-cold:
         # one C-level pass (itemgetter) takes every variable out of each, ``zip`` makes the
         # columns (21 ms against 25 ms for one pass per variable).
-        veh = api.vehicle
-        vids = list(veh.getIDList())
-        nv = len(vids)
-        if nv:
-            rows = list(map(self._vehicle_results, vids))
-            try:
-                pos, angle, speed, sig, lpos, lanes, types, vroute = zip(*map(_VEHICLE_ROW, rows))
-            except (KeyError, TypeError):
-                # A vehicle without a subscription (an ego being removed) is left out, as
-                # getAllSubscriptionResults would; one subscribed without some variable gets
-                # them from getters.
-                kept = [(v, r) for v, r in zip(vids, rows) if r]
-                vids = [v for v, _ in kept]
-                nv = len(vids)
-                pos, angle, speed, sig, lpos, lanes, types, vroute = zip(*(self._vehicle_row(v, r) for v, r in kept)) \
-                    if kept else ((),) * 8
-            del rows
-        if nv:
-            vxy = np.fromiter(_chain(pos), np.float64, 2 * nv).reshape(nv, 2)
-            num = np.array((angle, speed, sig, lpos), np.float64)
-            vangle, vspeed, vsig, vlpos = num[0], num[1], num[2].astype(np.int64), num[3]
-            vlane = _lookup(self._lane_index, lanes)
-            # every step, so that a vehicle.setType shows in the step it happens
-            vtype = self.vtypes.indices(types)
-            vroute = list(vroute)
-        else:
-            vxy = np.zeros((0, 2))
-            vangle = vspeed = vlpos = _empty_f()
-            vsig = vlane = vtype = np.zeros(0, np.int64)
-            vroute = []
+        rows = list(map(self._vehicle_results, vids))
+        try:
+            return vids, tuple(zip(*map(_VEHICLE_ROW, rows)))
+        except (KeyError, TypeError):
+            # A vehicle without a subscription (an ego being removed) is left out, as
+            # getAllSubscriptionResults would; one subscribed without some variable gets
+            # them from getters.
+            kept = [(v, r) for v, r in zip(vids, rows) if r]
+            return [v for v, _ in kept], tuple(zip(*(self._vehicle_row(v, r) for v, r in kept)))
 
+    def _read_persons(self) -> _Columns:
+        """Every person's subscribed variables as columns (none unless ``cfg.persons``)."""
+        api = self.api
         pids = list(api.person.getIDList()) if self.cfg.persons else []
         npers = len(pids)
-        if npers:
+        if not npers:
+            return _Columns.none()
+        prow = list(map(api.person.getSubscriptionResults, pids))
+        try:
+            pos, angle, speed, lpos, lanes, types, vehicle = zip(*map(_PERSON_ROW, prow))
+        except (KeyError, TypeError):  # a person not subscribed (yet): subscribe and read it
+            for p, r in zip(pids, prow):
+                if not r or any(k not in r for k in PERSON_VARS):
+                    api.person.subscribe(p, PERSON_VARS)
             prow = list(map(api.person.getSubscriptionResults, pids))
-            try:
-                pos, angle, speed, lpos, lanes, types, vehicle = zip(*map(_PERSON_ROW, prow))
-            except (KeyError, TypeError):  # a person not subscribed (yet): subscribe and read it
-                for p, r in zip(pids, prow):
-                    if not r or any(k not in r for k in PERSON_VARS):
-                        api.person.subscribe(p, PERSON_VARS)
-                prow = list(map(api.person.getSubscriptionResults, pids))
-                pos, angle, speed, lpos, lanes, types, vehicle = zip(*map(_PERSON_ROW, prow))
-            pxy = np.array(pos, np.float64).reshape(npers, -1)[:, :2]
-            pangle = np.array(angle, np.float64)
-            pspeed = np.array(speed, np.float64)
-            plpos = np.array(lpos, np.float64)
-            p_lane = _lookup(self._lane_index, lanes)
-            ptype = self.vtypes.indices(list(types))
-            riding = np.array([bool(v) for v in vehicle], bool)
-        else:
-            pxy = np.zeros((0, 2))
-            pangle = pspeed = plpos = _empty_f()
-            p_lane = ptype = np.zeros(0, np.int64)
-            riding = np.zeros(0, bool)
-
-        ids = vids + pids
-        n = len(ids)
-        speed_all = np.concatenate([vspeed, pspeed])
-        prev_index = self._align(ids)
-        # Acceleration from consecutive speeds: SUMO defines it exactly so ((v - v_prev) /
-        # step length, checked against getAcceleration), and it saves a subscribed
-        # variable (~0.5 ms per step at 2,500 vehicles). 0 in an agent's first step and
-        # when it teleports.
-        dt = now - self._prev_time if now > self._prev_time else self.step_length
-        known = prev_index >= 0
-        accel = np.zeros(n)
-        if known.any():
-            accel[known] = (speed_all[known] - self._prev_speed[prev_index[known]]) / dt
-        vtype_all = np.concatenate([vtype, ptype])
-        self.vtypes.collect(vtype_all)  # bounded table: drops types nobody uses any more
-        xy = np.concatenate([vxy, pxy])
-        # A position change no motion explains (a person starting to wait at a stop far
-        # from where it walked, a stage change, moveToXY, a walker put onto a crossing) is a
-        # jump: physics must place, not steer. A vehicle's margin covers SUMO's instant lane
-        # changes (one lane width).
-        jumped_pos = np.zeros(n, bool)
-        if known.any() and len(self._prev_xy):
-            pk = prev_index[known]
-            moved = np.hypot(*(xy[known] - self._prev_xy[pk]).T)
-            margin = np.full(n, JUMP_MARGIN_M)
-            margin[nv:][~riding] = PERSON_JUMP_MARGIN_M
-            reach = np.maximum(speed_all[known], self._prev_speed[pk]) * dt + margin[known]
-            jumped_pos[known] = moved > reach
-        # A new route id is a reroute (object-array compare: one C loop, no Python per agent).
-        jv = prev_index[:nv]
-        route_arr = np.array(vroute, dtype=object)
-        route_changed = np.zeros(n, bool)
-        prev_route = self._prev_route
-        if nv and len(prev_route):
-            had = (jv >= 0) & (jv < len(prev_route))
-            route_changed[:nv] = had & (route_arr != prev_route[np.where(had, jv, 0)])
-        self._prev_route = route_arr
-        self._prev_ids, self._prev_speed, self._prev_time = ids, speed_all, now
-        self._prev_xy = xy
-        self._serial += 1
-
-        flags = np.zeros(n, np.uint8)
-        flags[nv:][riding] = AgentFlag.INSIDE_VEHICLE
-        flags[jumped_pos] |= np.uint8(AgentFlag.JUMPED)
-        new = set(departed)
-        new.update(p_departed)
-        if new:
-            flags[np.fromiter(map(new.__contains__, ids), bool, n)] |= np.uint8(AgentFlag.NEW)
-        if tele:
-            jumped = np.fromiter(map(tele.__contains__, ids), bool, n)
-            flags[jumped] |= np.uint8(AgentFlag.JUMPED)
-            accel[jumped] = 0.0  # SUMO, too, reports 0 when a teleport changes the speed
-        mode = np.full(n, MODE_LANES, np.uint8)
-        mode[nv:] = np.where(riding, MODE_NONE, MODE_STRAIGHT)
-        return Snapshot(
-            time=now,
-            ids=ids,
-            x=xy[:, 0].copy(),
-            y=xy[:, 1].copy(),
-            angle=np.concatenate([vangle, pangle]),
-            speed=speed_all,
-            accel=accel,
-            signals=np.concatenate([vsig, np.zeros(npers, np.int64)]),
-            lane=np.concatenate([vlane, p_lane]),
-            lane_pos=np.concatenate([vlpos, plpos]),
-            vtype=vtype_all,
-            flags=flags,
-            mode=mode,
-            n_vehicles=nv,
-            tls=self.read_tls(),
-            departed=len(departed) + len(p_departed),
-            arrived=arrived,
-            teleports=n_tele_start,
-            prev_index=prev_index,
-            serial=self._serial,
-            route_changed=route_changed,
+            pos, angle, speed, lpos, lanes, types, vehicle = zip(*map(_PERSON_ROW, prow))
+        return _Columns(
+            ids=pids,
+            xy=np.array(pos, np.float64).reshape(npers, -1)[:, :2],
+            angle=np.array(angle, np.float64),
+            speed=np.array(speed, np.float64),
+            lane_pos=np.array(lpos, np.float64),
+            lane=_lookup(self._lane_index, lanes),
+            vtype=self.vtypes.indices(list(types)),
+            signals=np.zeros(npers, np.int64),
+            route=[],
+            riding=np.array([bool(v) for v in vehicle], bool),
         )
 
     def _vehicle_row(self, vid: str, r: dict | None) -> tuple:
@@ -619,7 +656,7 @@ class SumoSim:
     def _align(self, ids: list[str]) -> np.ndarray:
         """Row of each agent in the previous snapshot, -1 for agents new to it."""
         n = len(ids)
-        prev = self._prev_ids
+        prev = self._prev.ids
         if ids == prev:
             return np.arange(n)
         if not prev:
@@ -656,6 +693,84 @@ class SumoSim:
             return tuple(veh.getRoute(vehicle_id)), int(veh.getRouteIndex(vehicle_id))
         except Exception:  # the vehicle left between read and resolve
             return (), -1
+
+
+def _acceleration(speed: np.ndarray, prev_speed: np.ndarray, prev_index: np.ndarray, dt: float) -> np.ndarray:
+    """Acceleration [m/s^2] from consecutive speeds; 0 in an agent's first step.
+
+    SUMO defines it exactly so ((v - v_prev) / step length, checked against
+    getAcceleration), and it saves a subscribed variable (~0.5 ms per step at 2,500 vehicles).
+    """
+    known = prev_index >= 0
+    accel = np.zeros(len(speed))
+    if known.any():
+        accel[known] = (speed[known] - prev_speed[prev_index[known]]) / dt
+    return accel
+
+
+def _jump_margins(n: int, nv: int, riding: np.ndarray) -> np.ndarray:
+    """[m] per agent: how far beyond its speed x step an agent may move before it jumped."""
+    margin = np.full(n, JUMP_MARGIN_M)
+    margin[nv:][~riding] = PERSON_JUMP_MARGIN_M
+    return margin
+
+
+def _jumped(xy: np.ndarray, speed: np.ndarray, prev: _Previous, prev_index: np.ndarray, dt: float,
+            margin: np.ndarray) -> np.ndarray:
+    """True for agents whose position change no motion explains.
+
+    A person starting to wait at a stop far from where it walked, a stage change,
+    moveToXY, a walker put onto a crossing: physics must place, not steer. A vehicle's
+    margin covers SUMO's instant lane changes (one lane width).
+    """
+    known = prev_index >= 0
+    jumped = np.zeros(len(xy), bool)
+    if known.any() and len(prev.xy):
+        pk = prev_index[known]
+        moved = np.hypot(*(xy[known] - prev.xy[pk]).T)
+        reach = np.maximum(speed[known], prev.speed[pk]) * dt + margin[known]
+        jumped[known] = moved > reach
+    return jumped
+
+
+def _route_changed(route: np.ndarray, prev_route: np.ndarray, prev_index: np.ndarray, nv: int) -> np.ndarray:
+    """True for vehicles (the first ``nv`` rows) with a new route id: rerouted.
+
+    Object-array compare: one C loop, no Python per agent.
+    """
+    changed = np.zeros(len(prev_index), bool)
+    if nv and len(prev_route):
+        jv = prev_index[:nv]
+        had = (jv >= 0) & (jv < len(prev_route))
+        changed[:nv] = had & (route != prev_route[np.where(had, jv, 0)])
+    return changed
+
+
+def _members(ids: list[str], names: set[str]) -> np.ndarray | None:
+    """True where ``ids`` is in ``names`` (None when ``names`` is empty: nothing to mark)."""
+    if not names:
+        return None
+    return np.fromiter(map(names.__contains__, ids), bool, len(ids))
+
+
+def _flags(ids: list[str], nv: int, riding: np.ndarray, jumped: np.ndarray, new: np.ndarray | None,
+           teleported: np.ndarray | None) -> np.ndarray:
+    """``AgentFlag`` bits per agent (persons follow the ``nv`` vehicles)."""
+    flags = np.zeros(len(ids), np.uint8)
+    flags[nv:][riding] = AgentFlag.INSIDE_VEHICLE
+    flags[jumped] |= np.uint8(AgentFlag.JUMPED)
+    if new is not None:
+        flags[new] |= np.uint8(AgentFlag.NEW)
+    if teleported is not None:
+        flags[teleported] |= np.uint8(AgentFlag.JUMPED)
+    return flags
+
+
+def _modes(n: int, nv: int, riding: np.ndarray) -> np.ndarray:
+    """Look-ahead mode per agent: vehicles follow lanes, walkers go straight, riders none."""
+    mode = np.full(n, MODE_LANES, np.uint8)
+    mode[nv:] = np.where(riding, MODE_NONE, MODE_STRAIGHT)
+    return mode
 
 
 def _lookup(table: dict[str, int], keys: tuple) -> np.ndarray:
