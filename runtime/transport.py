@@ -126,6 +126,11 @@ def _as_tls(endpoint: str) -> str:
     return "tls/" + endpoint[4:] if endpoint.startswith("tcp/") else endpoint
 
 
+#: [s] an incoming link must finish its handshake within this
+ACCEPT_TIMEOUT_S = 2.0
+#: incoming links that may be mid-handshake at once (each a socket and a small task)
+ACCEPT_PENDING = 4096
+
 #: Link protocols the secure profile accepts: TLS (``tcp/`` endpoints are turned into ``tls/``).
 SECURE_LINKS = ("tcp/", "tls/")
 
@@ -175,6 +180,13 @@ def zenoh_config(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Config:
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
     # Bounds what one peer can make us buffer while reassembling a message (default 1 GiB).
     conf.insert_json5("transport/link/rx/max_message_size", json.dumps(int(cfg.max_message_mb * (1 << 20))))
+    # Every sample carries its publisher's HLC timestamp, so a client can measure latency (SPEC 1).
+    conf.insert_json5("timestamping/enabled", json.dumps(True))
+    # Links that connect but never finish the (TLS) handshake are dropped after this, and
+    # enough of them may wait at once that they cannot crowd out a real peer (Zenoh's
+    # defaults, 10 s and 100, let 120 half-open connections block new peers).
+    conf.insert_json5("transport/unicast/accept_timeout", json.dumps(int(ACCEPT_TIMEOUT_S * 1000)))
+    conf.insert_json5("transport/unicast/accept_pending", json.dumps(ACCEPT_PENDING))
     return conf
 
 

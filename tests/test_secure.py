@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import socket
 import stat
 import time
 
@@ -33,6 +34,7 @@ from synthetic.traffic import synthetic_step
 from tests.harness import PAPER_CFG, ROOT, Daemon, Probe, endpoint, wait_until
 
 FORGED_STEP = 900_000  # a step index the real run never reaches
+HALF_OPEN = 200  # connections an attacker holds open without finishing a handshake
 
 
 @pytest.fixture(scope="module")
@@ -206,6 +208,51 @@ def test_user_password_is_checked_on_top_of_the_certificate(tmp_path, certs):
     finally:
         for s in (intruder, rightful, victim):
             s.close()
+
+
+def test_a_valid_peer_joins_within_2_s_while_200_half_open_connections_are_held(certs):
+    """Connections that open TCP and never start TLS must not keep a real peer out."""
+    sec = SecurityConfig(certs=certs, renderers=("ego", "ego2"))
+    ep = endpoint()
+    victim = open_session(ZenohConfig(listen=(ep,), security=sec), role="sumo")
+    host, port = ep[4:].rsplit(":", 1)
+    held = []
+    insider = None
+    try:
+        for _ in range(HALF_OPEN):
+            c = socket.create_connection((host, int(port)), timeout=5)
+            c.sendall(b"\x16\x03\x01\x02\x00")  # a TLS record header promising a ClientHello that never comes
+            held.append(c)
+        time.sleep(0.2)  # every one of them is accepted and waiting for its handshake
+        t0 = time.monotonic()
+        insider = open_session(ZenohConfig(connect=(ep,), security=sec), role="physics")
+        wait_until(lambda: list(insider.info.peers_zid()), 10, "the rightful peer to connect")
+        joined_s = time.monotonic() - t0
+    finally:
+        for c in held:
+            c.close()
+        for x in (insider, victim):
+            if x is not None:
+                x.close()
+    assert joined_s < 2.0, f"a valid peer took {joined_s:.2f} s to join beside 200 half-open connections"
+
+
+def test_samples_carry_the_publishers_timestamp():
+    ep = endpoint()
+    a = open_session(ZenohConfig(listen=(ep,)))
+    b = open_session(ZenohConfig(connect=(ep,)))
+    got = []
+    try:
+        sub = a.declare_subscriber("sumoco/ts/**", lambda smp: got.append(smp.timestamp))
+        wait_until(lambda: list(b.info.peers_zid()), 10, "the link")
+        t0 = time.time()
+        wait_until(lambda: (b.put("sumoco/ts/x", b"1"), got)[1], 10, "a sample", poll_s=0.1)
+        sub.undeclare()
+    finally:
+        b.close()
+        a.close()
+    assert got[0] is not None
+    assert abs(got[0].get_time().timestamp() - t0) < 5.0  # the publisher's clock, wall time
 
 
 # ------------------------------------------------------------------ attacks on the real daemons
