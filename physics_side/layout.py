@@ -18,6 +18,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import mujoco
 import mujoco.batch
@@ -43,21 +44,61 @@ SLOTS_PER_SIM = 256
 ARENA_FLOOR = 16 << 20  # [bytes]
 ARENA_PER_SLOT2 = 200  # [bytes / slot^2]
 
-# Joint and actuator names of each kind of model, in the order the tables use them.
-_STEER_JOINTS = {M.KIND_CAR: ("steer_fl", "steer_fr"), M.KIND_BIKE: ("steer_f", "steer_f"), M.KIND_PED: ()}
-_SPIN_JOINTS = {
-    M.KIND_CAR: ("spin_fl", "spin_fr", "spin_rl", "spin_rr"),
-    M.KIND_BIKE: ("spin_f", "spin_f", "spin_r", "spin_r"),  # two brake columns per wheel
-    M.KIND_PED: (),
+# Coordinates of the slots' joints in the batch state (``world`` reads them by these widths).
+FREE_NQ = 7  # a vehicle's freejoint qpos: position (3) and unit quaternion w, x, y, z (4)
+FREE_NV = 6  # its qvel: linear velocity (3, world frame), angular velocity (3, body frame)
+FREE_POS = 3  # where the quaternion starts in a freejoint's qpos (after the position)
+FREE_QUAT = 4  # quaternion components w, x, y, z
+FREE_WZ = 5  # the angular velocity about the body's z axis in a freejoint's qvel
+PED_NQ = 3  # a pedestrian's qpos (and qvel): slide x, slide y, yaw hinge
+STEER_COLUMNS = 2  # left and right steer columns (a bicycle's one steer twice)
+BRAKE_COLUMNS = 4  # spin / brake columns fl, fr, rl, rr (a two-wheeler's wheels twice each)
+CFRC_WIDTH = 6  # cfrc_ext per body: torque (3), then force (3)
+CFRC_FORCE = 3  # where the force starts in a body's cfrc_ext
+
+# MuJoCo keeps a qpos address per joint, not a width: a free joint holds a position and a
+# quaternion, a ball joint a quaternion, a slide or hinge joint one coordinate. Indexed by
+# ``mjtJoint`` (0..3).
+_QPOS_PER_JOINT = {
+    mujoco.mjtJoint.mjJNT_FREE: FREE_NQ, mujoco.mjtJoint.mjJNT_BALL: 4,
+    mujoco.mjtJoint.mjJNT_SLIDE: 1, mujoco.mjtJoint.mjJNT_HINGE: 1,
 }
-# first three actuators of a slot: (steer left, steer right | aux 0, drive, aux 1)
-_ACTUATORS = {
-    M.KIND_CAR: ("steer_fl", "steer_fr", "drive"),
-    M.KIND_BIKE: ("steer", "drive", "stab"),
-    M.KIND_PED: ("fx", "fy", "tz"),
+_JOINT_NQ = np.array([n for _, n in sorted((int(t), n) for t, n in _QPOS_PER_JOINT.items())])
+
+
+class _KindLayout(NamedTuple):
+    """Names of the template joints and actuators behind each slot-table column of one kind of
+    model (``models.car_template`` / ``bike_template`` / ``ped_template``); None: no such
+    element, the column holds -1."""
+
+    actuators: tuple[str, ...]
+    """The slot's actuators in model order (the first is the slot's first actuator)."""
+    steer_joints: tuple[str | None, ...]
+    """Left, right steer hinge."""
+    spin_joints: tuple[str, ...]
+    """Spin hinge of each brake column fl, fr, rl, rr (pedestrians: none)."""
+    steer_act: tuple[str | None, ...]
+    """Left, right steer actuator."""
+    drive_act: str
+    """Drive (pedestrian: force x)."""
+    aux_act: tuple[str | None, ...]
+    """Bicycle: stabiliser; pedestrian: force y, torque z."""
+
+
+_KINDS = {
+    M.KIND_CAR: _KindLayout(
+        actuators=("steer_fl", "steer_fr", "drive"), steer_joints=("steer_fl", "steer_fr"),
+        spin_joints=("spin_fl", "spin_fr", "spin_rl", "spin_rr"), steer_act=("steer_fl", "steer_fr"),
+        drive_act="drive", aux_act=(None, None)),
+    M.KIND_BIKE: _KindLayout(
+        actuators=("steer", "drive", "stab"), steer_joints=("steer_f", "steer_f"),
+        spin_joints=("spin_f", "spin_f", "spin_r", "spin_r"), steer_act=("steer", "steer"),
+        drive_act="drive", aux_act=("stab", None)),
+    M.KIND_PED: _KindLayout(
+        actuators=("fx", "fy", "tz"), steer_joints=(None, None), spin_joints=(),
+        steer_act=(None, None), drive_act="fx", aux_act=("fy", "tz")),
 }
-# qpos width of each MuJoCo joint type (free, ball, slide, hinge)
-_JOINT_NQ = np.array([7, 4, 1, 1])
+_REAR_STEER = ("steer_rl", "steer_rr")  # a car's rear steer hinges and their actuators (after the drive)
 
 
 @dataclass(frozen=True)
@@ -310,130 +351,187 @@ def _build_tables(
     m: mujoco.MjModel, pools: list[Pool], shards: int, nstate: int, offsets: tuple[int, int, int],
     timestep: float,
 ) -> tuple[SlotTables, np.ndarray]:
-    """Columns of ``SlotTables`` for every pool, built per pool with numpy.
-
-    Each slot is one attached copy of its pool's template, so its bodies, joints, dofs
-    and actuators are consecutive and every slot of a pool has the same layout: the
-    addresses of slot ``i`` are those of slot 0 plus ``i`` strides (checked at the last
-    slot by name).
-    """
-    off_qpos, off_qvel, off_ctrl = offsets
-    S = shards
-    cols: dict[str, list[np.ndarray]] = {f.name: [] for f in fields(SlotTables)}
+    """``SlotTables`` of every slot, pool by pool (``_pool_tables``), and each pool's first
+    slot number."""
     base = np.zeros(max((p.index for p in pools), default=-1) + 1, np.int64)
-    g0 = 0
+    parts: list[SlotTables] = []
+    first = 0
     for pool in pools:
-        base[pool.index] = g0
-        C = pool.capacity
-        if C == 0:
+        base[pool.index] = first
+        if pool.capacity == 0:
             continue
-        spec = pool.spec
-        rest = M.rest_pose(spec, timestep)
-        acts = _ACTUATORS[spec.kind]
-        pre0 = slot_prefix(spec.name, C, 0)
-        b0 = m.body(pre0 + "agent").id
-        tree0 = int(m.body_treeid[b0])
-        j0 = int(m.body_jntadr[b0])
-        q0, d0 = int(m.jnt_qposadr[j0]), int(m.jnt_dofadr[j0])
-        a0 = m.actuator(pre0 + acts[0]).id
-        tree_joints = np.flatnonzero(m.body_treeid[m.jnt_bodyid] == tree0)
-        nq_slot = int(_JOINT_NQ[m.jnt_type[tree_joints]].sum())
-        nv_slot = int(m.tree_dofnum[tree0])
-        nb_slot = int(m.tree_bodynum[tree0])
-        rear = spec.kind == M.KIND_CAR and spec.rear_steer_deg > 0
-        if rear:
-            acts = (*acts, "steer_rl", "steer_rr")
-        nu_slot = len(acts)
-        rel_act = {n: m.actuator(pre0 + n).id - a0 for n in acts}
-        rel_sq = np.array(
-            [m.jnt_qposadr[m.joint(pre0 + j).id] - q0 for j in _STEER_JOINTS[spec.kind]],
-            np.int64)
-        rel_sd = np.array(
-            [m.jnt_dofadr[m.joint(pre0 + j).id] - d0 for j in _SPIN_JOINTS[spec.kind]],
-            np.int64)
-        last = slot_prefix(spec.name, C, C - 1)
-        lb = m.body(last + "agent").id
-        g_first = m.geom(pre0 + "chassis").id
-        ng_slot = (m.geom(last + "chassis").id - g_first) // (C - 1) if C > 1 else 0
-        if (lb != b0 + (C - 1) * nb_slot or m.actuator(last + acts[0]).id != a0 + (C - 1) * nu_slot
-                or m.jnt_qposadr[m.body_jntadr[lb]] != q0 + (C - 1) * nq_slot):
-            raise RuntimeError(f"pool {spec.name}: slots are not laid out with equal strides")
-        i = np.repeat(np.arange(C, dtype=np.int64), S)  # slot order: pool, index, shard
-        s = np.tile(np.arange(S, dtype=np.int64), C)
-        n = C * S
-        q = q0 + i * nq_slot
-        d = d0 + i * nv_slot
-        a = a0 + i * nu_slot
-        b = b0 + i * nb_slot
-        qb = s * nstate + off_qpos + q
-        vb = s * nstate + off_qvel + d
-        ub = s * nstate + off_ctrl + a
-        neg2 = np.full((n, 2), -1, np.int64)
-        rsteer_q, rsteer_u = neg2, neg2
-        if rear:
-            rel_rq = np.array([m.jnt_qposadr[m.joint(pre0 + j).id] - q0 for j in ("steer_rl", "steer_rr")], np.int64)
-            rsteer_q = qb[:, None] + rel_rq[None, :]
-            rsteer_u = ub[:, None] + np.array([rel_act["steer_rl"], rel_act["steer_rr"]])[None, :]
-        if spec.kind == M.KIND_CAR:
-            steer_q = qb[:, None] + rel_sq[None, :]
-            steer_u = ub[:, None] + np.array([rel_act["steer_fl"], rel_act["steer_fr"]])[None, :]
-            drive_u = ub + rel_act["drive"]
-            aux_u = neg2
-            share = [spec.brake_front / 2] * 2 + [(1 - spec.brake_front) / 2] * 2
-            drive_share = [0.25] * 4 if spec.awd else [0.0, 0.0, 0.5, 0.5]
-        elif spec.kind == M.KIND_BIKE:
-            steer_q = qb[:, None] + rel_sq[None, :]
-            steer_u = np.repeat((ub + rel_act["steer"])[:, None], 2, axis=1)
-            drive_u = ub + rel_act["drive"]
-            aux_u = np.stack([ub + rel_act["stab"], np.full(n, -1, np.int64)], axis=1)
-            share = [spec.brake_front] * 2 + [1 - spec.brake_front] * 2
-            drive_share = [0.0, 0.0, 1.0, 1.0]  # (one rear wheel in both columns)
-        else:
-            steer_q, steer_u = neg2, neg2.copy()
-            drive_u = ub + rel_act["fx"]
-            aux_u = np.stack([ub + rel_act["fy"], ub + rel_act["tz"]], axis=1)
-            share = [0.0] * 4
-            drive_share = [0.0] * 4
-        if len(rel_sd):
-            spin_fl = (s * m.nv + d)[:, None] + rel_sd[None, :]
-            spin_v = vb[:, None] + rel_sd[None, :]
-        else:
-            spin_fl = np.full((n, 4), -1, np.int64)
-            spin_v = np.full((n, 4), -1, np.int64)
-        px, py = park_position(pool.index, i)
+        stride = _SlotStride.measure(m, pool.spec, pool.capacity)
+        parts.append(_pool_tables(m, pool, stride, shards, nstate, offsets, M.rest_pose(pool.spec, timestep)))
+        first += pool.capacity * shards
+    return SlotTables(**{f.name: _concat(f.name, [getattr(p, f.name) for p in parts]) for f in fields(SlotTables)}), base
 
-        def full(v: float) -> np.ndarray:
-            return np.full(n, v, np.float64)
 
-        def whole(v: int) -> np.ndarray:
-            return np.full(n, v, np.int64)
+@dataclass(frozen=True)
+class _SlotStride:
+    """Model addresses of slot 0 of a pool and the distance to the next slot.
 
-        part = dict(
-            pool=whole(pool.index), shard=s, index=i, kind=whole(spec.kind), cls=whole(int(spec.cls)),
-            qpos=qb, nq=whole(nq_slot), qvel=vb, nv=whole(nv_slot), ctrl=ub, nu=whole(nu_slot), qpos0=q, dof=d,
-            steer_q=steer_q, steer_u=steer_u, drive_u=drive_u, aux_u=aux_u, spin_fl=spin_fl, spin_v=spin_v,
-            brake_share=np.tile(np.asarray(share, np.float64), (n, 1)),
-            drive_share=np.tile(np.asarray(drive_share, np.float64), (n, 1)),
-            traction_control=whole(int(spec.traction_control)),
-            tree=s * m.ntree + (tree0 + i), body=(s * m.nbody + b) * 6 + 3,
-            geom=s * m.ngeom + g_first + i * ng_slot, geom_model=g_first + i * ng_slot, park_x=px, park_y=py,
-            length=full(spec.length), width=full(spec.width), height=full(spec.height), front=full(spec.front_offset), wheelbase=full(spec.wheelbase),
-            rear_axle=full(spec.rear_axle), track=full(spec.track), r_wheel=full(spec.wheel_radius),
-            m_eff=full(spec.effective_mass), mass=full(spec.total_mass),
-            max_steer=full(math.radians(spec.max_steer_deg)), rsteer_q=rsteer_q, rsteer_u=rsteer_u,
-            max_rsteer=full(math.radians(spec.rear_steer_deg) if rear else 0.0),
-            max_drive=full(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force),
-            max_brake=full(spec.max_brake), drive_grip=full(spec.drive_grip), tyre_mu=full(spec.tyre_mu), stab_max=full(spec.stab_max),
-            roll_stiffness=full(spec.roll_stiffness), rest_z=full(rest.z),
-            rest_pitch=full(rest.pitch),
+    Each slot is one attached copy of its pool's template, so its bodies, joints, dofs,
+    actuators and geoms are consecutive and every slot of a pool has the same layout: the
+    addresses of slot ``i`` are those of slot 0 plus ``i`` strides (``measure`` checks the
+    last slot by name).
+    """
+
+    kind: _KindLayout
+    actuators: tuple[str, ...]
+    """The slot's actuators (the kind's, then a steered rear axle's)."""
+    body: int
+    tree: int
+    qpos: int
+    dof: int
+    actuator: int
+    geom: int
+    """The body geom (chassis, frame, pedestrian box)."""
+    nbody: int
+    nq: int
+    nv: int
+    nu: int
+    ngeom: int
+    rel_actuator: dict[str, int]
+    """Actuator -> index relative to the slot's first actuator."""
+    rel_qpos: dict[str, int]
+    """Steer joint -> qpos relative to the slot's first qpos."""
+    rel_dof: dict[str, int]
+    """Spin joint -> dof relative to the slot's first dof."""
+
+    @classmethod
+    def measure(cls, m: mujoco.MjModel, spec: M.AgentSpec, capacity: int) -> "_SlotStride":
+        kind = _KINDS[spec.kind]
+        rear = _rear_steered(spec)
+        acts = kind.actuators + (_REAR_STEER if rear else ())
+        pre = slot_prefix(spec.name, capacity, 0)
+        body = m.body(pre + "agent").id
+        tree = int(m.body_treeid[body])
+        joint = int(m.body_jntadr[body])
+        qpos, dof = int(m.jnt_qposadr[joint]), int(m.jnt_dofadr[joint])
+        act = m.actuator(pre + acts[0]).id
+        geom = m.geom(pre + "chassis").id
+        tree_joints = np.flatnonzero(m.body_treeid[m.jnt_bodyid] == tree)
+        steer = [j for j in kind.steer_joints if j is not None] + list(_REAR_STEER if rear else ())
+        last = slot_prefix(spec.name, capacity, capacity - 1)
+        k = capacity - 1
+        stride = cls(
+            kind=kind, actuators=acts, body=body, tree=tree, qpos=qpos, dof=dof, actuator=act, geom=geom,
+            nbody=int(m.tree_bodynum[tree]), nq=int(_JOINT_NQ[m.jnt_type[tree_joints]].sum()),
+            nv=int(m.tree_dofnum[tree]), nu=len(acts), ngeom=(m.geom(last + "chassis").id - geom) // k if k else 0,
+            rel_actuator={a: m.actuator(pre + a).id - act for a in acts},
+            rel_qpos={j: int(m.jnt_qposadr[m.joint(pre + j).id]) - qpos for j in steer},
+            rel_dof={j: int(m.jnt_dofadr[m.joint(pre + j).id]) - dof for j in kind.spin_joints},
         )
-        for k, v in part.items():
-            cols[k].append(v)
-        g0 += n
-    return SlotTables(**{k: _concat(k, v) for k, v in cols.items()}), base
+        lb = m.body(last + "agent").id
+        if (lb != body + k * stride.nbody or m.actuator(last + acts[0]).id != act + k * stride.nu
+                or m.jnt_qposadr[m.body_jntadr[lb]] != qpos + k * stride.nq):
+            raise RuntimeError(f"pool {spec.name}: slots are not laid out with equal strides")
+        return stride
 
 
-_WIDTH = {"steer_q": 2, "steer_u": 2, "rsteer_q": 2, "rsteer_u": 2, "aux_u": 2, "spin_fl": 4, "spin_v": 4, "brake_share": 4, "drive_share": 4}
+def _rear_steered(spec: M.AgentSpec) -> bool:
+    """A car-like model that steers its rear axle too."""
+    return spec.kind == M.KIND_CAR and spec.rear_steer_deg > 0
+
+
+def _pool_tables(
+    m: mujoco.MjModel, pool: Pool, stride: _SlotStride, shards: int, nstate: int, offsets: tuple[int, int, int],
+    rest: M.RestPose,
+) -> SlotTables:
+    """The rows of one pool's slots, in slot order: by index in the pool, then by shard."""
+    index = np.repeat(np.arange(pool.capacity, dtype=np.int64), shards)
+    shard = np.tile(np.arange(shards, dtype=np.int64), pool.capacity)
+    spec = pool.spec
+    n = len(index)
+    park_x, park_y = park_position(pool.index, index)
+    return SlotTables(
+        pool=np.full(n, pool.index, np.int64), shard=shard, index=index, kind=np.full(n, spec.kind, np.int64),
+        cls=np.full(n, int(spec.cls), np.int64), park_x=park_x, park_y=park_y,
+        **_state_columns(m, stride, index, shard, nstate, offsets),
+        **_share_columns(spec, n),
+        **_physical_columns(spec, rest, n),
+    )
+
+
+def _state_columns(
+    m: mujoco.MjModel, stride: _SlotStride, index: np.ndarray, shard: np.ndarray, nstate: int,
+    offsets: tuple[int, int, int],
+) -> dict[str, np.ndarray]:
+    """Flat indices into the batch state and the expanded model arrays of each slot."""
+    off_qpos, off_qvel, off_ctrl = offsets
+    n = len(index)
+    q = stride.qpos + index * stride.nq
+    d = stride.dof + index * stride.nv
+    qpos = shard * nstate + off_qpos + q
+    qvel = shard * nstate + off_qvel + d
+    ctrl = shard * nstate + off_ctrl + (stride.actuator + index * stride.nu)
+    kind = stride.kind
+
+    def at(first: np.ndarray, rel: dict[str, int], names: tuple[str | None, ...]) -> np.ndarray:
+        """(n, len(names)) ``first`` + each name's relative index; -1 where the name is None."""
+        return np.stack([first + rel[a] if a is not None else np.full(n, -1, np.int64) for a in names], axis=1)
+
+    rear = len(stride.actuators) > len(kind.actuators)
+    spin = kind.spin_joints or (None,) * BRAKE_COLUMNS
+    model_dof = shard * m.nv + d
+    geom = stride.geom + index * stride.ngeom
+    return dict(
+        qpos=qpos, nq=np.full(n, stride.nq, np.int64), qvel=qvel, nv=np.full(n, stride.nv, np.int64), ctrl=ctrl,
+        nu=np.full(n, stride.nu, np.int64), qpos0=q, dof=d,
+        steer_q=at(qpos, stride.rel_qpos, kind.steer_joints), steer_u=at(ctrl, stride.rel_actuator, kind.steer_act),
+        drive_u=ctrl + stride.rel_actuator[kind.drive_act], aux_u=at(ctrl, stride.rel_actuator, kind.aux_act),
+        spin_fl=at(model_dof, stride.rel_dof, spin), spin_v=at(qvel, stride.rel_dof, spin),
+        rsteer_q=at(qpos, stride.rel_qpos, _REAR_STEER if rear else (None, None)),
+        rsteer_u=at(ctrl, stride.rel_actuator, _REAR_STEER if rear else (None, None)),
+        tree=shard * m.ntree + (stride.tree + index),
+        body=(shard * m.nbody + (stride.body + index * stride.nbody)) * CFRC_WIDTH + CFRC_FORCE,
+        geom=shard * m.ngeom + geom, geom_model=geom,
+    )
+
+
+def _share_columns(spec: M.AgentSpec, n: int) -> dict[str, np.ndarray]:
+    """Each brake column's share of the brake torque and of the drive torque (the drive
+    tendon's coefficients, ``models.car_template``); heavy vehicles' traction control."""
+    if spec.kind == M.KIND_CAR:
+        brake = [spec.brake_front / 2] * 2 + [(1 - spec.brake_front) / 2] * 2
+        driven = M.driven_wheels(spec)
+        drive = [1.0 / len(driven) if w in driven else 0.0 for w in M.CAR_WHEELS]
+    elif spec.kind == M.KIND_BIKE:  # one wheel in two columns each: the front brake share twice
+        brake = [spec.brake_front] * 2 + [1 - spec.brake_front] * 2
+        drive = [0.0, 0.0, 1.0, 1.0]  # the rear wheel, driven alone
+    else:
+        brake = drive = [0.0] * BRAKE_COLUMNS
+    return dict(
+        brake_share=np.tile(np.asarray(brake, np.float64), (n, 1)),
+        drive_share=np.tile(np.asarray(drive, np.float64), (n, 1)),
+        traction_control=np.full(n, int(spec.traction_control), np.int64),
+    )
+
+
+def _physical_columns(spec: M.AgentSpec, rest: M.RestPose, n: int) -> dict[str, np.ndarray]:
+    """The model's physical parameters, one row per slot."""
+
+    def full(v: float) -> np.ndarray:
+        return np.full(n, v, np.float64)
+
+    return dict(
+        length=full(spec.length), width=full(spec.width), height=full(spec.height), front=full(spec.front_offset),
+        wheelbase=full(spec.wheelbase), rear_axle=full(spec.rear_axle), track=full(spec.track),
+        r_wheel=full(spec.wheel_radius), m_eff=full(spec.effective_mass), mass=full(spec.total_mass),
+        max_steer=full(math.radians(spec.max_steer_deg)),
+        max_rsteer=full(math.radians(spec.rear_steer_deg) if _rear_steered(spec) else 0.0),
+        max_drive=full(spec.max_drive if spec.kind != M.KIND_PED else spec.ped_max_force),
+        max_brake=full(spec.max_brake), drive_grip=full(spec.drive_grip), tyre_mu=full(spec.tyre_mu),
+        stab_max=full(spec.stab_max), roll_stiffness=full(spec.roll_stiffness), rest_z=full(rest.z),
+        rest_pitch=full(rest.pitch),
+    )
+
+
+_WIDTH = {
+    "steer_q": STEER_COLUMNS, "steer_u": STEER_COLUMNS, "rsteer_q": STEER_COLUMNS, "rsteer_u": STEER_COLUMNS,
+    "aux_u": STEER_COLUMNS, "spin_fl": BRAKE_COLUMNS, "spin_v": BRAKE_COLUMNS, "brake_share": BRAKE_COLUMNS,
+    "drive_share": BRAKE_COLUMNS,
+}
 _FLOAT = {
     "brake_share", "drive_share", "park_x", "park_y", "length", "width", "height", "front", "wheelbase", "rear_axle", "track", "r_wheel", "m_eff",
     "mass", "max_steer", "max_rsteer", "max_drive", "max_brake", "drive_grip", "tyre_mu", "stab_max", "roll_stiffness", "rest_z",
@@ -442,6 +540,7 @@ _FLOAT = {
 
 
 def _concat(name: str, parts: list[np.ndarray]) -> np.ndarray:
+    """One column over all pools (typed and shaped even without pools)."""
     dtype = np.float64 if name in _FLOAT else np.int64
     if not parts:
         w = _WIDTH.get(name)

@@ -393,6 +393,14 @@ def _chassis(b, spec: AgentSpec) -> None:
     b.inertia = _box_inertia(spec.mass, spec.length, spec.width, h)
 
 
+CAR_WHEELS = ("fl", "fr", "rl", "rr")  # a car's wheels, in the order of its brake columns (``layout``)
+
+
+def driven_wheels(spec: AgentSpec) -> tuple[str, ...]:
+    """The wheels a car's drive tendon turns (sharing its torque equally): all four or the rear two."""
+    return CAR_WHEELS if spec.awd else CAR_WHEELS[2:]
+
+
 def car_template(spec: AgentSpec) -> mujoco.MjSpec:
     """Four-wheel Ackermann vehicle; body origin at the footprint centre, axle height."""
     s = mujoco.MjSpec()
@@ -411,7 +419,7 @@ def car_template(spec: AgentSpec) -> mujoco.MjSpec:
         a = s.add_actuator(name=f"steer_{w}", target=f"steer_{w}", trntype=mujoco.mjtTrn.mjTRN_JOINT)
         a.set_to_position(kp=spec.steer_kp, kv=spec.steer_kv)
     t = s.add_tendon(name="drive")
-    driven = ("fl", "fr", "rl", "rr") if spec.awd else ("rl", "rr")
+    driven = driven_wheels(spec)
     for w in driven:
         t.wrap_joint(f"spin_{w}", 1.0 / len(driven))
     a = s.add_actuator(name="drive", target="drive", trntype=mujoco.mjtTrn.mjTRN_TENDON)
