@@ -38,16 +38,20 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, replace
+from types import MappingProxyType
 
 import mujoco
 import numpy as np
 
+from physics_side.control import G
 from protocol.messages import AgentClass
 
 # Kinds of model layout, for the world's index tables.
 KIND_CAR = 0
 KIND_BIKE = 1
 KIND_PED = 2
+CAR_WHEELS = ("fl", "fr", "rl", "rr")  # a car's wheels, in the order of its brake columns (``layout``)
+N_WHEELS = {KIND_CAR: len(CAR_WHEELS), KIND_BIKE: 2, KIND_PED: 0}
 
 #: Agent types by name (config keys) -> AgentClass.
 TYPE_NAMES: dict[str, AgentClass] = {
@@ -65,6 +69,26 @@ CAR_TYRE_MU = 1.3  # [1] tyre-road friction of cars, taxis, vans and bicycles
 # pushes the agents apart at a few m/s^2 instead of exploding; wheels keep the stiff
 # default against the ground.
 BODY_CONTACT = dict(solref=[0.1, 1.0], solimp=[0.9, 0.95, 0.01, 0.5, 2.0])
+# Collision filter bits (contype / conaffinity, see the module docstring)
+GROUND_BIT = 1
+BODY_BIT = 2  # chassis and two-wheeler frames
+PED_BIT = 4
+CONDIM_SLIDING = 3  # contact dimensions: the normal and sliding friction (no torsion, no rolling)
+SOLID_SPHERE_INERTIA = 0.4  # [1] a solid sphere's spin inertia / (m r^2): 2/5
+STEER_ARMATURE = 0.05  # [kg*m^2 per kg of wheel] a steer hinge's armature
+BIKE_TYRE_HALF_WIDTH = 0.03  # [m] half-thickness of a two-wheeler's ellipsoid wheel
+WHEEL_RGBA = (0.1, 0.1, 0.1, 1.0)  # colours in MuJoCo's own renderer
+CHASSIS_RGBA = (0.6, 0.6, 0.7, 1.0)
+PED_RGBA = (0.8, 0.5, 0.3, 1.0)
+PED_YAW_DAMPING = 2.0  # [N*m*s/rad] a pedestrian's yaw hinge
+PED_YAW_ARMATURE = 1.0  # [kg*m^2]
+PED_YAW_TORQUE_MAX = 150.0  # [N*m] its yaw motor's limit (``control.PED_YAW_MAX`` commands within it)
+# Rest pose (``rest_pose``): one agent settled on flat ground for REST_SETTLE_S, its wheels
+# braked and a two-wheeler held upright by a stiff roll PD
+REST_SETTLE_S = 1.0  # [s]
+REST_BRAKE = 50.0  # [N*m] per spin joint
+REST_ROLL_KP = 2000.0  # [N*m/rad]
+REST_ROLL_KD = 200.0  # [N*m*s/rad]
 
 
 @dataclass(frozen=True)
@@ -135,11 +159,11 @@ class AgentSpec:
     @property
     def wheel_inertia(self) -> float:
         """Spin inertia of one sphere wheel [kg*m^2]."""
-        return 0.4 * self.wheel_mass * self.wheel_radius**2
+        return SOLID_SPHERE_INERTIA * self.wheel_mass * self.wheel_radius**2
 
     @property
     def n_wheels(self) -> int:
-        return {KIND_CAR: 4, KIND_BIKE: 2, KIND_PED: 0}[self.kind]
+        return N_WHEELS[self.kind]
 
     @property
     def total_mass(self) -> float:
@@ -155,16 +179,16 @@ class AgentSpec:
         if self.kind == KIND_PED:
             return math.inf
         if self.awd:
-            return self.tyre_mu * 9.81 * self.total_mass
+            return self.tyre_mu * G * self.total_mass
         share = min(0.5 / max(1.0 - self.tyre_mu * self.com_height / self.wheelbase, 0.5), 1.0)
-        return self.tyre_mu * 9.81 * self.total_mass * share
+        return self.tyre_mu * G * self.total_mass * share
 
     @property
     def roll_stiffness(self) -> float:
         """Gravity's toppling moment per radian of lean about the ground line [N*m/rad]
         (total mass * g * COM height, small angles): a roll stabiliser must be stiffer."""
         h = (self.mass * self.com_height + self.n_wheels * self.wheel_mass * self.wheel_radius) / self.total_mass
-        return self.total_mass * 9.81 * h
+        return self.total_mass * G * h
 
     @property
     def effective_mass(self) -> float:
@@ -174,81 +198,205 @@ class AgentSpec:
         return self.total_mass + self.n_wheels * self.wheel_inertia / self.wheel_radius**2
 
 
+# --------------------------------------------------------------------------- families
+# Each family's parameters (``AgentSpec`` fields, SI units as documented there); those that
+# scale with the SUMO size are ratios applied in its builder below.
+
+# Cars: wheelbase ~0.6 of the length, front overhang = rear overhang (symmetric body).
+# Tyres mu 1.3 (``CAR_TYRE_MU``, good tyres on dry asphalt, the upper end): SUMO drives
+# junction turns at up to ~10 m/s^2 of lateral acceleration; with mu 1.0 cars ran 1-1.5 m wide.
+CAR_HEIGHT = 1.5  # [m]
+CAR_MASS = 1300.0  # [kg] of a car of CAR_AREA footprint; heavier in proportion to its footprint
+CAR_AREA = 9.0  # [m^2]
+CAR_WHEELBASE_SHARE = 0.6  # [1] of the length
+CAR_TRACK_INSET = 0.25  # [m] track = width - this
+CAR_WHEEL_RADIUS = 0.32  # [m]
+
+# Heavy vehicles (bus, coach, truck, tram): 0.5 m wheels, high COM, ~3.5 m/s^2 drive, ~9 m/s^2 brakes.
+HEAVY_WHEEL_RADIUS = 0.5  # [m]
+HEAVY_TRACK_INSET = 0.4  # [m] track = width - this ...
+HEAVY_MIN_TRACK = 1.2  # [m] ... but at least this
+# SUMO's coach accelerates at 2.0 m/s^2 (bus 1.2, truck 1.3): ~2 m/s^2 of drive left a coach
+# ~6 m behind after every start, so the drive keeps a margin over the fastest
+HEAVY_DRIVE_ACCEL = 3.5  # [m/s^2]
+HEAVY_DRIVE_MARGIN = 1.3  # [1] drive torque over accel * mass * wheel radius
+HEAVY_BRAKE_DECEL = 9.0  # [m/s^2]
+HEAVY_BRAKE_MARGIN = 1.2  # [1] brake torque over decel * mass * wheel radius
+HEAVY = MappingProxyType(dict(
+    com_height=1.0,  # [m]
+    tyre_mu=1.0,  # [1]
+    wheel_mass=120.0,  # [kg]
+    clearance=0.35,  # [m]
+    # [deg] city buses and trucks cut their front wheels ~50 deg (a 12 m bus turns within ~11 m)
+    max_steer_deg=50.0,
+    # [deg] SUMO puts a long body on the chord between its front and back positions on the lane,
+    # whatever the turn's radius; a rigid 12-16 m body on a fixed rear axle cuts ~3 m inside
+    # a 10 m junction turn (into the next lane) or cannot make it at all. Steering the rear
+    # axle too (as articulated buses, trailers and bogies effectively do) keeps it on the chord.
+    rear_steer_deg=40.0,
+    traction_control=True,
+    steer_kp=20_000.0,  # [N*m/rad]
+    steer_kv=1_500.0,  # [N*m*s/rad]
+))
+BUS_MASS = 11_000.0  # [kg] of a BUS_LENGTH bus; heavier in proportion to its length
+BUS_LENGTH = 12.0  # [m]
+BUS_HEIGHT = 3.0  # [m]
+BUS_WHEELBASE_SHARE = 0.5  # [1] of the length
+# trucks (SUMO: 7.1 x 2.4 m), trailers as one rigid 16.5 m body, ~12 t per 7 m
+TRUCK_MASS = 12_000.0  # [kg] of a TRUCK_LENGTH truck; heavier in proportion to its length
+TRUCK_LENGTH = 7.1  # [m]
+TRUCK_HEIGHT = 3.4  # [m]
+TRUCK_WHEELBASE_SHARE = 0.55  # [1] of the length
+TRAM_MASS = 1_300.0  # [kg per m of length] of a TRAM_WIDTH tram; heavier in proportion to its footprint
+TRAM_WIDTH = 2.65  # [m]
+TRAM_HEIGHT = 3.3  # [m]
+TRAM_WHEELBASE_SHARE = 0.45  # [1] of the length
+
+# Delivery vans (SUMO: 6.5 x 2.16 m): taller, heavier, COM 0.8 m
+VAN_MASS = 3500.0  # [kg] of a VAN_LENGTH x VAN_WIDTH van; heavier in proportion to its footprint
+VAN_LENGTH = 6.5  # [m]
+VAN_WIDTH = 2.16  # [m]
+VAN_WHEELBASE_SHARE = 0.55  # [1] of the length
+VAN_WHEEL_RADIUS = 0.36  # [m]
+VAN_TOTAL_MASS = 3800.0  # [kg] the drive and brake torques are sized for (with wheels)
+VAN_DRIVE_ACCEL = 3.0  # [m/s^2]
+VAN_BRAKE_DECEL = 9.0  # [m/s^2]
+VAN = MappingProxyType(dict(
+    height=2.5,  # [m]
+    com_height=0.8,  # [m]
+    wheel_radius=VAN_WHEEL_RADIUS,
+    wheel_mass=30.0,  # [kg]
+    steer_kp=8000.0,  # [N*m/rad]
+    steer_kv=400.0,  # [N*m*s/rad]
+))
+
+# Bicycles with their rider. COM 1 m high over a 1 m wheelbase: beyond ~4.9 m/s^2 a bicycle
+# lifts a wheel, so drive (~3 m/s^2) and brakes (~4.5 m/s^2) stay below that. Braking unloads
+# the rear wheel: with half the brake there it locked at full braking and the bicycle swung
+# 26 deg off its lane on a straight. 65 % in front (75 % ran bicycles braking in junction
+# turns wide: p95 0.22 -> 0.29 m on a random network). Tyres as cars': SUMO's bicycles take
+# junction turns like cars.
+BIKE_WHEELBASE_SHARE = 0.62  # [1] of the length
+BICYCLE = MappingProxyType(dict(
+    height=1.7,  # [m]
+    mass=85.0,  # [kg] frame and rider
+    com_height=1.0,  # [m]
+    wheel_radius=0.34,  # [m]
+    wheel_mass=2.0,  # [kg]
+    clearance=0.3,  # [m]
+    max_steer_deg=35.0,  # [deg]
+    max_drive=100.0,  # [N*m]
+    max_brake=130.0,  # [N*m]
+    brake_front=0.65,  # [1]
+    steer_kp=300.0,  # [N*m/rad]
+    steer_kv=15.0,  # [N*m*s/rad]
+    stab_max=1500.0,  # [N*m]
+    tyre_mu=CAR_TYRE_MU,
+))
+
+# Motorcycles and mopeds: heavier, lower single-track vehicles. SUMO's motorcycle accelerates
+# at 6 and decelerates at 10 m/s^2 (moped 1.1 / 7): with 4 / 6 m/s^2 they overshot SUMO's
+# stops by ~6 m. ~8 m/s^2 of drive and ~12 m/s^2 of braking; a stoppie needs g * wheelbase /
+# 2 / COM ~ 13. At 10 m/s^2 the rear keeps ~12 % of the load: 85 % front on mu 1.2 tyres
+# locked the rear from 9.8 m/s^2, which slid sideways and the motorcycle fell; 90 % front on
+# mu 1.3 keeps both wheels rolling to ~10.9 m/s^2 (95 % stopped ~1 m longer where SUMO stops
+# it in a turn).
+MOTO_WHEELBASE_SHARE = 0.65  # [1] of the length
+MOTO_WHEEL_RADIUS = 0.32  # [m]
+MOTO_TOTAL_MASS = 280.0  # [kg] with rider and wheels: the drive and brake torques are sized for it
+MOTO_DRIVE_ACCEL = 8.0  # [m/s^2]
+MOTO_BRAKE_DECEL = 12.0  # [m/s^2]
+MOTORCYCLE = MappingProxyType(dict(
+    height=1.5,  # [m]
+    mass=260.0,  # [kg] frame and rider
+    com_height=0.55,  # [m]
+    wheel_radius=MOTO_WHEEL_RADIUS,
+    wheel_mass=10.0,  # [kg]
+    clearance=0.3,  # [m]
+    max_steer_deg=35.0,  # [deg]
+    brake_front=0.9,  # [1]
+    tyre_mu=CAR_TYRE_MU,
+    steer_kp=800.0,  # [N*m/rad]
+    steer_kv=40.0,  # [N*m*s/rad]
+    stab_max=4000.0,  # [N*m]
+))
+
+# Pedestrians: SUMO's footprint, no wheels, a bounded planar force.
+PEDESTRIAN = MappingProxyType(dict(
+    height=1.75,  # [m]
+    mass=70.0,  # [kg]
+    com_height=0.95,  # [m]
+    wheel_radius=0.0,
+    wheel_mass=0.0,
+    max_drive=300.0,  # [N]
+    max_brake=0.0,
+    ped_max_force=300.0,  # [N] (~0.4 g)
+))
+
+
 def _car(cls: AgentClass, length: float, width: float, name: str = "", **kw) -> AgentSpec:
-    # Wheelbase ~0.6 of the length, front overhang = rear overhang (symmetric body).
-    # Tyres mu 1.3 (good tyres on dry asphalt, the upper end): SUMO drives junction turns at
-    # up to ~10 m/s^2 of lateral acceleration; with mu 1.0 cars ran 1-1.5 m wide there.
+    """A car-like model of a SUMO size; ``kw``: other ``AgentSpec`` fields (other families)."""
     kw.setdefault("tyre_mu", CAR_TYRE_MU)
     return AgentSpec(
         name=name or f"{cls.name.lower()}_{length:g}", kind=KIND_CAR, cls=cls, length=length, width=width,
-        height=kw.pop("height", 1.5), mass=kw.pop("mass", 1300.0 * length * width / 9.0),
-        wheelbase=kw.pop("wheelbase", 0.6 * length), track=kw.pop("track", width - 0.25),
-        wheel_radius=kw.pop("wheel_radius", 0.32), **kw,
+        height=kw.pop("height", CAR_HEIGHT), mass=kw.pop("mass", CAR_MASS * length * width / CAR_AREA),
+        wheelbase=kw.pop("wheelbase", CAR_WHEELBASE_SHARE * length), track=kw.pop("track", width - CAR_TRACK_INSET),
+        wheel_radius=kw.pop("wheel_radius", CAR_WHEEL_RADIUS), **kw,
+    )
+
+
+def _van(length: float, width: float, name: str) -> AgentSpec:
+    return _car(
+        AgentClass.PASSENGER, length, width, name=name, mass=VAN_MASS * length * width / (VAN_LENGTH * VAN_WIDTH),
+        wheelbase=VAN_WHEELBASE_SHARE * length, max_drive=VAN_DRIVE_ACCEL * VAN_TOTAL_MASS * VAN_WHEEL_RADIUS,
+        max_brake=VAN_BRAKE_DECEL * VAN_TOTAL_MASS * VAN_WHEEL_RADIUS, **VAN,
     )
 
 
 def _heavy(cls: AgentClass, length: float, width: float, name: str, mass: float, height: float,
            wheelbase: float) -> AgentSpec:
-    """Bus, coach, truck, tram: 0.5 m wheels, high COM, ~3.5 m/s^2 drive, ~9 m/s^2 brakes."""
+    """Bus, coach, truck, tram (``HEAVY``)."""
     return _car(
-        cls, length, width, name=name, height=height, mass=mass, com_height=1.0, wheelbase=wheelbase, tyre_mu=1.0,
-        # city buses and trucks cut their front wheels ~50 deg (a 12 m bus turns within ~11 m)
-        track=max(width - 0.4, 1.2), wheel_radius=0.5, wheel_mass=120.0, clearance=0.35, max_steer_deg=50.0,
-        # SUMO puts a long body on the chord between its front and back positions on the lane,
-        # whatever the turn's radius; a rigid 12-16 m body on a fixed rear axle cuts ~3 m inside
-        # a 10 m junction turn (into the next lane) or cannot make it at all. Steering the rear
-        # axle too (as articulated buses, trailers and bogies effectively do) keeps it on the chord.
-        rear_steer_deg=40.0, traction_control=True,
-        # SUMO's coach accelerates at 2.0 m/s^2 (bus 1.2, truck 1.3): ~2 m/s^2 of drive left a
-        # coach ~6 m behind after every start, so the drive keeps a margin over the fastest
-        max_drive=3.5 * mass * 0.5 * 1.3, max_brake=9.0 * mass * 0.5 * 1.2,
-        steer_kp=20_000.0, steer_kv=1_500.0,
+        cls, length, width, name=name, height=height, mass=mass, wheelbase=wheelbase,
+        track=max(width - HEAVY_TRACK_INSET, HEAVY_MIN_TRACK), wheel_radius=HEAVY_WHEEL_RADIUS,
+        max_drive=HEAVY_DRIVE_ACCEL * mass * HEAVY_WHEEL_RADIUS * HEAVY_DRIVE_MARGIN,
+        max_brake=HEAVY_BRAKE_DECEL * mass * HEAVY_WHEEL_RADIUS * HEAVY_BRAKE_MARGIN, **HEAVY,
     )
 
 
 def _bus(length: float, width: float = 2.5, name: str = "") -> AgentSpec:
-    return _heavy(AgentClass.BUS, length, width, name or f"bus_{length:g}", 11_000.0 * length / 12.0, 3.0,
-                  0.5 * length)
+    return _heavy(AgentClass.BUS, length, width, name or f"bus_{length:g}", BUS_MASS * length / BUS_LENGTH,
+                  BUS_HEIGHT, BUS_WHEELBASE_SHARE * length)
+
+
+def _truck(length: float, width: float, name: str) -> AgentSpec:
+    return _heavy(AgentClass.BUS, length, width, name, TRUCK_MASS * length / TRUCK_LENGTH, TRUCK_HEIGHT,
+                  TRUCK_WHEELBASE_SHARE * length)
+
+
+def _tram(length: float, width: float, name: str) -> AgentSpec:
+    return _heavy(AgentClass.BUS, length, width, name, TRAM_MASS * length * width / TRAM_WIDTH, TRAM_HEIGHT,
+                  TRAM_WHEELBASE_SHARE * length)
 
 
 def _bike(length: float, width: float = 0.65, name: str = "") -> AgentSpec:
     return AgentSpec(
         name=name or f"bicycle_{length:g}", kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length,
-        width=width, height=1.7, mass=85.0, com_height=1.0, wheelbase=0.62 * length,
-        wheel_radius=0.34, wheel_mass=2.0, clearance=0.3, max_steer_deg=35.0,
-        # COM 1 m high over a 1 m wheelbase: beyond ~4.9 m/s^2 a bicycle lifts a wheel,
-        # so drive (~3 m/s^2) and brakes (~4.5 m/s^2) stay below that. Braking unloads the
-        # rear wheel: with half the brake there it locked at full braking and the bicycle
-        # swung 26 deg off its lane on a straight. 65 % in front (75 % ran bicycles braking
-        # in junction turns wide: p95 0.22 -> 0.29 m on a random network).
-        max_drive=100.0, max_brake=130.0, brake_front=0.65, steer_kp=300.0, steer_kv=15.0,
-        stab_max=1500.0, tyre_mu=CAR_TYRE_MU,  # SUMO's bicycles take junction turns like cars
+        width=width, wheelbase=BIKE_WHEELBASE_SHARE * length, **BICYCLE,
     )
 
 
 def _moto(length: float, width: float, name: str) -> AgentSpec:
-    """Motorcycle / moped: a heavier, lower single-track vehicle (280 kg with rider)."""
+    """Motorcycle / moped (``MOTORCYCLE``)."""
     return AgentSpec(
-        name=name, kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length, width=width, height=1.5, mass=260.0,
-        com_height=0.55, wheelbase=0.65 * length, wheel_radius=0.32, wheel_mass=10.0, clearance=0.3,
-        max_steer_deg=35.0,
-        # SUMO's motorcycle accelerates at 6 and decelerates at 10 m/s^2 (moped 1.1 / 7): with
-        # 4 / 6 m/s^2 they overshot SUMO's stops by ~6 m. ~8 m/s^2 of drive and ~12 m/s^2 of
-        # braking; a stoppie needs g * wheelbase / 2 / COM ~ 13. At 10 m/s^2 the rear keeps
-        # ~12 % of the load: 85 % front on mu 1.2 tyres locked the rear from 9.8 m/s^2, which
-        # slid sideways and the motorcycle fell; 90 % front on mu 1.3 keeps both wheels
-        # rolling to ~10.9 m/s^2 (95 % stopped ~1 m longer where SUMO stops it in a turn).
-        max_drive=8.0 * 280.0 * 0.32, max_brake=12.0 * 280.0 * 0.32, brake_front=0.9, tyre_mu=CAR_TYRE_MU,
-        steer_kp=800.0, steer_kv=40.0, stab_max=4000.0,
+        name=name, kind=KIND_BIKE, cls=AgentClass.BICYCLE, length=length, width=width,
+        wheelbase=MOTO_WHEELBASE_SHARE * length, max_drive=MOTO_DRIVE_ACCEL * MOTO_TOTAL_MASS * MOTO_WHEEL_RADIUS,
+        max_brake=MOTO_BRAKE_DECEL * MOTO_TOTAL_MASS * MOTO_WHEEL_RADIUS, **MOTORCYCLE,
     )
 
 
 def _ped(length: float = 0.3, width: float = 0.5, name: str = "pedestrian_0.3") -> AgentSpec:
-    return AgentSpec(
-        name=name, kind=KIND_PED, cls=AgentClass.PEDESTRIAN, length=length,
-        width=width, height=1.75, mass=70.0, com_height=0.95, wheel_radius=0.0,
-        wheel_mass=0.0, max_drive=300.0, max_brake=0.0, ped_max_force=300.0,
-    )
+    return AgentSpec(name=name, kind=KIND_PED, cls=AgentClass.PEDESTRIAN, length=length, width=width, **PEDESTRIAN)
 
 
 # --------------------------------------------------------------------------- sizes
@@ -258,18 +406,13 @@ def _ped(length: float = 0.3, width: float = 0.5, name: str = "pedestrian_0.3") 
 FAMILIES: dict[str, object] = {
     "car": lambda L, W, n: _car(AgentClass.PASSENGER, L, W, name=n),
     "taxi": lambda L, W, n: _car(AgentClass.TAXI, L, W, name=n),
-    # delivery vans (SUMO: 6.5 x 2.16 m): taller, heavier, COM 0.8 m
-    "van": lambda L, W, n: _car(AgentClass.PASSENGER, L, W, name=n, height=2.5,
-                                mass=3500.0 * L * W / (6.5 * 2.16), com_height=0.8, wheelbase=0.55 * L,
-                                wheel_radius=0.36, wheel_mass=30.0, max_drive=3.0 * 3800.0 * 0.36,
-                                max_brake=9.0 * 3800.0 * 0.36, steer_kp=8000.0, steer_kv=400.0),
-    "bus": lambda L, W, n: _bus(L, W, n),
-    # trucks (SUMO: 7.1 x 2.4 m), trailers as one rigid 16.5 m body, ~12 t per 7 m
-    "truck": lambda L, W, n: _heavy(AgentClass.BUS, L, W, n, 12_000.0 * L / 7.1, 3.4, 0.55 * L),
-    "tram": lambda L, W, n: _heavy(AgentClass.BUS, L, W, n, 1_300.0 * L * W / 2.65, 3.3, 0.45 * L),
-    "motorcycle": lambda L, W, n: _moto(L, W, n),
-    "bicycle": lambda L, W, n: _bike(L, W, n),
-    "pedestrian": lambda L, W, n: _ped(L, W, n),
+    "van": _van,
+    "bus": _bus,
+    "truck": _truck,
+    "tram": _tram,
+    "motorcycle": _moto,
+    "bicycle": _bike,
+    "pedestrian": _ped,
 }
 
 #: SUMO vClass -> model family (every vClass in SUMO's documentation; others by size).
@@ -298,6 +441,10 @@ DEFAULT_SIZE: dict[AgentClass, tuple[float, float]] = {
 SIZE_RATIO = 1.04  # a size is the nearest of a geometric grid: length and width within 2 % of SUMO's
 SIZE_TOLERANCE = 0.05  # an existing pool this close in length and width is used instead of a new one
 _SIZE_BASE = 5.0  # [m] a grid point (SUMO's default car length)
+_SIZE_MIN = 0.05  # [m] sizes below this are taken as this (the grid is logarithmic)
+_SIZE_DECIMALS = 3  # a grid size is rounded to mm (stable pool names)
+TRUCK_FROM_LENGTH = 7.5  # [m] an agent of unknown family this long or longer drives as a truck ...
+BICYCLE_UP_TO_LENGTH = 2.5  # [m] ... this short or shorter as a bicycle, else as a car
 
 
 def family_for(cls: AgentClass | int, vclass: str, length: float) -> str:
@@ -305,15 +452,15 @@ def family_for(cls: AgentClass | int, vclass: str, length: float) -> str:
     f = CLASS_FAMILY.get(AgentClass(int(cls))) or VCLASS_FAMILY.get(vclass)
     if f is not None:
         return f
-    if length >= 7.5:
+    if length >= TRUCK_FROM_LENGTH:
         return "truck"
-    if length <= 2.5:
+    if length <= BICYCLE_UP_TO_LENGTH:
         return "bicycle"
     return "car"
 
 
 def _grid(x: float) -> int:
-    return int(round(math.log(max(float(x), 0.05) / _SIZE_BASE) / math.log(SIZE_RATIO)))
+    return int(round(math.log(max(float(x), _SIZE_MIN) / _SIZE_BASE) / math.log(SIZE_RATIO)))
 
 
 def size_key(family: str, length: float, width: float) -> tuple[str, int, int]:
@@ -327,8 +474,8 @@ def size_key(family: str, length: float, width: float) -> tuple[str, int, int]:
 def spec_for_key(key: tuple[str, int, int]) -> AgentSpec:
     """The model of a pool key (cached: one spec per family and grid size)."""
     family, li, wi = key
-    L = round(_SIZE_BASE * SIZE_RATIO**li, 3)
-    W = round(_SIZE_BASE * SIZE_RATIO**wi, 3)
+    L = round(_SIZE_BASE * SIZE_RATIO**li, _SIZE_DECIMALS)
+    W = round(_SIZE_BASE * SIZE_RATIO**wi, _SIZE_DECIMALS)
     return FAMILIES[family](L, W, f"{family}_{L:g}x{W:g}")
 
 
@@ -360,18 +507,18 @@ def _wheel(parent, name: str, pos, spec: AgentSpec, steer: bool):
         w.add_joint(
             name=f"steer_{name}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1],
             range=[-lim, lim], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
-            armature=0.05 * spec.wheel_mass, damping=0.0,
+            armature=STEER_ARMATURE * spec.wheel_mass, damping=0.0,
         )
     w.add_joint(name=f"spin_{name}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0])
     if spec.kind == KIND_BIKE:
         # A thin ellipsoid: when the bicycle leans, the contact stays in the wheel plane
         # (a sphere's contact would slide under the hub and shift the lean equilibrium).
-        shape = dict(type=mujoco.mjtGeom.mjGEOM_ELLIPSOID, size=[spec.wheel_radius, 0.03, spec.wheel_radius])
+        shape = dict(type=mujoco.mjtGeom.mjGEOM_ELLIPSOID, size=[spec.wheel_radius, BIKE_TYRE_HALF_WIDTH, spec.wheel_radius])
     else:
         shape = dict(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[spec.wheel_radius, 0, 0])
     w.add_geom(
-        name=f"g{name}", **shape, mass=spec.wheel_mass, contype=0, conaffinity=1, condim=3,
-        friction=[spec.tyre_mu, *GROUND_FRICTION[1:]], rgba=[0.1, 0.1, 0.1, 1],
+        name=f"g{name}", **shape, mass=spec.wheel_mass, contype=0, conaffinity=GROUND_BIT, condim=CONDIM_SLIDING,
+        friction=[spec.tyre_mu, *GROUND_FRICTION[1:]], rgba=list(WHEEL_RGBA),
     )
 
 
@@ -381,9 +528,9 @@ def _chassis(b, spec: AgentSpec) -> None:
     b.add_geom(
         name="chassis", type=mujoco.mjtGeom.mjGEOM_BOX,
         size=[spec.length / 2, spec.width / 2, h / 2],
-        pos=[0, 0, spec.clearance + h / 2 - r], density=0.0, contype=2,
-        conaffinity=2 if spec.kind == KIND_BIKE else 3,
-        condim=3, rgba=[0.6, 0.6, 0.7, 1], **BODY_CONTACT,
+        pos=[0, 0, spec.clearance + h / 2 - r], density=0.0, contype=BODY_BIT,
+        conaffinity=BODY_BIT if spec.kind == KIND_BIKE else BODY_BIT | GROUND_BIT,
+        condim=CONDIM_SLIDING, rgba=list(CHASSIS_RGBA), **BODY_CONTACT,
     )
     # Explicit inertia: the COM height matters for load transfer and roll-over, and a
     # uniform box would put it too high.
@@ -391,9 +538,6 @@ def _chassis(b, spec: AgentSpec) -> None:
     b.mass = spec.mass
     b.ipos = [0.0, 0.0, spec.com_height - r]
     b.inertia = _box_inertia(spec.mass, spec.length, spec.width, h)
-
-
-CAR_WHEELS = ("fl", "fr", "rl", "rr")  # a car's wheels, in the order of its brake columns (``layout``)
 
 
 def driven_wheels(spec: AgentSpec) -> tuple[str, ...]:
@@ -462,15 +606,17 @@ def ped_template(spec: AgentSpec) -> mujoco.MjSpec:
     b = s.worldbody.add_body(name="agent", pos=[0, 0, 0])
     b.add_joint(name="px", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1, 0, 0])
     b.add_joint(name="py", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 1, 0])
-    b.add_joint(name="yaw", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], damping=2.0, armature=1.0)
+    b.add_joint(name="yaw", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], damping=PED_YAW_DAMPING,
+                armature=PED_YAW_ARMATURE)
     # SUMO's footprint (0.215 m deep, 0.478 m wide by default) as a box: a capsule of the
     # width's radius stood 0.13 m further out front and back, into passing buses at crossings
     b.add_geom(
         name="chassis", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5 * spec.length, 0.5 * spec.width, 0.5 * spec.height],
-        pos=[0, 0, 0.5 * spec.height], mass=spec.mass, contype=4, conaffinity=2,
-        condim=3, rgba=[0.8, 0.5, 0.3, 1], **BODY_CONTACT,
+        pos=[0, 0, 0.5 * spec.height], mass=spec.mass, contype=PED_BIT, conaffinity=BODY_BIT,
+        condim=CONDIM_SLIDING, rgba=list(PED_RGBA), **BODY_CONTACT,
     )
-    for name, j, lim in (("fx", "px", spec.ped_max_force), ("fy", "py", spec.ped_max_force), ("tz", "yaw", 150.0)):
+    motors = (("fx", "px", spec.ped_max_force), ("fy", "py", spec.ped_max_force), ("tz", "yaw", PED_YAW_TORQUE_MAX))
+    for name, j, lim in motors:
         a = s.add_actuator(name=name, target=j, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         a.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         a.ctrlrange = [-lim, lim]
@@ -494,7 +640,7 @@ def set_world_options(s: mujoco.MjSpec, timestep: float) -> None:
 
 def add_ground(s: mujoco.MjSpec) -> None:
     s.worldbody.add_geom(
-        name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], contype=1, conaffinity=0,
+        name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], contype=GROUND_BIT, conaffinity=0,
         friction=list(GROUND_FRICTION),
     )
     # One acceleration-stage sensor makes MuJoCo compute cfrc_ext (per-body contact
@@ -534,13 +680,13 @@ def rest_pose(spec: AgentSpec, timestep: float = 0.005) -> RestPose:
     m = s.compile()
     d = mujoco.MjData(m)
     # Hold the wheels with the brakes so the settle does not roll.
-    m.dof_frictionloss[6:] = 50.0
-    for _ in range(int(1.0 / timestep)):
+    m.dof_frictionloss[6:] = REST_BRAKE  # (every dof after the freejoint's six)
+    for _ in range(int(REST_SETTLE_S / timestep)):
         if spec.kind == KIND_BIKE:
             # keep the bike upright while it settles
             q = d.qpos[3:7]
             roll = math.atan2(2 * (q[0] * q[1] + q[2] * q[3]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
-            d.ctrl[m.actuator("a/stab").id] = -2000.0 * roll - 200.0 * d.qvel[3]
+            d.ctrl[m.actuator("a/stab").id] = -REST_ROLL_KP * roll - REST_ROLL_KD * d.qvel[3]
         mujoco.mj_step(m, d)
     q = d.qpos[3:7]
     pitch = math.asin(max(-1.0, min(1.0, 2 * (q[0] * q[2] - q[3] * q[1]))))
