@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
+# [1] curvature x the bumper's lever over the rear axle is held below 1: the bumper's circle
+# is never smaller than its lever, so asin and sqrt(1 - (k d)^2) stay finite
+MAX_KAPPA_D = 0.95
+
 
 def steady_state_delta(curvature: np.ndarray, d_bumper: np.ndarray, wheelbase: np.ndarray) -> np.ndarray:
     """Road-wheel angle [rad] that keeps the front bumper on a circle of the given curvature.
@@ -15,7 +19,7 @@ def steady_state_delta(curvature: np.ndarray, d_bumper: np.ndarray, wheelbase: n
     The bumper's radius is sqrt(R^2 + d^2) with R the rear-axle radius: R = sqrt(1/k^2 - d^2).
     """
     k = np.asarray(curvature, np.float64)
-    kd = np.clip(np.abs(k) * d_bumper, 0.0, 0.95)
+    kd = np.clip(np.abs(k) * d_bumper, 0.0, MAX_KAPPA_D)
     with np.errstate(divide="ignore"):
         tan_d = wheelbase * np.abs(k) / np.sqrt(1.0 - kd * kd)
     return np.sign(k) * np.arctan(tan_d)

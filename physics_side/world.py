@@ -22,27 +22,33 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
 from physics_side import models as M
-from physics_side.kinematics import ackermann, ackermann_4ws, concat_ranges, steady_state_delta
-from physics_side.layout import Layout, SlotTables
+from physics_side.control import G
+from physics_side.kinematics import MAX_KAPPA_D, ackermann, ackermann_4ws, concat_ranges, steady_state_delta
+from physics_side.layout import FREE_NQ, FREE_NV, FREE_POS, FREE_QUAT, FREE_WZ, PED_NQ, Layout, SlotTables
 from physics_side.pools import HEADROOM, SLEEP_NEVER, SlotPools
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
 
 MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
+# [1] tan of the steepest lean a placed two-wheeler takes (31 deg): the bicycles' stabiliser
+# target cap (``fleet.BIKE_LEAN_TARGET_TAN``, ``control`` ``max_lean_tan``), one value
+PLACE_LEAN_TAN = 0.6
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
 # Collision bits of placed (kinematic, external) bodies (``set_ghost``); the models' own:
 # ground 1, chassis and frames 2, pedestrians 4 (``models``)
-PED_BIT = 4
+PED_BIT = M.PED_BIT
 PLACED_VEHICLE_BIT = 8
 PLACED_PED_BIT = 16
 TCS_SLIP = 1.5  # [1] a heavy vehicle's driven wheel turning faster than this share of its speed ...
 TCS_MARGIN_MPS = 5.0  # [m/s] ... plus this is spinning: braked by up to its drive share over ...
 TCS_BAND_MPS = 5.0  # [m/s] ... this much more spin
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
+PLAN_CACHE = 8  # [slot arrays] plans kept (a fleet uses a few slot arrays per step)
 
 
 @dataclass(frozen=True)
@@ -107,7 +113,8 @@ class _SlotPlan:
         sv = self.slots[self.veh]
         t = self.t
         return np.concatenate([
-            t.qpos[sv][None, :] + np.arange(7)[:, None], t.qvel[sv][None, :] + np.arange(6)[:, None], t.steer_q[sv].T,
+            t.qpos[sv][None, :] + np.arange(FREE_NQ)[:, None], t.qvel[sv][None, :] + np.arange(FREE_NV)[:, None],
+            t.steer_q[sv].T,
         ])
 
     @cached_property
@@ -115,7 +122,7 @@ class _SlotPlan:
         """(6, n_ped) flat state indices: slide x, slide y, yaw hinge qpos, then their qvel."""
         sp = self.slots[self.ped]
         t = self.t
-        k = np.arange(3)[:, None]
+        k = np.arange(PED_NQ)[:, None]
         return np.concatenate([t.qpos[sp][None, :] + k, t.qvel[sp][None, :] + k])
 
     @cached_property
@@ -303,7 +310,7 @@ class PhysicsWorld:
         key = slots.tobytes()
         plan = self._plans.get(key)
         if plan is None:
-            if len(self._plans) >= 8:  # a fleet uses a few slot arrays per step
+            if len(self._plans) >= PLAN_CACHE:
                 self._plans.clear()
             plan = self._plans[key] = _SlotPlan(self._tables, slots.copy())
         return plan
@@ -320,10 +327,10 @@ class PhysicsWorld:
         else:
             n = len(slots)
             veh, ped = plan.veh, plan.ped
-            cx, cy, yaw, vx, vy, wz = (np.empty(n) for _ in range(6))
-            z, roll, pitch, wx, steer = (np.zeros(n) for _ in range(5))
+            # (what pedestrians have not - height, roll, pitch, roll rate, steering - stays 0)
+            out = tuple(np.zeros(n) for _ in _VEHICLE_STATE)
+            cx, cy, z, yaw, roll, pitch, vx, vy, wz, wx, steer = out
             if plan.any_veh:
-                out = (cx, cy, z, yaw, roll, pitch, vx, vy, wz, wx, steer)
                 for arr, val in zip(out, _vehicle_state(st[plan.veh_state])):
                     arr[veh] = val
             if plan.any_ped:
@@ -341,6 +348,27 @@ class PhysicsWorld:
             speed=vx * c + vy * s, vx=vx, vy=vy, yaw_rate=wz, roll_rate=wx, steer=steer,
             fvx=vx - wf * s, fvy=vy + wf * c,
         )
+
+    def vehicle_pose(self, slots: np.ndarray) -> np.ndarray:
+        """(n, 7) freejoint coordinates of vehicles: body origin x, y, z [m] and orientation as
+        a unit quaternion (w, x, y, z), world frame."""
+        return self._state[self._tables.qpos[self._vehicles(slots)][:, None] + np.arange(FREE_NQ)]
+
+    def wheel_spin(self, slots: np.ndarray) -> np.ndarray:
+        """(n, 4) angular velocity [rad/s] of the wheel of each brake column fl, fr, rl, rr of
+        vehicles (a two-wheeler's wheels twice each)."""
+        return self._state[self._tables.spin_v[self._vehicles(slots)]]
+
+    def awake_trees(self, shard: int = 0) -> int:
+        """Kinematic trees awake in one shard's simulation (every parked slot sleeps)."""
+        return int(self._batch.get_data(shard).ntree_awake)
+
+    def _vehicles(self, slots: np.ndarray) -> np.ndarray:
+        """``slots`` as an int64 array, checked to hold vehicles only (freejoint, wheels)."""
+        slots = np.asarray(slots, np.int64)
+        if (self._tables.kind[slots] == M.KIND_PED).any():
+            raise ValueError("pedestrians have no freejoint and no wheels (their pose: observe)")
+        return slots
 
     # ------------------------------------------------------------------ writes
 
@@ -362,81 +390,79 @@ class PhysicsWorld:
         n = len(slots)
         if n == 0:
             return
-        t = self._tables
-        st = self._state
         yaw = np.asarray(yaw, np.float64) * np.ones(n)
         speed = np.asarray(speed, np.float64) * np.ones(n)
         kappa = np.zeros(n) if curvature is None else np.asarray(curvature, np.float64) * np.ones(n)
         kappa = np.clip(kappa, -MAX_PLACE_CURVATURE, MAX_PLACE_CURVATURE)
-        kind = t.kind[slots]
-        ped = kind == M.KIND_PED
-        veh = ~ped
-        front = t.front[slots]
-        rear = t.rear_axle[slots]
-        d = np.where(veh, front - rear, 1.0)
-        omega = speed * kappa  # bumper on a circle of radius 1/kappa at speed v
-        if steady_turn:
-            beta = np.where(veh, np.arcsin(np.clip(kappa * d, -0.95, 0.95)), 0.0)
-            steer = np.where(veh, steady_state_delta(kappa, d, np.where(veh, t.wheelbase[slots], 1.0)), 0.0)
-        else:
-            beta = np.zeros(n)
-            steer = np.where(veh, np.arctan(t.wheelbase[slots] * kappa), 0.0)
-        body_yaw = yaw - beta
-        c, s = np.cos(body_yaw), np.sin(body_yaw)
-        cx, cy = fx - front * c, fy - front * s
-        # centre velocity = bumper velocity - omega x (bumper - centre)
-        vbx, vby = speed * np.cos(yaw), speed * np.sin(yaw)
-        vcx = vbx + omega * front * s
-        vcy = vby - omega * front * c
-        if veh.any():
-            sv = slots[veh]
-            self._state[concat_ranges(t.qvel[sv], t.nv[sv])] = 0.0
-            qb = t.qpos[sv]
-            # bicycles lean into the turn at the steady-turn angle (roll about +x, left side
-            # down in a left turn); cars stand level. Placed as SUMO has them (kinematic),
-            # two-wheelers stay upright like its footprints: a carried motorcycle leaning
-            # 31 deg swept its rider 0.5 m sideways into a pedestrian SUMO passed 0.45 m off.
-            bike = (t.kind[sv] == M.KIND_BIKE) & steady_turn
-            roll = np.where(bike, -np.arctan(np.clip(speed[veh] * omega[veh] / 9.81, -0.6, 0.6)), 0.0)
-            quat = _quat_zyx(body_yaw[veh], t.rest_pitch[sv], roll)
-            h = np.where(bike, t.rest_z[sv] * np.cos(roll), t.rest_z[sv])
-            st[qb] = cx[veh]
-            st[qb + 1] = cy[veh]
-            st[qb + 2] = h
-            for k in range(4):
-                st[qb + 3 + k] = quat[:, k]
-            vb = t.qvel[sv]
-            st[vb] = vcx[veh]
-            st[vb + 1] = vcy[veh]
-            st[vb + 5] = omega[veh]
-            left, right = ackermann(steer[veh], t.wheelbase[sv], t.track[sv])
-            sq = t.steer_q[sv]
-            st[sq[:, 0]] = left
-            st[sq[:, 1]] = right
-            su = t.steer_u[sv]
-            st[su[:, 0]] = left
-            st[su[:, 1]] = right
-            rq, ru = t.rsteer_q[sv], t.rsteer_u[sv]
-            has = rq[:, 0] >= 0
-            if has.any():  # a steered rear axle starts straight (fixed-axle pose above)
-                st[rq[has].reshape(-1)] = 0.0
-                st[ru[has].reshape(-1)] = 0.0
-            # wheels rolling at the forward speed of the axle they are on (rear axle speed)
-            v_r = vcx[veh] * c[veh] + vcy[veh] * s[veh]
-            st[t.spin_v[sv]] = (v_r / t.r_wheel[sv])[:, None]
-        if ped.any():
-            sp = slots[ped]
-            qb = t.qpos[sp]
-            st[qb] = cx[ped] - t.park_x[sp]
-            st[qb + 1] = cy[ped] - t.park_y[sp]
-            st[qb + 2] = body_yaw[ped]
-            vb = t.qvel[sp]
-            st[vb] = vcx[ped]
-            st[vb + 1] = vcy[ped]
-            st[vb + 2] = omega[ped]
-        self._policy[t.tree[slots]] = SLEEP_NEVER
+        p = _placement(self._tables, slots, fx, fy, yaw, speed, kappa, steady_turn)
+        if p.veh.any():
+            self._place_vehicles(slots[p.veh], p, speed[p.veh], steady_turn)
+        if p.ped.any():
+            self._place_pedestrians(slots[p.ped], p)
+        self._policy[self._tables.tree[slots]] = SLEEP_NEVER
         if count:
             self.counters["placements"] += n
+
+    def _place_vehicles(self, sv: np.ndarray, p: "_Placement", speed: np.ndarray, steady_turn: bool) -> None:
+        """Write the pose of the vehicles ``sv`` (rows ``p.veh`` of the placement ``p``)."""
+        t = self._tables
+        st = self._state
+        veh = p.veh
+        st[concat_ranges(t.qvel[sv], t.nv[sv])] = 0.0
+        qb = t.qpos[sv]
+        # bicycles lean into the turn at the steady-turn angle (roll about +x, left side
+        # down in a left turn); cars stand level. Placed as SUMO has them (kinematic),
+        # two-wheelers stay upright like its footprints: a carried motorcycle leaning
+        # 31 deg swept its rider 0.5 m sideways into a pedestrian SUMO passed 0.45 m off.
+        bike = (t.kind[sv] == M.KIND_BIKE) & steady_turn
+        roll = np.where(bike, -np.arctan(np.clip(speed * p.omega[veh] / G, -PLACE_LEAN_TAN, PLACE_LEAN_TAN)), 0.0)
+        quat = _quat_zyx(p.body_yaw[veh], t.rest_pitch[sv], roll)
+        h = np.where(bike, t.rest_z[sv] * np.cos(roll), t.rest_z[sv])
+        st[qb] = p.cx[veh]
+        st[qb + 1] = p.cy[veh]
+        st[qb + 2] = h
+        for k in range(FREE_QUAT):
+            st[qb + FREE_POS + k] = quat[:, k]
+        vb = t.qvel[sv]
+        st[vb] = p.vcx[veh]
+        st[vb + 1] = p.vcy[veh]
+        st[vb + FREE_WZ] = p.omega[veh]
+        left, right = ackermann(p.steer[veh], t.wheelbase[sv], t.track[sv])
+        sq = t.steer_q[sv]
+        st[sq[:, 0]] = left
+        st[sq[:, 1]] = right
+        su = t.steer_u[sv]
+        st[su[:, 0]] = left
+        st[su[:, 1]] = right
+        rq, ru = t.rsteer_q[sv], t.rsteer_u[sv]
+        has = rq[:, 0] >= 0
+        if has.any():  # a steered rear axle starts straight (fixed-axle pose above)
+            st[rq[has].reshape(-1)] = 0.0
+            st[ru[has].reshape(-1)] = 0.0
+        # wheels rolling at the forward speed of the axle they are on (rear axle speed)
+        v_r = p.vcx[veh] * p.c[veh] + p.vcy[veh] * p.s[veh]
+        st[t.spin_v[sv]] = (v_r / t.r_wheel[sv])[:, None]
+
+    def _place_pedestrians(self, sp: np.ndarray, p: "_Placement") -> None:
+        """Write the pose of the pedestrians ``sp`` (rows ``p.ped`` of the placement ``p``):
+        their slide joints are relative to their parking spot."""
+        t = self._tables
+        st = self._state
+        ped = p.ped
+        qb = t.qpos[sp]
+        st[qb] = p.cx[ped] - t.park_x[sp]
+        st[qb + 1] = p.cy[ped] - t.park_y[sp]
+        st[qb + 2] = p.body_yaw[ped]
+        vb = t.qvel[sp]
+        st[vb] = p.vcx[ped]
+        st[vb + 1] = p.vcy[ped]
+        st[vb + 2] = p.omega[ped]
+
+    def set_orientation(self, slots: np.ndarray, quat: np.ndarray) -> None:
+        """Turn vehicles in place to the orientation ``quat``, a unit quaternion (w, x, y, z) in
+        the world frame, (4,) or (n, 4); position, velocities and wheels stay (e.g. a car put
+        on its roof: (0, 1, 0, 0))."""
+        self._state[self._tables.qpos[self._vehicles(slots)][:, None] + FREE_POS + np.arange(FREE_QUAT)] = quat
 
     def command_vehicles(
         self, slots: np.ndarray, steer: np.ndarray, drive: np.ndarray, brake: np.ndarray,
@@ -546,6 +572,62 @@ class PhysicsWorld:
         return self._tables
 
 
+class _Placement(NamedTuple):
+    """Pose and motion of placed agents (arrays over all of them, ``place``)."""
+
+    veh: np.ndarray
+    """Which are vehicles."""
+    ped: np.ndarray
+    """Which are pedestrians."""
+    body_yaw: np.ndarray
+    """[rad]."""
+    cx: np.ndarray
+    """Body origin x [m]."""
+    cy: np.ndarray
+    """Body origin y [m]."""
+    c: np.ndarray
+    """cos(body yaw)."""
+    s: np.ndarray
+    """sin(body yaw)."""
+    vcx: np.ndarray
+    """Body origin velocity x [m/s]."""
+    vcy: np.ndarray
+    """Body origin velocity y [m/s]."""
+    omega: np.ndarray
+    """Yaw rate [rad/s]."""
+    steer: np.ndarray
+    """Bicycle-model steering angle [rad] (pedestrians: 0)."""
+
+
+def _placement(
+    t: SlotTables, slots: np.ndarray, fx: np.ndarray, fy: np.ndarray, yaw: np.ndarray, speed: np.ndarray,
+    kappa: np.ndarray, steady_turn: bool,
+) -> _Placement:
+    """Body pose and velocity of agents whose front bumper is at (fx, fy) [m] on a path of
+    heading ``yaw`` [rad] and curvature ``kappa`` [1/m] at ``speed`` [m/s] (``PhysicsWorld.place``)."""
+    n = len(slots)
+    ped = t.kind[slots] == M.KIND_PED
+    veh = ~ped
+    front = t.front[slots]
+    rear = t.rear_axle[slots]
+    d = np.where(veh, front - rear, 1.0)
+    omega = speed * kappa  # bumper on a circle of radius 1/kappa at speed v
+    if steady_turn:
+        beta = np.where(veh, np.arcsin(np.clip(kappa * d, -MAX_KAPPA_D, MAX_KAPPA_D)), 0.0)
+        steer = np.where(veh, steady_state_delta(kappa, d, np.where(veh, t.wheelbase[slots], 1.0)), 0.0)
+    else:
+        beta = np.zeros(n)
+        steer = np.where(veh, np.arctan(t.wheelbase[slots] * kappa), 0.0)
+    body_yaw = yaw - beta
+    c, s = np.cos(body_yaw), np.sin(body_yaw)
+    cx, cy = fx - front * c, fy - front * s
+    # centre velocity = bumper velocity - omega x (bumper - centre)
+    vbx, vby = speed * np.cos(yaw), speed * np.sin(yaw)
+    vcx = vbx + omega * front * s
+    vcy = vby - omega * front * c
+    return _Placement(veh, ped, body_yaw, cx, cy, c, s, vcx, vcy, omega, steer)
+
+
 def traction_control(brake: np.ndarray, drive: np.ndarray, surface: np.ndarray, speed: np.ndarray) -> np.ndarray:
     """Per-wheel brake torques [N*m] (n, 4) of a heavy vehicle's traction control (ASR): each
     wheel's share of the ``brake`` torque, or, for a driven wheel spinning faster than
@@ -560,6 +642,9 @@ def traction_control(brake: np.ndarray, drive: np.ndarray, surface: np.ndarray, 
     0.16 -> 0.18-0.22 m), and an anti-lock (tried too) stopped them late."""
     over = surface - (TCS_SLIP * np.maximum(speed, 0.0) + TCS_MARGIN_MPS)
     return np.maximum(brake, np.maximum(drive, 0.0) * np.clip(over / TCS_BAND_MPS, 0.0, 1.0))
+
+
+_VEHICLE_STATE = ("cx", "cy", "z", "yaw", "roll", "pitch", "vx", "vy", "wz", "wx", "steer")  # ``_vehicle_state``
 
 
 def _vehicle_state(g: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -103,13 +103,11 @@ def test_parked_slots_sleep_and_stay_put_and_a_braked_car_holds():
     w = _world(n=4)
     s = _one(w)
     w.park(s)
-    t = w.tables
-    before = w._state[t.qpos[0]:t.qpos[0] + 7].copy()
+    before = w.vehicle_pose(s)
     for _ in range(100):
         w.step()
-    assert np.allclose(w._state[t.qpos[0]:t.qpos[0] + 7], before, atol=1e-6)
-    d = w._batch.get_data(0)
-    assert d.ntree_awake == 0  # every parked slot asleep: no cost
+    assert np.allclose(w.vehicle_pose(s), before, atol=1e-6)
+    assert w.awake_trees(shard=0) == 0  # every parked slot asleep: no cost
     # a live car standing with its brakes on does not creep
     s = _one(w, aid="b", x=10.0)
     o0 = w.observe(s)
@@ -285,8 +283,7 @@ def test_a_heavy_vehicles_spinning_wheel_is_braked_by_its_traction_control():
     def excess_spin(with_tcs: bool) -> tuple[float, float]:
         w = _world(AgentClass.BUS, n=1)
         s = _one(w, AgentClass.BUS, speed=4.0)
-        t = w.tables
-        sv, r = t.spin_v[s][0], t.r_wheel[s][0]
+        r = w.tables.r_wheel[s][0]
         top = 0.0
         for _ in range(150):
             o = w.observe(s)
@@ -294,7 +291,7 @@ def test_a_heavy_vehicles_spinning_wheel_is_braked_by_its_traction_control():
                                None, np.zeros(1), o.speed if with_tcs else None)
             w.step()
             o = w.observe(s)
-            top = max(top, float(np.max(w._state[sv] * r) - o.speed[0]))
+            top = max(top, float(np.max(w.wheel_spin(s)[0] * r) - o.speed[0]))
         return top, float(o.speed[0])
 
     free, _ = excess_spin(False)
