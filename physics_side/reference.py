@@ -28,6 +28,16 @@ from physics_side.kinematics import concat_ranges
 from protocol.frames import sumo_angle_to_yaw, wrap_pi
 
 _BIG = 1.0e6  # [m] arc-length gap between agents in the global search key (> any path)
+_SEG_ROWS = 15  # rows of the per-segment table (``PathSet._segment_table``, unpacked in ``at``)
+MIN_SEG_M = 1e-9  # [m] segment lengths divide as at least this (a repeated vertex, the gap between two paths)
+SYNTH_MAX_CURVATURE = 0.5  # [1/m] a synthesised arc turns no tighter than a 2 m radius
+STRAIGHT_CURVATURE = 1e-6  # [1/m] a synthesised arc this flat is laid out as a straight line (no 1/kappa)
+KAPPA_MIN_SPEED = 0.5  # [m/s] below this SUMO's turn rate says nothing about the path's curvature
+DRIFT_MIN_SPEED = 1.0  # [m/s] a sideways drift's angle is taken against at least this forward speed
+# [1] Fritsch-Carlson: a cubic through two samples never reverses while its end speeds lie
+# within this radius, in units of the chord speed
+MONOTONE_RADIUS = 3.0
+RATIO_FLOOR = 1e-9  # floor of a divisor that is 0 only where its quotient is unused (a standing agent)
 SYNTH_LENGTH = 60.0  # [m] length of a synthesised path
 SYNTH_STEP = 2.0  # [m] vertex spacing of a synthesised path
 BLEND_M = 3.5  # [m] half-length over which the heading turns at a polyline vertex
@@ -80,15 +90,24 @@ class PathSet:
         self.n = n
         self.offsets = offsets
         self.xy = xy
-        owner = np.repeat(np.arange(n), counts)
+        seglen = self._measure(offsets, xy, np.repeat(np.arange(n), counts))
+        turn, b_start, turn_end, b_end = _vertex_turns(seglen, self.h, self.first, self.last_seg)
+        _continue_sampled_ends(seglen, self.first, self.last_seg, turn, b_start, turn_end, b_end)
+        self.turn_s, self.b_s = turn, b_start
+        self.turn_e, self.b_e = turn_end, b_end
+        self._seg = self._segment_table(turn, b_start, turn_end, b_end)
+
+    def _measure(self, offsets: np.ndarray, xy: np.ndarray, owner: np.ndarray) -> np.ndarray:
+        """Segments, their headings and the arc length of every vertex (and the search key over
+        all polylines); returns each segment's length [m], 0 between two polylines."""
+        n = self.n
         m = max(len(xy) - 1, 0)
         seg = xy[1:] - xy[:-1]  # segment j joins vertex j and j+1
         seglen = np.hypot(seg[:, 0], seg[:, 1]) if m else np.zeros(0)
         last = offsets[1:] - 1  # last vertex of each agent
         # the segment leaving an agent's last vertex joins two agents: invalid
         seglen[last[:-1]] = 0.0
-        safe = np.maximum(seglen, 1e-9)
-        h = np.arctan2(seg[:, 1], seg[:, 0]) if m else np.zeros(0)
+        safe = np.maximum(seglen, MIN_SEG_M)
         cum = np.zeros(len(xy))
         if m:
             c = np.empty(m + 1)
@@ -103,55 +122,23 @@ class PathSet:
         self.last_seg = last - 1
         self.seglen = safe
         self.dir = seg / safe[:, None] if m else np.zeros((0, 2))
-        self.h = h
-        # turn at the start vertex of each segment (segment j-1 -> j), 0 at path starts
-        # (every polyline has a first segment: >= 2 vertices each)
-        first_seg = np.zeros(m, bool)
-        first_seg[self.first] = True
-        last_seg = np.zeros(m, bool)
-        last_seg[self.last_seg] = True
-        turn = np.zeros(m)
-        b_start = np.zeros(m)
-        if m > 1:
-            turn[1:] = wrap_pi(h[1:] - h[:-1])
-            b_start[1:] = np.minimum(np.minimum(seglen[1:], seglen[:-1]) * 0.5, BLEND_M)
-        turn[self.first] = 0.0
-        b_start[self.first] = 0.0
-        # turn at the end vertex of each segment = turn at the start of the next one
-        turn_end = np.zeros(m)
-        b_end = np.zeros(m)
-        if m > 1:
-            turn_end[:-1] = turn[1:]
-            b_end[:-1] = b_start[1:]
-        turn_end[self.last_seg] = 0.0
-        b_end[self.last_seg] = 0.0
-        # sampled curves: the first / last segment continues its neighbour's turn, if it is
-        # sampled like it (at most SAMPLING_RATIO as long): the last 3.4 m of a straight lane
-        # before a dead end's U-turn (1.4 m segments) took 2.4 times the U-turn's first 34 deg
-        # corner, the path's heading at the bumper swung 46 deg and a bicycle steered off its lane
-        fine = seglen <= FINE_SEG_M
-        if m > 1:
-            nxt_ok = first_seg & ~last_seg & fine & np.concatenate((fine[1:], [False]))
-            nxt_ok[:-1] &= seglen[:-1] <= SAMPLING_RATIO * seglen[1:]
-            idx = np.flatnonzero(nxt_ok)
-            turn[idx] = turn_end[idx] * seglen[idx] / np.maximum(seglen[idx + 1], 1e-9)
-            b_start[idx] = 0.5 * seglen[idx]
-            prv_ok = last_seg & ~first_seg & fine & np.concatenate(([False], fine[:-1]))
-            prv_ok[1:] &= seglen[1:] <= SAMPLING_RATIO * seglen[:-1]
-            idx = np.flatnonzero(prv_ok)
-            turn_end[idx] = turn[idx] * seglen[idx] / np.maximum(seglen[idx - 1], 1e-9)
-            b_end[idx] = 0.5 * seglen[idx]
-        self.turn_s, self.b_s = turn, b_start
-        self.turn_e, self.b_e = turn_end, b_end
-        # one column per segment, so a query gathers everything it needs with one ``take``;
-        # blend denominators are 1 where there is no blend (never selected then), so ``at``
-        # divides without a floating-point error state
+        self.h = np.arctan2(seg[:, 1], seg[:, 0]) if m else np.zeros(0)
+        return seglen
+
+    def _segment_table(self, turn: np.ndarray, b_start: np.ndarray, turn_end: np.ndarray,
+                       b_end: np.ndarray) -> np.ndarray:
+        """One column per segment (``_SEG_ROWS`` rows), so a query gathers everything it needs
+        with one ``take``; blend denominators are 1 where there is no blend (never selected
+        then), so ``at`` divides without a floating-point error state."""
+        if not len(self.h):
+            return np.zeros((_SEG_ROWS, 0))
         two_bs = np.where(b_start > 0, 2 * b_start, 1.0)
         two_be = np.where(b_end > 0, 2 * b_end, 1.0)
-        self._seg = np.array([
-            xy[:-1, 0], xy[:-1, 1], self.dir[:, 0], self.dir[:, 1], cum[:-1], safe, b_start, b_end, -turn, turn_end,
-            h, two_bs, two_be, turn / two_bs, turn_end / two_be,
-        ]) if m else np.zeros((15, 0))
+        xy = self.xy
+        return np.array([
+            xy[:-1, 0], xy[:-1, 1], self.dir[:, 0], self.dir[:, 1], self.cum[:-1], self.seglen, b_start, b_end, -turn,
+            turn_end, self.h, two_bs, two_be, turn / two_bs, turn_end / two_be,
+        ])
 
     @staticmethod
     def dedup(offsets: np.ndarray, xy: np.ndarray, tol: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
@@ -196,12 +183,13 @@ class PathSet:
         k = int(SYNTH_LENGTH / SYNTH_STEP) + 1
         s = np.arange(k) * SYNTH_STEP
         idx = np.flatnonzero(need)
-        kap = np.clip(kappa0[idx], -0.5, 0.5)[:, None]
+        kap = np.clip(kappa0[idx], -SYNTH_MAX_CURVATURE, SYNTH_MAX_CURVATURE)[:, None]
         th = yaw0[idx][:, None] + kap * s[None, :]
         # exact arc: integrate heading; small-kappa safe formula
         with np.errstate(divide="ignore", invalid="ignore"):
-            sx = np.where(np.abs(kap) > 1e-6, (np.sin(th) - np.sin(yaw0[idx])[:, None]) / kap, s * np.cos(th))
-            sy = np.where(np.abs(kap) > 1e-6, (np.cos(yaw0[idx])[:, None] - np.cos(th)) / kap, s * np.sin(th))
+            curved = np.abs(kap) > STRAIGHT_CURVATURE
+            sx = np.where(curved, (np.sin(th) - np.sin(yaw0[idx])[:, None]) / kap, s * np.cos(th))
+            sy = np.where(curved, (np.cos(yaw0[idx])[:, None] - np.cos(th)) / kap, s * np.sin(th))
         synth = np.stack([x0[idx][:, None] + sx, y0[idx][:, None] + sy], axis=-1)
         new_counts = np.where(need, k, counts)
         new_off = np.concatenate(([0], np.cumsum(new_counts)))
@@ -236,6 +224,59 @@ class PathSet:
         heading = h + np.where(in_s, neg_ds * (bs - tc) / two_bs, np.where(in_e, de * (tc - L + be) / two_be, 0.0))
         kappa = np.where(in_s, k_s, np.where(in_e, k_e, 0.0))
         return PathPoint(x0 + dx * t, y0 + dy * t, wrap_pi(heading), kappa)
+
+
+def _vertex_turns(
+    seglen: np.ndarray, h: np.ndarray, first: np.ndarray, last_seg: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Turn [rad] and blend half-length [m] at the start vertex of each segment (segment j-1
+    -> j; 0 at path starts) and at its end vertex (the next segment's start; 0 at path ends)."""
+    m = len(seglen)
+    turn = np.zeros(m)
+    b_start = np.zeros(m)
+    if m > 1:
+        turn[1:] = wrap_pi(h[1:] - h[:-1])
+        b_start[1:] = np.minimum(np.minimum(seglen[1:], seglen[:-1]) * 0.5, BLEND_M)
+    # (every polyline has a first segment: >= 2 vertices each)
+    turn[first] = 0.0
+    b_start[first] = 0.0
+    turn_end = np.zeros(m)
+    b_end = np.zeros(m)
+    if m > 1:
+        turn_end[:-1] = turn[1:]
+        b_end[:-1] = b_start[1:]
+    turn_end[last_seg] = 0.0
+    b_end[last_seg] = 0.0
+    return turn, b_start, turn_end, b_end
+
+
+def _continue_sampled_ends(
+    seglen: np.ndarray, first: np.ndarray, last_seg: np.ndarray, turn: np.ndarray, b_start: np.ndarray,
+    turn_end: np.ndarray, b_end: np.ndarray,
+) -> None:
+    """On sampled curves the first / last segment continues its neighbour's turn, if it is
+    sampled like it (at most SAMPLING_RATIO as long): the last 3.4 m of a straight lane
+    before a dead end's U-turn (1.4 m segments) took 2.4 times the U-turn's first 34 deg
+    corner, the path's heading at the bumper swung 46 deg and a bicycle steered off its lane.
+    Updates the turns and blends (``_vertex_turns``) in place."""
+    m = len(seglen)
+    if m <= 1:
+        return
+    first_seg = np.zeros(m, bool)
+    first_seg[first] = True
+    last = np.zeros(m, bool)
+    last[last_seg] = True
+    fine = seglen <= FINE_SEG_M
+    nxt_ok = first_seg & ~last & fine & np.concatenate((fine[1:], [False]))
+    nxt_ok[:-1] &= seglen[:-1] <= SAMPLING_RATIO * seglen[1:]
+    idx = np.flatnonzero(nxt_ok)
+    turn[idx] = turn_end[idx] * seglen[idx] / np.maximum(seglen[idx + 1], MIN_SEG_M)
+    b_start[idx] = 0.5 * seglen[idx]
+    prv_ok = last & ~first_seg & fine & np.concatenate(([False], fine[:-1]))
+    prv_ok[1:] &= seglen[1:] <= SAMPLING_RATIO * seglen[:-1]
+    idx = np.flatnonzero(prv_ok)
+    turn_end[idx] = turn[idx] * seglen[idx] / np.maximum(seglen[idx - 1], MIN_SEG_M)
+    b_end[idx] = 0.5 * seglen[idx]
 
 
 def stopping_distance(v: np.ndarray, a: np.ndarray, tau: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -297,7 +338,7 @@ class Reference:
         self.yaw_rate = np.asarray(yaw_rate, np.float64)
         """SUMO's turn rate between its last two samples [rad/s] (0: unknown)."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            kappa0 = np.where(self.speed > 0.5, yaw_rate / np.maximum(self.speed, 0.5), 0.0)
+            kappa0 = np.where(self.speed > KAPPA_MIN_SPEED, yaw_rate / np.maximum(self.speed, KAPPA_MIN_SPEED), 0.0)
         self.path = PathSet.concat_fallback(path_offsets, path_xy, self.x, self.y, self.yaw, kappa0)
         p0 = self.path.at(np.zeros(n))
         self._k0 = p0.curvature
@@ -342,7 +383,7 @@ class Reference:
             return 0.0
         on = np.abs(self.side_rate) * tau < self._side_cap
         v = self.speed if speed is None else speed
-        return np.where(on, np.arctan2(self.side_rate, np.maximum(v, 1.0)), 0.0)
+        return np.where(on, np.arctan2(self.side_rate, np.maximum(v, DRIFT_MIN_SPEED)), 0.0)
 
     def _shift(self, heading: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
         """World-frame offset [m] of the reference from its path where the path's tangent is
@@ -415,8 +456,8 @@ class Reference:
         v1 = np.maximum(v1, 0.0)  # < 0: stops within the step (cubic below)
         # never reversing: end speeds inside the monotone region of the cubic (Fritsch-Carlson)
         with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.hypot(v0, v1) / np.maximum(3.0 * mean, 1e-9)
-        sc = np.where(r > 1.0, 1.0 / np.maximum(r, 1e-9), 1.0)
+            r = np.hypot(v0, v1) / np.maximum(MONOTONE_RADIUS * mean, RATIO_FLOOR)
+        sc = np.where(r > 1.0, 1.0 / np.maximum(r, RATIO_FLOOR), 1.0)
         self._v0, self._v1 = v0 * sc, v1 * sc
         lat = np.where(self._interp, lat_end, 0.0)
         self.side_rate = np.where(self._interp, lat / L, self.side_rate)
@@ -438,7 +479,7 @@ class Reference:
         s_x, v_x = stopping_distance(self.speed, self.accel, tau - L)  # own sample is L later
         a_x = np.where(v_x > 0.0, self.accel, 0.0)
         S, v0, v1 = self._s_end, self._v0, self._v1
-        if tau <= L:
+        if tau <= L:  # the cubic Hermite through both samples, in u = tau / L, and its derivatives
             u = max(tau, 0.0) / L
             s_i = S * (3.0 - 2.0 * u) * u * u + L * (v0 * (1.0 - u) ** 2 * u + v1 * (u - 1.0) * u * u)
             v_i = S * 6.0 * u * (1.0 - u) / L + v0 * (1.0 - u) * (1.0 - 3.0 * u) + v1 * u * (3.0 * u - 2.0)
