@@ -10,6 +10,7 @@ updated for ``timeout_s``. Zenoh callbacks write, the daemon's main loop reads `
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 
@@ -26,6 +27,7 @@ log = logging.getLogger(__name__)
 MAX_CAMERA_BYTES = 1024  # a camera message is ~60 bytes; bigger ones are refused unread
 MAX_CAMERAS = 64  # distinct cameras kept; more are refused (counted) until some leave
 CAMERA_TIMEOUT_S = 5.0  # [s] without an update a camera is dropped (viewers send at ~2 Hz)
+REJECT_LOG_PERIOD_S = 1.0  # [s] at most one log line per period about rejected cameras (a flood)
 _LIMITS = DecodeLimits(max_agents=1, max_static_rows=16, max_points=1, max_bytes=MAX_CAMERA_BYTES)
 
 
@@ -39,12 +41,12 @@ class ViewerCameras:
         self._cams: dict[str, tuple[float, float, float]] = {}  # who -> (x, y, monotonic time)
         self.rejected = 0
         self.refused = 0
-        self._log_t = -1e9
+        self._log_t = -math.inf
 
     def _reject(self, key: str, why: str) -> None:
         self.rejected += 1
         now = time.monotonic()
-        if now - self._log_t >= 1.0:  # at most one line per second under a flood
+        if now - self._log_t >= REJECT_LOG_PERIOD_S:
             log.warning("rejected camera on %s (%d so far): %s", key, self.rejected, why)
             self._log_t = now
 

@@ -20,6 +20,13 @@ PRESETS = ("paper", "default", "kinematic")
 MIN_STEP_S = 0.001  # [s] shortest SUMO step length the physics side follows
 MAX_STEP_S = 10.0  # [s] longest (beyond ~1 s tracking degrades: see physics_side/README.md)
 MAX_CONTROL_DT_S = 0.05  # [s] longest control period that still steers a car at city speeds
+MAX_TIMESTEP_S = 0.01  # [s] longest MuJoCo step: cars roll over at the friction limit above it
+CLOCK_TOLERANCE_S = 1e-12  # [s] float rounding allowed when a period is checked against a limit
+RATIO_TOLERANCE = 1e-6  # [1] relative: a clock ratio this close to a whole number is one
+SUGGESTED_SUBSTEPS = 8  # [1] a timestep error suggests the control period over 1..this substeps ...
+MIN_SUGGESTED_TIMESTEP_S = 1e-4  # [s] ... that are at least this long
+TICK_ROUNDING = 1e-9  # [ticks] half a tick rounds up in spite of float error in the times
+LOD_REGION_FIELDS = 3  # a detail region: centre x, centre y, radius [m]
 TYPES = ("passenger", "taxi", "bus", "bicycle", "pedestrian", "other")
 
 
@@ -92,7 +99,7 @@ class PhysicsConfig:
         if self.lod_radius_m < 0:
             raise ConfigError(f"physics.lod_radius_m: expected >= 0, got {self.lod_radius_m}")
         for i, r in enumerate(self.lod_regions):
-            if len(r) != 3 or r[2] <= 0:
+            if len(r) != LOD_REGION_FIELDS or r[2] <= 0:
                 raise ConfigError(f"physics.lod_regions[{i}]: expected [x, y, radius] with radius > 0 [m], got {list(r)}")
         for k, v in self.expect.items():
             if k not in TYPES[:-1]:
@@ -228,7 +235,7 @@ def _ratio(big: float, small: float) -> int | None:
     """``big / small`` if it is a whole number (to 1e-6 relative), else None."""
     r = big / small
     n = round(r)
-    return n if n >= 1 and abs(r - n) <= 1e-6 * max(1.0, r) else None
+    return n if n >= 1 and abs(r - n) <= RATIO_TOLERANCE * max(1.0, r) else None
 
 
 @dataclass(frozen=True)
@@ -256,7 +263,7 @@ def check_rates(sumo_step_s: float, control_hz: float, timestep_s: float) -> Rat
     dt = 1.0 / control_hz
     substeps = _ratio(dt, timestep_s)
     if substeps is None:
-        ok = [f"{dt / n:g}" for n in range(1, 9) if dt / n >= 1e-4]
+        ok = [f"{dt / n:g}" for n in range(1, SUGGESTED_SUBSTEPS + 1) if dt / n >= MIN_SUGGESTED_TIMESTEP_S]
         raise ConfigError(
             f"physics.timestep_s = {timestep_s:g} s does not divide the control period "
             f"1/control_hz = {dt:g} s; change physics.timestep_s to one of {', '.join(ok)} "
@@ -267,15 +274,15 @@ def check_rates(sumo_step_s: float, control_hz: float, timestep_s: float) -> Rat
             f"the SUMO step length {sumo_step_s:g} s is outside {MIN_STEP_S:g}..{MAX_STEP_S:g} s; "
             f"run SUMO with a step length in that range"
         )
-    if dt > MAX_CONTROL_DT_S + 1e-12:
+    if dt > MAX_CONTROL_DT_S + CLOCK_TOLERANCE_S:
         raise ConfigError(
             f"physics.control_hz = {control_hz:g} Hz is too slow to steer a car (control period "
             f"{dt:g} s > {MAX_CONTROL_DT_S:g} s); change physics.control_hz to 50"
         )
-    if timestep_s > 0.01 + 1e-12:
+    if timestep_s > MAX_TIMESTEP_S + CLOCK_TOLERANCE_S:
         raise ConfigError(
             f"physics.timestep_s = {timestep_s:g} s is too coarse: cars roll over at the friction "
-            f"limit above 0.01 s; change physics.timestep_s to 0.005"
+            f"limit above {MAX_TIMESTEP_S:g} s; change physics.timestep_s to 0.005"
         )
     return Rates(ticks_per_step=max(1, round(sumo_step_s / dt)), substeps=substeps, control_dt=dt)
 
@@ -286,7 +293,7 @@ def ticks_to(t_now: float, t_end: float, dt: float) -> int:
     Physics time then stays within dt/2 of SUMO's step end for any step length: a step
     shorter than ``dt`` gets a tick every few steps, a longer one several.
     """
-    return max(0, int(math.floor((t_end - t_now) / dt + 0.5 + 1e-9)))
+    return max(0, int(math.floor((t_end - t_now) / dt + 0.5 + TICK_ROUNDING)))
 
 
 __all__ = [

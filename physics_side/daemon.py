@@ -45,7 +45,7 @@ from physics_side.world import PhysicsWorld
 from protocol.codec import decode_as, encode
 from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys
-from protocol.messages import PhysicsState, StaticData, StepAck, StepMessage
+from protocol.messages import PhysicsAgents, PhysicsState, StaticData, StepAck, StepMessage
 from protocol.tables import StaticTracker
 from runtime.config import RunConfig
 from runtime.queues import DropOldest
@@ -57,6 +57,16 @@ STATIC_QUERY_PERIOD_S = 1.0  # [s] at most one static-data query per period whil
 IDLE_WAIT_S = 0.05  # [s] wait for messages when there is nothing to simulate
 REST_SPEED = 0.05  # [m/s] below this every stopping agent counts as at rest
 SHUTDOWN_DUMP_S = 5.0  # [s] a shutdown longer than this dumps every thread's stack to stderr (the log)
+OVERRUN_S = 0.25  # [s] realtime pacing this far behind the wall clock skips ahead (counted as an overrun)
+DURATION_TOLERANCE_S = 1e-6  # [s] float rounding of SUMO times when the run's duration is checked
+SIBLING_END_STEPS = 2.0  # [SUMO steps] a sibling shard that leaves this close to the run's end finished it
+# Bounds of what Zenoh's threads hand over between two turns of the loop (oldest dropped)
+ALIVE_EVENTS = 64  # [events] SUMO-side liveliness changes
+SHARD_EVENTS = 256  # [events] sibling shards' liveliness changes
+RATE_CACHE = 16  # [step lengths] checked clock ratios kept (a few per run at most)
+MIB = 1 << 20  # [bytes]
+MS_PER_S = 1e3
+MIN_ELAPSED_S = 1e-9  # [s] a status line's period divides as at least this
 
 
 class PhysicsDaemon:
@@ -75,7 +85,7 @@ class PhysicsDaemon:
         self.detail = None if zones is None else DetailSplit(
             zones, settings.physics.max_extrapolation_steps * settings.physics.sumo_step_s)
         self.cameras = ViewerCameras()  # viewer cameras: interest points of the detail zones
-        self._shard_events: collections.deque[tuple[str, bool]] = collections.deque(maxlen=256)
+        self._shard_events: collections.deque[tuple[str, bool]] = collections.deque(maxlen=SHARD_EVENTS)
         self.keys = keys
         self.fleet = fleet
         self.settings = settings
@@ -85,13 +95,13 @@ class PhysicsDaemon:
         self.rates = fleet.rates
         self._limits = run.decode_limits
         # Bounded in messages and bytes (SPEC 5.1): full -> the oldest step is dropped, counted.
-        self._steps: DropOldest[bytes] = DropOldest(self.cfg.step_queue, int(self.cfg.step_queue_mb * (1 << 20)))
+        self._steps: DropOldest[bytes] = DropOldest(self.cfg.step_queue, int(self.cfg.step_queue_mb * MIB))
         # vType table between steps (protocol 1.2 sends it only when it changes); a static
         # reply lands here from a Zenoh thread, newest only
         self._tables = StaticTracker()
         self._static_replies: collections.deque[bytes] = collections.deque(maxlen=1)
         self._static_asked = -math.inf
-        self._alive_events: collections.deque[bool] = collections.deque(maxlen=64)
+        self._alive_events: collections.deque[bool] = collections.deque(maxlen=ALIVE_EVENTS)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.counters: dict[str, int] = {"rejected": 0, "dropped_steps": 0, "acks": 0, "states": 0,
@@ -212,7 +222,7 @@ class PhysicsDaemon:
             except ConfigError as e:
                 self._reject(f"step {msg.step}: {e}")
                 return None
-            if len(self._rate_cache) >= 16:  # a few lengths per run at most; stay bounded
+            if len(self._rate_cache) >= RATE_CACHE:
                 self._rate_cache.clear()
             log.info("SUMO step length %g s: %.3g control ticks of %g s per step",
                      msg.step_length, msg.step_length / rates.control_dt, rates.control_dt)
@@ -239,12 +249,20 @@ class PhysicsDaemon:
             other = shard_of_instance(Keys.instance_of(key))
             if mine is None or other is None or other[0] != mine[0] or other[2] != mine[2]:
                 continue
-            if not up and self._duration_done(self.time + 2.0 * self.fleet.step_length):
+            if not up and self._duration_done(self.time + SIBLING_END_STEPS * self.fleet.step_length):
                 continue  # a sibling that finished the run's last step leaves: nothing to take over
             if self.shard.set_alive(other[1], up):
                 log.warning("shard %d/%d %s: %d of %d shards alive (%s)", other[1], other[2],
                             "is back" if up else "is gone, taking over its tiles", len(self.shard.living),
                             self.shard.count, ", ".join(map(str, self.shard.living)))
+
+    def handle_step(self, payload: bytes) -> StepMessage | None:
+        """One step as it arrives on ``Keys.step``: decoded, its vTypes resolved, applied to the
+        fleet. Returns it, or None when it was rejected (counted) or a duplicate."""
+        msg = self._decode(payload)
+        if msg is None or not self._apply(msg):
+            return None
+        return msg
 
     def _apply(self, msg: StepMessage) -> bool:
         """Apply one step; False if it was a duplicate and ignored."""
@@ -317,15 +335,16 @@ class PhysicsDaemon:
             c["shard_takeovers"] = self.shard.takeovers
         return c
 
-    def _agents(self):
-        """The fleet's agents, then those outside every detail zone (mode KINEMATIC)."""
+    def snapshot(self) -> PhysicsAgents:
+        """Every agent as the next state message publishes it: the fleet's, then those outside
+        every detail zone (mode KINEMATIC)."""
         near = self.fleet.snapshot()
         return near if self.detail is None else self.detail.snapshot(near, self.time)
 
     def _publish_state(self) -> None:
         msg = PhysicsState(
             run=self.keys.run, tick=self.fleet.tick_count, time=self.time, sumo_step=self._last_step,
-            agents=self._agents(), counters=self.all_counters(),
+            agents=self.snapshot(), counters=self.all_counters(),
         )
         self._pub_state.put(encode(msg))
         self.counters["states"] += 1
@@ -344,7 +363,7 @@ class PhysicsDaemon:
         """The run's duration has passed since the begin time (at ``sumo_time``, default now)."""
         d = self.run_cfg.duration_s
         t = self.time if sumo_time is None else sumo_time
-        return bool(d) and self._begin is not None and t - self._begin >= d - 1e-6
+        return bool(d) and self._begin is not None and t - self._begin >= d - DURATION_TOLERANCE_S
 
     # ------------------------------------------------------------------ loops
 
@@ -367,8 +386,8 @@ class PhysicsDaemon:
                     self._wake.wait(IDLE_WAIT_S)
                     self._wake.clear()
                     continue
-                msg = self._decode(self._steps.get())
-                if msg is None or not self._apply(msg):
+                msg = self.handle_step(self._steps.get())
+                if msg is None:
                     continue
                 end = msg.time + msg.step_length - self.fleet.lag
                 for _ in range(ticks_to(self.time, end, self.fleet.dt)):
@@ -410,7 +429,7 @@ class PhysicsDaemon:
         if next_tick > now:
             # wake early for messages only in realtime; steps are applied at tick boundaries
             self._stop.wait(next_tick - now)
-        elif now - next_tick > 0.25:
+        elif now - next_tick > OVERRUN_S:
             self._status.overruns += 1
             next_tick = now
         return next_tick + self.fleet.dt
@@ -444,9 +463,10 @@ class _Status:
             log.info(
                 "%.0f ticks/s | agents %d (phys %d kin %d ext %d stop %d) | tick %.2f ms (mujoco %.2f, "
                 "overhead %.2f) | step %d | collisions %d placements %d rejected %d%s",
-                self.ticks / max(el, 1e-9), fleet.n, counters.get("physical", 0), counters.get("kinematic", 0),
-                counters.get("external", 0), counters.get("stopping", 0), 1e3 * self.tick_s / n,
-                1e3 * self.mujoco_s / n, 1e3 * (self.tick_s - self.mujoco_s) / n, fleet.sumo_step,
+                self.ticks / max(el, MIN_ELAPSED_S), fleet.n, counters.get("physical", 0),
+                counters.get("kinematic", 0), counters.get("external", 0), counters.get("stopping", 0),
+                MS_PER_S * self.tick_s / n, MS_PER_S * self.mujoco_s / n, MS_PER_S * (self.tick_s - self.mujoco_s) / n,
+                fleet.sumo_step,
                 counters.get("collisions", 0), counters.get("placements", 0), counters.get("rejected", 0),
                 f" | overruns {self.overruns}" if self.overruns else "",
             )

@@ -17,12 +17,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from physics_side.config import LOD_REGION_FIELDS
 from physics_side.reference import Reference
 from physics_side.shard import subset
 from protocol.frames import yaw_to_sumo_angle
 from protocol.messages import AgentBatch, AgentFlag, AgentMode, PhysicsAgents, StepMessage
 
 HYSTERESIS = 0.9  # full physics within 0.9 r, kinematic beyond r, unchanged between
+ZONE_CHUNK = 256  # [zones] per pass of the distance test: temporaries of n agents x this at most
+MIN_RADIUS_M = 1e-9  # [m] a zone radius divides as at least this
 
 
 @dataclass(frozen=True)
@@ -37,7 +40,7 @@ class DetailZones:
     @classmethod
     def from_config(cls, radius_m: float, regions) -> "DetailZones | None":
         """``None`` when LOD is off (radius 0 and no regions)."""
-        reg = np.asarray(regions, np.float64).reshape(-1, 3)
+        reg = np.asarray(regions, np.float64).reshape(-1, LOD_REGION_FIELDS)
         if radius_m <= 0 and len(reg) == 0:
             return None
         return cls(float(radius_m), reg)
@@ -73,9 +76,10 @@ class DetailZones:
         rel = np.full(n, np.inf)
         if n == 0 or len(r) == 0:
             return rel
-        for k in range(0, len(r), 256):  # bounded temporaries: n x 256 at most
-            d2 = (x[:, None] - cx[None, k:k + 256]) ** 2 + (y[:, None] - cy[None, k:k + 256]) ** 2
-            rel = np.minimum(rel, (d2 / np.maximum(r[None, k:k + 256], 1e-9) ** 2).min(axis=1))
+        for k in range(0, len(r), ZONE_CHUNK):
+            z = slice(k, k + ZONE_CHUNK)
+            d2 = (x[:, None] - cx[None, z]) ** 2 + (y[:, None] - cy[None, z]) ** 2
+            rel = np.minimum(rel, (d2 / np.maximum(r[None, z], MIN_RADIUS_M) ** 2).min(axis=1))
         return rel
 
 

@@ -37,6 +37,12 @@ SLEEP_ALLOWED = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
 NEIGHBOUR_M = 40.0  # [m] a new agent joins the shard of a live agent this close
 NEW_POOL_SLOTS = 4  # [slots per shard] first capacity of a pool for a newly seen size
 HEADROOM = 1.25  # expected agents -> slots (sized up front)
+LOW_WATER_PARTS = 4  # [1] a pool with less than 1/this of its slots free grows in the background
+# A new agent joins its neighbour's shard unless that shard holds more than its share:
+# SHARD_SHARE_SLACK x the mean load, plus SHARD_SHARE_EXTRA agents
+SHARD_SHARE_SLACK = 1.1  # [1]
+SHARD_SHARE_EXTRA = 2  # [agents]
+PARKED_BRAKE = 100.0  # [N*m] on each spin joint of a parked slot (brakes on: it does not roll)
 
 
 @dataclass(frozen=True)
@@ -333,7 +339,7 @@ class SlotPools:
                 extra[p.index] = NEW_POOL_SLOTS
                 continue
             free = sum(len(self._free.get((p.index, s), ())) for s in range(self.shards))
-            if 4 * free < p.capacity * self.shards:
+            if LOW_WATER_PARTS * free < p.capacity * self.shards:
                 extra[p.index] = max(self.pool_chunk, p.capacity // 2)
         if extra:
             self._grow_in_background(extra)
@@ -389,7 +395,7 @@ class SlotPools:
         out = np.empty(len(ids), np.int64)
         for k, (aid, p) in enumerate(zip(ids, pools)):
             shard = -1
-            share = (load.sum() + 1) / self.shards * 1.1 + 2
+            share = (load.sum() + 1) / self.shards * SHARD_SHARE_SLACK + SHARD_SHARE_EXTRA
             if live_x is not None and len(live):
                 d2 = (live_x - near_x[k]) ** 2 + (live_y - near_y[k]) ** 2
                 j = int(np.argmin(d2))
@@ -436,7 +442,7 @@ class SlotPools:
         st[concat_ranges(t.qvel[slots], t.nv[slots])] = 0.0
         st[concat_ranges(t.ctrl[slots], t.nu[slots])] = 0.0
         fl = t.spin_fl[slots]
-        lay.frictionloss[fl[fl >= 0]] = 100.0
+        lay.frictionloss[fl[fl >= 0]] = PARKED_BRAKE
         lay.sleep_policy[t.tree[slots]] = SLEEP_ALLOWED
         for g in slots:
             aid = self.slot_agent[g]

@@ -26,6 +26,11 @@ from protocol.messages import AgentBatch
 
 TILE_M = 250.0  # [m] edge of a partition tile
 HALO_M = 30.0  # [m] an agent keeps its shard this far beyond the shard's tiles
+# Spatial hash of a tile (Teschner et al. 2003: large primes, XOR), so neighbouring tiles
+# spread over the shards; non-negative in 31 bits
+HASH_PRIME_X = 73856093
+HASH_PRIME_Y = 19349663
+HASH_MASK = 0x7FFFFFFF
 _SHARD_NAME = re.compile(r"^(?P<base>.+)\.(?P<i>\d+)of(?P<k>\d+)$")
 
 
@@ -84,7 +89,7 @@ class ShardFilter:
     def _tile_owner(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         tx = np.floor(x / self.tile_m).astype(np.int64)
         ty = np.floor(y / self.tile_m).astype(np.int64)
-        h = ((tx * 73856093) ^ (ty * 19349663)) & 0x7FFFFFFF  # spatial hash: neighbours spread over shards
+        h = ((tx * HASH_PRIME_X) ^ (ty * HASH_PRIME_Y)) & HASH_MASK
         return np.asarray(self.living, np.int64)[h % len(self.living)]
 
     def owners(self, batch: AgentBatch) -> np.ndarray:

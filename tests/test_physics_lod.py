@@ -81,11 +81,10 @@ def test_daemon_publishes_far_agents_as_kinematic_without_simulating_them():
     fleet = build_fleet(settings)
     d = PhysicsDaemon(None, Keys("sumoco", "lod"), fleet, settings, RunConfig(timing="lockstep"))
     for k in range(3):
-        msg = d._decode(encode(circle_traffic(20, k)))  # as received
-        assert d._apply(msg)
+        assert d.handle_step(encode(circle_traffic(20, k))) is not None  # as received
         for _ in range(fleet.rates.ticks_per_step):
             fleet.tick()
-    snap = d._agents()
+    snap = d.snapshot()
     c = d.all_counters()
     assert len(snap.ids) == 20 and fleet.n == c["physical"] < 20
     assert c["lod_far"] == 20 - fleet.n and c["kinematic"] == c["lod_far"]
