@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sumoco.analysis.summary import _hermite
+from sumoco.analysis.summary import hermite
 
 
 def test_reference_between_samples_follows_the_curve_not_the_chord():
@@ -13,16 +13,16 @@ def test_reference_between_samples_follows_the_curve_not_the_chord():
     th = v * t / R
     x, y = R * np.sin(th), R * (1 - np.cos(th))
     pt = np.linspace(0.0, 2.0, 41)
-    hx, hy = _hermite(pt, t, x, y, th)
+    hx, hy = hermite(pt, t, x, y, th)
     true = v * pt / R
     err = np.hypot(hx - R * np.sin(true), hy - R * (1 - np.cos(true)))
     chord = np.hypot(np.interp(pt, t, x) - R * np.sin(true), np.interp(pt, t, y) - R * (1 - np.cos(true)))
     assert err.max() < 0.03 and chord.max() > 0.5
     # samples are hit exactly; a straight line and a standing agent stay straight
-    assert np.allclose(_hermite(t, t, x, y, th), (x, y))
-    sx, sy = _hermite(pt, t, 5.0 * t, np.zeros(3), np.zeros(3))
+    assert np.allclose(hermite(t, t, x, y, th), (x, y))
+    sx, sy = hermite(pt, t, 5.0 * t, np.zeros(3), np.zeros(3))
     assert np.allclose(sx, 5.0 * pt) and np.allclose(sy, 0.0)
-    zx, zy = _hermite(pt, t, np.ones(3), np.ones(3), np.array([0.0, 1.0, 2.0]))
+    zx, zy = hermite(pt, t, np.ones(3), np.ones(3), np.array([0.0, 1.0, 2.0]))
     assert np.allclose(zx, 1.0) and np.allclose(zy, 1.0)
 
 

@@ -222,7 +222,7 @@ def tracking_errors(ref: RefTable, ph: PhysTable) -> Errors:
         if not len(ps):
             continue
         ang = np.unwrap(np.deg2rad(90.0 - ref.angle[rs]))
-        rx, ry = _hermite(pt, rt, ref.x[rs], ref.y[rs], ang)
+        rx, ry = hermite(pt, rt, ref.x[rs], ref.y[rs], ang)
         yaw = np.interp(pt, rt, ang)
         dx, dy = ph.x[ps] - rx, ph.y[ps] - ry
         out.lon[ps] = dx * np.cos(yaw) + dy * np.sin(yaw)
@@ -282,7 +282,7 @@ def sample_errors(ref: RefTable, ph: PhysTable, t_range: tuple[float, float] = (
     return np.concatenate(errs), np.concatenate(classes)
 
 
-def _hermite(pt: np.ndarray, rt: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray):
+def hermite(pt: np.ndarray, rt: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray):
     """SUMO's position between two samples: a cubic Hermite curve through both with the
     samples' headings [rad] and the chord's speed (SUMO does not define it; a straight
     line would cut every curve: 0.6 m in a 10 m turn at 7 m/s and 1 s steps, 6 mm at 0.1 s).
