@@ -24,7 +24,7 @@ from sumoco.viewing.gateway import Gateway, GatewayConfig, pack_frame, unpack_fr
 from runtime.config import ZenohConfig
 from runtime.transport import open_session
 from synthetic.feed import FakePublisher
-from synthetic.traffic import FakeRun
+from synthetic.traffic import FakeRun, synthetic_step
 from tests.harness import ROOT, Daemon, endpoint, wait_until
 
 KEYS = Keys("sumoco", "synth")
@@ -287,3 +287,109 @@ def test_gateway_bounds_ego_ids_per_client_and_in_total():
         sub.undeclare()
         gw_session.close()
         victim.close()
+
+
+def _gateway_in_thread(ep: str, cfg: GatewayConfig):
+    """A Gateway on a thread of its own, connected to ``ep``; returns (gw, session, stop)."""
+    gw_session = open_session(ZenohConfig(connect=(ep,), listen=()))
+    gw = Gateway(gw_session, KEYS, cfg)
+    ready, loop_of = threading.Event(), {}
+
+    async def serve_until_stopped():
+        loop_of["stop"], loop_of["loop"] = asyncio.Event(), asyncio.get_running_loop()
+        await gw.run(loop_of["stop"], lambda _: ready.set())
+    server = threading.Thread(target=asyncio.run, args=(serve_until_stopped(),), daemon=True)
+    server.start()
+    assert ready.wait(20), "the gateway did not start"
+    wait_until(lambda: list(gw_session.info.peers_zid()), 10, "the gateway's session to reach the run")
+
+    def stop():
+        loop_of["loop"].call_soon_threadsafe(loop_of["stop"].set)
+        server.join(10)
+        gw_session.close()
+    return gw, gw_session, stop
+
+
+def _texts(ws, op: str, n: int, timeout_s: float = 10.0) -> list[dict]:
+    out, t_end = [], time.monotonic() + timeout_s
+    while len(out) < n and time.monotonic() < t_end:
+        m = ws.recv(timeout=max(0.1, t_end - time.monotonic()))
+        if isinstance(m, str) and json.loads(m)["op"] == op:
+            out.append(json.loads(m))
+    return out
+
+
+def test_gateway_relays_liveliness_dedups_overlaps_and_tells_ego_errors():
+    """What an outside client found: liveliness reaches WebSocket clients, a sample matching two
+    subscriptions comes once, ego ids that SUMO would drop are refused at the gateway (no slot
+    used), /status needs the token and counts over clients that left, and a get with no
+    queryable says so at once."""
+    ep = endpoint()
+    run = open_session(ZenohConfig(listen=(ep,)))  # stands in for the SUMO side
+    egos: list[str] = []
+    sub = run.declare_subscriber(KEYS.ego_all, lambda s: egos.append(decode(s.payload.to_bytes()).id))
+    gw, _, stop = _gateway_in_thread(ep, GatewayConfig(port=0, ego_ids=("ego",), subscriptions_per_client=3))
+    token = run.liveliness().declare_token(KEYS.sumo_alive)
+    pub = run.declare_publisher(KEYS.step)
+    try:
+        with connect(gw.url(), open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=5))["op"] == "hello"
+            ws.send(json.dumps({"op": "subscribe", "key": "sumo/alive"}))
+            assert _texts(ws, "alive", 1) == [{"op": "alive", "key": KEYS.sumo_alive, "alive": True}]
+            token.undeclare()  # the SUMO side leaves ...
+            assert _texts(ws, "alive", 1) == [{"op": "alive", "key": KEYS.sumo_alive, "alive": False}]
+            token = run.liveliness().declare_token(KEYS.sumo_alive)  # ... and comes back
+            assert _texts(ws, "alive", 1)[0]["alive"] is True
+            # overlapping subscriptions: every step once
+            ws.send(json.dumps({"op": "subscribe", "key": "sumo/step"}))
+            ws.send(json.dumps({"op": "subscribe", "key": "**"}))
+            assert len(_texts(ws, "subscribed", 2)) == 2
+            time.sleep(0.3)
+            for k in range(20):
+                pub.put(encode(synthetic_step(3, step=k)))
+            seen = []
+            t_end = time.monotonic() + 10
+            while len(seen) < 20 and time.monotonic() < t_end:
+                m = ws.recv(timeout=10)
+                if isinstance(m, bytes) and unpack_frame(m)[0] == KEYS.step:
+                    seen.append(decode(unpack_frame(m)[1]).step)
+            time.sleep(0.3)
+            while True:  # nothing more may be waiting
+                try:
+                    m = ws.recv(timeout=0.2)
+                except TimeoutError:
+                    break
+                if isinstance(m, bytes) and unpack_frame(m)[0] == KEYS.step:
+                    seen.append(decode(unpack_frame(m)[1]).step)
+            assert sorted(seen) == list(range(20)), seen
+            # a fourth subscription is over this gateway's bound of 3
+            ws.send(json.dumps({"op": "subscribe", "key": "physics/**"}))
+            assert "most the gateway allows per client (3)" in _texts(ws, "error", 1)[0]["error"]
+            # ego errors reach the client, and use no slot
+            ws.send(pack_frame("ego/ego", encode(EgoPose("other", 1.0, 2.0, 90.0, 0.0))))
+            assert "differs from its key" in _texts(ws, "error", 1)[0]["error"]
+            ws.send(pack_frame("ego/car9", encode(EgoPose("car9", 1.0, 2.0, 90.0, 0.0))))
+            assert "takes ego ids 'ego' only" in _texts(ws, "error", 1)[0]["error"]
+            assert gw.status()["egos"] == 0
+            wait_until(lambda: ws.send(pack_frame("ego/ego", encode(EgoPose("ego", 1.0, 2.0, 90.0, 0.0)))) or egos,
+                       10, "the right ego on Zenoh", poll_s=0.1)
+            assert set(egos) == {"ego"}
+            # a get with nothing to answer it says so without waiting out the timeout
+            t0 = time.monotonic()
+            ws.send(json.dumps({"op": "get", "key": "sumo/nothing"}))
+            err = _texts(ws, "error", 1)[0]["error"]
+            assert "nothing answers this key" in err and time.monotonic() - t0 < 4.0, err
+        wait_until(lambda: gw.status()["clients"] == 0, 10, "the client to leave")
+        base = gw.url().split("/ws?token=")[0].replace("ws://", "http://")
+        import urllib.error
+        import urllib.request
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(f"{base}/status", timeout=5)
+        assert e.value.code == 401
+        with urllib.request.urlopen(f"{base}/status?token={gw.token}", timeout=5) as r:
+            st = json.loads(r.read())
+        assert st["rejected"] == 3 and st["duplicates"] >= 20, st  # counted after the client left
+    finally:
+        stop()
+        sub.undeclare()
+        run.close()

@@ -22,8 +22,13 @@ bounded, decoded (with tight limits) before they are forwarded, and only ``ego/<
 ``viewer/camera`` (the client's camera, published under an id the gateway assigns) are
 accepted. A client drives at most ``ego_per_client`` ego ids and all clients together at
 most ``ego_total``; a pose for one more is refused with an error to that client (counted
-in ``ego_refused``), and a client's ego ids are freed when it leaves. Downstream frames
-(subscriptions, query answers) are relayed as they came, never decoded here.
+in ``ego_refused``), and a client's ego ids are freed when it leaves. An ego pose whose
+``id`` differs from its key, or an id the SUMO side does not take (``[sumo] ego_id``), is
+refused at the gateway with an error to the client and uses no slot. Downstream frames
+(subscriptions, query answers) are relayed as they came, never decoded here; a sample that
+matches several of a client's subscriptions reaches it once. Liveliness tokens matching a
+subscription arrive as text frames ``{"op": "alive", "key": ..., "alive": true|false}``
+(SPEC 10), so a client sees a daemon leave and come back.
 """
 
 from __future__ import annotations
@@ -60,6 +65,8 @@ MAX_UPSTREAM_BYTES = 64 * 1024  # [B] an EgoPose is ~100 B; anything near this i
 #: limits while msgpack parses, whatever the run's ``[run] max_agents``.
 UPSTREAM_LIMITS = DecodeLimits(max_agents=1, max_static_rows=16, max_points=1, max_bytes=MAX_UPSTREAM_BYTES)
 _KEY_LEN = struct.Struct("<H")
+#: samples remembered per client to deliver one that matches two of its subscriptions once
+DEDUP_WINDOW = 1024
 _LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
 
 
@@ -97,11 +104,14 @@ class GatewayConfig:
     outbox: int = 256  # [frames] per client; full: drop the oldest (counted)
     ego_per_client: int = 4  # [ego ids] one client may drive at once; a pose for one more is refused (counted)
     ego_total: int = 32  # [ego ids] all clients together; a pose for one more is refused (counted)
+    subscriptions_per_client: int = 64  # [subscriptions] one client may hold; one more is refused (counted)
+    ego_ids: tuple[str, ...] = ("*",)  # ego ids the SUMO side takes ([sumo] ego_id); "*" = any
 
     def __post_init__(self) -> None:
-        if self.outbox < 1 or self.ego_per_client < 1 or self.ego_total < 1:
-            raise ConfigError(f"gateway: outbox, ego_per_client and ego_total must be >= 1, got "
-                              f"{self.outbox}, {self.ego_per_client} and {self.ego_total}")
+        if self.outbox < 1 or self.ego_per_client < 1 or self.ego_total < 1 or self.subscriptions_per_client < 1:
+            raise ConfigError(f"gateway: outbox, ego_per_client, ego_total and subscriptions_per_client must be "
+                              f">= 1, got {self.outbox}, {self.ego_per_client}, {self.ego_total} and "
+                              f"{self.subscriptions_per_client}")
 
 
 class Outbox:
@@ -131,6 +141,9 @@ class _Client:
     ws: ServerConnection
     box: Outbox
     subs: dict[str, object] = field(default_factory=dict)
+    alive_subs: dict[str, object] = field(default_factory=dict)
+    seen: collections.deque = field(default_factory=lambda: collections.deque(maxlen=DEDUP_WINDOW))
+    seen_set: set = field(default_factory=set)
     upstream: int = 0
     rejected: int = 0
     camera_id: str = field(default_factory=lambda: f"gw-{secrets.token_hex(4)}")
@@ -152,6 +165,8 @@ class Gateway:
         self.ego_forwarded = 0
         self.cameras_forwarded = 0
         self.ego_refused = 0  # poses for an ego id beyond ego_per_client or ego_total
+        self.rejected = 0  # upstream frames and requests refused, over every client that ever connected
+        self.duplicates = 0  # samples that matched two subscriptions of one client, delivered once
         self._lock = threading.Lock()
 
     # --- handshake checks -------------------------------------------------------------
@@ -170,9 +185,7 @@ class Gateway:
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
         url = urlsplit(request.path)
         reason = None
-        if url.path == "/status":
-            return _response(200, json.dumps(self.status()).encode(), "application/json")
-        if url.path != PATH:
+        if url.path not in (PATH, "/status"):
             reason = (404, f"not found: {url.path} (the WebSocket is at {PATH})")
         elif request.headers.get("Host", "") not in self._hosts():
             reason = (403, f"Host {request.headers.get('Host', '')!r} is not this gateway")
@@ -183,6 +196,8 @@ class Gateway:
             if not hmac.compare_digest(token.encode(), self.token.encode()):
                 reason = (401, "missing or wrong token (?token=...)")
         if reason is None:
+            if url.path == "/status":  # the same Host and token as the WebSocket
+                return _response(200, json.dumps(self.status()).encode(), "application/json")
             return None
         self.refused += 1
         log.warning("refused a WebSocket from %s: %s", connection.remote_address, reason[1])
@@ -203,31 +218,55 @@ class Gateway:
         # Zenoh's thread: frame it and hand it to the event loop; never wait here. The payload
         # is relayed as it came, not decoded: the client decodes it with its own limits.
         frame = pack_frame(str(sample.key_expr), sample.payload.to_bytes())
+        ts = sample.timestamp
+        ident = None if ts is None else str(ts)  # publisher id + time: one sample, whichever subscription
         loop = self._loop
         if loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(self._deliver, client, frame)
+            loop.call_soon_threadsafe(self._deliver, client, frame, ident)
 
-    def _deliver(self, client: _Client, frame: bytes) -> None:
-        if client in self.clients:
-            client.box.put(frame)
-            self.relayed += 1
+    def _deliver(self, client: _Client, frame: bytes | str, ident: str | None = None) -> None:
+        if client not in self.clients:
+            return
+        if ident is not None:
+            if ident in client.seen_set:
+                self.duplicates += 1
+                return
+            if len(client.seen) == client.seen.maxlen:
+                client.seen_set.discard(client.seen[0])
+            client.seen.append(ident)
+            client.seen_set.add(ident)
+        client.box.put(frame)
+        self.relayed += 1
+
+    def _on_alive(self, client: _Client, sample: zenoh.Sample) -> None:
+        # Zenoh's thread: a liveliness token came (PUT) or went (DELETE).
+        text = json.dumps({"op": "alive", "key": str(sample.key_expr),
+                           "alive": sample.kind == zenoh.SampleKind.PUT})
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._deliver, client, text, None)
 
     async def _get(self, client: _Client, key: str, parameters: str = "") -> None:
         """One Zenoh query; the first answer goes to the client as a binary frame (relayed
         as it came, not decoded here)."""
         def fetch() -> tuple[list[tuple[str, bytes]], list[str]]:
             ok, err = [], []
+            t0 = time.monotonic()
             sel = f"{key}?{parameters}" if parameters else key
             for r in self.session.get(sel, timeout=5.0):
                 if r.ok is not None:
                     ok.append((str(r.ok.key_expr), r.ok.payload.to_bytes()))
                 else:
                     err.append(r.err.payload.to_string())
+            if not ok and not err:
+                waited = time.monotonic() - t0
+                err.append("no answer within 5 s" if waited >= 4.5 else
+                           f"nothing answers this key (no queryable found after {waited:.2f} s: is the SUMO side up?)")
             return ok, err
 
         replies, errors = await asyncio.to_thread(fetch)
         if not replies:
-            why = "; ".join(errors) or "no answer within 5 s"
+            why = "; ".join(errors)
             client.box.put(json.dumps({"op": "error", "key": key, "error": f"{key}: {why}"}))
         for k, data in replies[:1]:
             client.box.put(pack_frame(k, data))
@@ -245,6 +284,13 @@ class Gateway:
         msg = decode(payload, UPSTREAM_LIMITS)
         if not isinstance(msg, EgoPose):
             raise ProtocolError(f"expected an ego pose message, got {type(msg).__name__}", key)
+        if msg.id != ego_id:  # SPEC 3.5: the SUMO side would drop it; say so here
+            raise ProtocolError(f"ego pose id {msg.id!r} differs from its key's id {ego_id!r} (they must be equal)",
+                                "id")
+        ids = self.cfg.ego_ids
+        if "*" not in ids and ego_id not in ids:
+            raise ProtocolError(f"the SUMO side takes ego ids {', '.join(map(repr, ids))} only ([sumo] ego_id), "
+                                f"got {ego_id!r}", "id")
         full = self.keys.ego(ego_id)
         pub = client.egos.get(full)
         if pub is None:
@@ -304,14 +350,20 @@ class Gateway:
         if op == "subscribe":
             full = self._pattern(req.get("key", ""))
             if full not in client.subs:
+                if len(client.subs) >= self.cfg.subscriptions_per_client:
+                    raise ProtocolError(f"refused: this connection holds {len(client.subs)} subscriptions, the most "
+                                        f"the gateway allows per client ({self.cfg.subscriptions_per_client})", "key")
                 client.subs[full] = self.session.declare_subscriber(
                     full, lambda s, c=client: self._on_sample(c, s))
+                client.alive_subs[full] = self.session.liveliness().declare_subscriber(
+                    full, lambda s, c=client: self._on_alive(c, s), history=True)
             client.box.put(json.dumps({"op": "subscribed", "key": full}))
         elif op == "unsubscribe":
             full = self._pattern(req.get("key", ""))
-            sub = client.subs.pop(full, None)
-            if sub is not None:
-                sub.undeclare()
+            for held in (client.subs, client.alive_subs):
+                sub = held.pop(full, None)
+                if sub is not None:
+                    sub.undeclare()
             client.box.put(json.dumps({"op": "unsubscribed", "key": full}))
         elif op == "static":
             asyncio.get_running_loop().create_task(self._get(client, self.keys.static))
@@ -339,6 +391,7 @@ class Gateway:
                 except (ProtocolError, zenoh.ZError, ValueError) as e:
                     # Bad input: say what was wrong, count it, keep the connection.
                     client.rejected += 1
+                    self.rejected += 1
                     client.box.put(json.dumps({"op": "error", "error": str(e)}))
                     log.info("rejected a message from %s: %s", ws.remote_address, e)
         except ConnectionClosed:
@@ -346,7 +399,7 @@ class Gateway:
         finally:
             self.clients.discard(client)
             sender.cancel()
-            for sub in client.subs.values():
+            for sub in (*client.subs.values(), *client.alive_subs.values()):
                 sub.undeclare()
             self._release(client)
             log.info("client %s left: %d frames sent, %d dropped, %d ego poses, %d rejected",
@@ -366,7 +419,7 @@ class Gateway:
                 "dropped": sum(c.box.dropped for c in self.clients), "refused": self.refused,
                 "ego_forwarded": self.ego_forwarded, "cameras_forwarded": self.cameras_forwarded,
                 "egos": sum(len(c.egos) for c in self.clients), "ego_refused": self.ego_refused,
-                "rejected": sum(c.rejected for c in self.clients)}
+                "rejected": self.rejected, "duplicates": self.duplicates}
 
     def url(self) -> str:
         host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
@@ -404,8 +457,16 @@ def cli_main(args) -> int:
     token = os.environ.get("SUMOCO_GATEWAY_TOKEN", "")
     if token and len(token) < 16:
         raise ConfigError("SUMOCO_GATEWAY_TOKEN must be at least 16 characters")
+    ego_ids: tuple[str, ...] = ("*",)
+    if args.config:  # the SUMO side's [sumo] ego_id: refuse other ids here, where the client hears it
+        from runtime.config import load_toml
+        from sumo_side.config import sumo_config_from
+
+        data, base = load_toml(args.config)
+        ego_ids = (sumo_config_from(data, base, str(args.config)).ego_id,)
     cfg = GatewayConfig(host=args.host or "127.0.0.1", port=8766 if args.port is None else args.port, token=token,
-                        allow_origins=tuple(args.allow_origin or ()), allow_hosts=tuple(args.allow_host or ()))
+                        allow_origins=tuple(args.allow_origin or ()), allow_hosts=tuple(args.allow_host or ()),
+                        ego_ids=ego_ids)
     keys = Keys(common.zenoh.root, common.run.id)
     logging.getLogger("websockets").setLevel(logging.WARNING)
 
