@@ -49,6 +49,7 @@ class PhysicsConfig:
     max_side_speed: float = 3.0  # [m/s] SUMO sideways motion up to this is extrapolated (continuous lane change); faster is a hop
     sideways_jump_speed: float = 5.0  # [m/s] "slow" for sideways_jump_m (SUMO's instant lane changes in queues)
     flip_deg: float = 60.0  # [deg] |roll| or |pitch| beyond which an agent is placed upright again
+    stall: tuple[str, ...] = ()  # faults: "ID@FROM-TO" holds agent ID stopped in physics from SUMO time FROM to TO [s]
     contact_guard: bool = True  # carry (show kinematic, on SUMO's poses) a pair of agents about to touch where SUMO has a gap
     carry_infeasible: bool = True  # show a vehicle kinematic (SUMO's pose) through a manoeuvre it cannot drive (U-turns, tight corners for its size)
     reference: Literal["auto", "interpolate", "extrapolate"] = "auto"  # interpolate: physics runs one SUMO step behind, between the last two samples (SUMO's own motion); extrapolate: ahead of the newest sample; auto: interpolate steps longer than interpolate_above_s
@@ -71,7 +72,11 @@ class PhysicsConfig:
     log_every_s: float = 1.0  # [s] status line period (wall clock)
 
     def validate(self) -> None:
+        from physics_side.faults import parse_stall
         from protocol.keys import check_chunk
+
+        for i, spec in enumerate(self.stall):
+            parse_stall(spec, f"physics.stall[{i}]")
 
         try:
             check_chunk(self.instance, "physics.instance")

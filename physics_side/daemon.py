@@ -139,10 +139,12 @@ class PhysicsDaemon:
         cc = zenoh.CongestionControl.BLOCK if self.lockstep else zenoh.CongestionControl.DROP
         self._pub_state = s.declare_publisher(self.keys.physics_state, congestion_control=cc)
         self._pub_ack = s.declare_publisher(self.keys.ack, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._pub_feedback = s.declare_publisher(self.keys.feedback, congestion_control=zenoh.CongestionControl.BLOCK)
         self._sub_step = s.declare_subscriber(self.keys.step, self._on_step)
         self._sub_alive = s.liveliness().declare_subscriber(self.keys.sumo_alive, self._on_alive, history=True)
         self._token = s.liveliness().declare_token(self.keys.physics_alive)
-        self._declared = [self._token, self._sub_alive, self._sub_step, self._pub_ack, self._pub_state]
+        self._declared = [self._token, self._sub_alive, self._sub_step, self._pub_ack, self._pub_state,
+                          self._pub_feedback]
         if self.detail is not None:
             self._declared += [s.declare_subscriber(self.keys.viewer_camera_all, self.cameras.on_camera),
                                s.liveliness().declare_subscriber(self.keys.viewer_alive_all, self.cameras.on_alive)]
@@ -350,7 +352,11 @@ class PhysicsDaemon:
         self.counters["states"] += 1
 
     def _ack(self, step: int) -> None:
-        self._pub_ack.put(encode(StepAck(self.keys.run, step, self.fleet.tick_count)))
+        fb = self.fleet.two_way
+        if fb:  # two-way coupling: the physical states SUMO writes back, before the ack (SPEC 3.8)
+            self._pub_feedback.put(encode(self.fleet.feedback(self.keys.run, step, self.time)))
+            self.counters["feedback"] = self.counters.get("feedback", 0) + 1
+        self._pub_ack.put(encode(StepAck(self.keys.run, step, self.fleet.tick_count, feedback=fb)))
         self.counters["acks"] += 1
 
     def _at_rest(self) -> bool:
@@ -519,6 +525,10 @@ def cli_main(args) -> int:
     settings = replace(settings, physics=phys)
     keys = Keys(common.zenoh.root, common.run.id, phys.instance)
     fleet = build_fleet(settings, realtime=common.run.timing == "realtime")
+    # two-way coupling: is this the instance SUMO follows ([coupling] instance, or the default preset's)?
+    fleet.two_way = common.coupling.follows(phys.instance, phys.preset)
+    if fleet.two_way:
+        log.info("two-way coupling: %s drives the physics-authoritative vehicles; SUMO follows it", phys.instance)
     tune_allocator()
     freeze_startup_objects()
     old = {}

@@ -28,10 +28,11 @@ import numpy as np
 from physics_side import control as C
 from physics_side import models as M
 from physics_side.config import PhysicsSettings, Rates
+from physics_side.faults import Faults
 from physics_side.reference import Reference, ReferencePoint, tracking_error
 from physics_side.world import PhysicsWorld
 from protocol.frames import sumo_angle_to_yaw, wrap_pi, yaw_to_sumo_angle
-from protocol.messages import AgentBatch, AgentClass, AgentFlag, AgentMode, PhysicsAgents, StepMessage
+from protocol.messages import AgentBatch, AgentClass, AgentFlag, AgentMode, PhysicsAgents, PhysicsFeedback, StepMessage
 
 log = logging.getLogger(__name__)
 
@@ -306,6 +307,13 @@ class Fleet:
         self.step_length = rates.ticks_per_step * rates.control_dt  # [s] of the newest SUMO step
         self.tick_count = 0
         self.stopping = False
+        # two-way coupling: True in the one instance SUMO follows (the daemon sets it); there
+        # agents flagged PHYSICS_AUTHORITY are never carried: physics drives them, SUMO follows
+        self.two_way = False
+        self.authoritative = np.zeros(0, bool)
+        self.touching = np.zeros(0, bool)  # agents touching another agent's body at the last tick
+        self.faults = Faults(self.cfg.stall)
+        self._stalled: np.ndarray | None = None
 
     def _empty(self) -> None:
         n = 0
@@ -569,6 +577,9 @@ class Fleet:
         self.slots = slots
         self.wire_cls = cls.astype(np.uint8)
         self.kind = w.tables.kind[slots].astype(np.int8)
+        self.authoritative = ((flags & AgentFlag.PHYSICS_AUTHORITY) != 0) & self.two_way
+        self.touching = np.zeros(len(ids), bool)
+        self._stalled = self.faults.stalled(self._index, len(ids), msg.time)
         self.preset = preset
         mode = np.where(preset == P_KINEMATIC, AgentMode.KINEMATIC, AgentMode.PHYSICAL)
         self.mode = np.where(ego, AgentMode.EXTERNAL, mode).astype(np.uint8)
@@ -1071,6 +1082,7 @@ class Fleet:
             now = cand & (start | (was & keep))
         guard = self._contact_guard(ref, prev, obs, held, was)
         now |= guard
+        now &= ~self.authoritative  # coupling: physics owns these; SUMO follows what they do
         self.infeasible = now
         # a carry glides from the body's pose onto SUMO's (KIN_BLEND_S): switched at once, a
         # long body's yaw jumped from its driven pose to SUMO's chord, its rear ~1 m sideways
@@ -1232,6 +1244,9 @@ class Fleet:
         obs, proj = self._observe()
         tau = min(self.tau, self.max_extrapolation)
         u = self._control(obs, proj, tau)
+        if self._stalled is not None:  # faults: a stalled vehicle brakes fully, no drive
+            u.drive[self._stalled] = 0.0
+            u.brake[self._stalled] = self.world.tables.max_brake[self.slots[self._stalled]]
         self._actuate(u, obs)
         w.step()
         self.tick_count += 1
@@ -1406,7 +1421,7 @@ class Fleet:
         self.aux = u.aux
         flip = math.radians(self.cfg.flip_deg)
         upright = (np.abs(obs2.roll) < flip) & (np.abs(obs2.pitch) < flip)
-        _, began = w.contacts(self.slots, upright)
+        self.touching, began = w.contacts(self.slots, upright)
         if began.any():
             self._split_collisions(began)
         self._last_obs = obs2
@@ -1455,6 +1470,17 @@ class Fleet:
             brake=np.asarray(self.brake, f32), err_lon=np.asarray(self.err_lon, f32),
             err_lat=np.asarray(self.err_lat, f32),
         )
+
+    def feedback(self, run: str, step: int, time: float) -> PhysicsFeedback:
+        """Two-way coupling: the physical state of the physics-authoritative agents (SPEC 3.8)."""
+        a = self.snapshot()
+        rows = np.flatnonzero(self.authoritative) if len(self.authoritative) == a.n else np.zeros(0, np.int64)
+        f32 = np.float32
+        touching = self.touching[rows] if len(self.touching) == a.n else np.zeros(len(rows), bool)
+        return PhysicsFeedback(
+            run=run, step=int(step), time=float(time), ids=[a.ids[i] for i in rows], x=a.x[rows], y=a.y[rows],
+            heading=a.heading[rows], speed=a.speed[rows], d_lon=a.err_lon[rows].astype(f32),
+            d_lat=a.err_lat[rows].astype(f32), contact=touching.astype(np.uint8))
 
     def mode_counts(self) -> dict[str, int]:
         m = self.mode
