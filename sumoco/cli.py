@@ -110,6 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--agents", help="viewer: agent counts, comma-separated (default 500,1000,2500)")
     p.add_argument("--sample-s", dest="sample_s", type=float, help="soak: seconds between rows (default 60)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
+    p.add_argument("--authority", choices=["sumo", "physics"],
+                   help="scenarios: who owns the vehicles' motion in every run (default: the config's, sumo)")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--verbose", action="store_true")
 

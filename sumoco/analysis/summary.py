@@ -462,6 +462,8 @@ class _Instance:
         self.per_type: dict[int, ErrorHistogram] = {}
         self.at_type: dict[int, ErrorHistogram] = {}
         self.modes: dict[int, set] = {}
+        # agent-time by class: (samples driven by physics, all samples), EXTERNAL (egos) left out
+        self.physical: dict[int, list[int]] = {}
         self.seen: dict[int, set] = {}
         self.counters: dict = {}
         self.cand: dict[int, dict[str, list]] = {}  # aid -> series parts
@@ -621,6 +623,12 @@ class Analysis:
                 acc.per_type.setdefault(c, ErrorHistogram()).add(e.err[v & (ph.cls == c)])
             for m in np.unique(ph.mode).tolist():
                 acc.modes.setdefault(m, set()).update(np.unique(ph.aid[ph.mode == m]).tolist())
+            own = ph.mode != AgentMode.EXTERNAL
+            for c in np.unique(ph.cls[own]).tolist():
+                sel = own & (ph.cls == c)
+                tally = acc.physical.setdefault(c, [0, 0])
+                tally[0] += int(np.count_nonzero(sel & (ph.mode == AgentMode.PHYSICAL)))
+                tally[1] += int(np.count_nonzero(sel))
             for c in np.unique(ph.cls).tolist():
                 acc.seen.setdefault(c, set()).update(np.unique(ph.aid[ph.cls == c]).tolist())
             # samples whose reference is inside a junction, or that follow one within
@@ -727,6 +735,7 @@ class Analysis:
                 "rejected": int(c.get("rejected", 0)),
                 "agents_seen": self._seen(acc.seen),
                 "agents_by_mode": {m.name.lower(): len(acc.modes.get(int(m), ())) for m in AgentMode},
+                **physical_share(acc.physical),
                 "counters": {k: int(x) for k, x in sorted(c.items())},
             }
             lc = acc.lane_change.stats()
@@ -821,6 +830,21 @@ def _feed_tables(an: Analysis, data: RunData) -> None:
         sel = data.ref.aid[rows] == rid
         an.track[rid] = {k: [getattr(data.ref, k)[rows][sel]] for k in _TRACK}
     an._w_lo = -np.inf
+
+
+def physical_share(tally: dict[int, list[int]]) -> dict:
+    """Share of agent-time driven by physics (mode PHYSICAL: not carried, not placed
+    kinematically) over all vehicle agent-time, egos left out; pedestrians apart."""
+    ped = int(AgentClass.PEDESTRIAN)
+    veh = [v for c, v in tally.items() if c != ped]
+    num, den = sum(v[0] for v in veh), sum(v[1] for v in veh)
+    p = tally.get(ped, [0, 0])
+    return {
+        "physical_share": round(num / den, 4) if den else None,
+        "physical_share_by_type": {CLASS_NAMES[c]: round(v[0] / v[1], 4) for c, v in sorted(tally.items())
+                                   if v[1] and c != ped},
+        "physical_share_pedestrians": round(p[0] / p[1], 4) if p[1] else None,
+    }
 
 
 def summarise(data: RunData, ref_id: str | None = None) -> dict:

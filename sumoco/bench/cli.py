@@ -148,7 +148,8 @@ def cli_main(args) -> int:
         from sumoco.bench.scenarios import run_scenario_bench
 
         rows = run_scenario_bench(getattr(args, "pack", None), getattr(args, "duration", None) or 60.0,
-                                  quick=quick, out_root=getattr(args, "out", None))
+                                  quick=quick, out_root=getattr(args, "out", None),
+                                  authority=getattr(args, "authority", None))
     elif args.what == "generated":
         from sumoco.bench.generated import run_generated_bench
 

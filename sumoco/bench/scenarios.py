@@ -49,11 +49,14 @@ def default_pack() -> Path:
     return root.parent / "shared" / "scenarios"
 
 
-def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float | None) -> dict:
+def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float | None,
+            authority: str | None = None) -> dict:
     argv = [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(out),
             "--sumocfg", str(sumocfg), "--duration", str(duration), "--quiet"]
     if begin is not None:
         argv += ["--begin", str(begin)]
+    if authority:
+        argv += ["--authority", authority]
     t0 = time.monotonic()
     r = subprocess.run(argv, capture_output=True, text=True)
     wall = time.monotonic() - t0
@@ -72,7 +75,13 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
         "exit_codes": s.get("daemons", {}).get("exit_codes"),
         "completed": s.get("daemons", {}).get("completed"),
         "sumo_rejected": (s.get("sumo_side") or {}).get("rejected"),
+        "authority": authority or "sumo",
     })
+    side = s.get("sumo_side") or {}
+    if "feedback_steps_applied" in side:  # two-way coupling: what SUMO did with the physical states
+        row["coupling"] = {k: side.get(k) for k in (
+            "intent_gap_p50_m", "intent_gap_p95_m", "intent_gap_max_m", "feedback_ms", "feedback_late",
+            "feedback_moves_xy", "feedback_unknown", "teleports", "arrived", "departed")}
     for inst, p in s.get("presets", {}).items():
         e = p["error_m"]["overall"]
         at = p["error_m"].get("at_samples", {}).get("overall", {})
@@ -81,12 +90,14 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
                      "collisions": p.get("collisions"), "collisions_physics_only": p.get("collisions_physics_only"),
                      "placements": p.get("placements"), "placements_by_cause": p.get("placements_by_cause"),
                      "carries_infeasible": p.get("carries_infeasible"),
-                     "carries_contact": p.get("carries_contact"), "rejected": p.get("rejected")}
+                     "carries_contact": p.get("carries_contact"), "rejected": p.get("rejected"),
+                     "physical_share": p.get("physical_share"),
+                     "physical_share_pedestrians": p.get("physical_share_pedestrians")}
     return row
 
 
 def run_scenario_bench(pack: Path | None = None, duration: float = 60.0, quick: bool = False,
-                       out_root: Path | None = None) -> list[dict]:
+                       out_root: Path | None = None, authority: str | None = None) -> list[dict]:
     """One row per pack scenario (``quick``: 10 s each)."""
     pack = Path(pack) if pack else default_pack()
     duration = 10.0 if quick else duration
@@ -100,6 +111,6 @@ def run_scenario_bench(pack: Path | None = None, duration: float = 60.0, quick: 
         if not sumocfg.is_file():
             rows.append({"scenario": f"{folder}/{name}", "error": f"not found: {sumocfg}"})
             continue
-        rows.append(run_one(cfg, sumocfg, root / folder / Path(name).stem, duration, begin))
+        rows.append(run_one(cfg, sumocfg, root / folder / Path(name).stem, duration, begin, authority))
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     return rows
