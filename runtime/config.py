@@ -42,6 +42,10 @@ class RunConfig:
     max_agents: int = 200_000  # [agents] largest agent table a daemon decodes; bounds every decode (SPEC 5)
 
     def validate(self) -> None:
+        if self.duration_s < 0:
+            raise ConfigError(f"run.duration_s: expected >= 0 (0 = until the scenario ends), got {self.duration_s:g}")
+        if self.lockstep_timeout_s <= 0:
+            raise ConfigError(f"run.lockstep_timeout_s: expected > 0, got {self.lockstep_timeout_s:g}")
         if not 1 <= self.max_agents <= 200_000:
             raise ConfigError(f"run.max_agents: expected 1..200000, got {self.max_agents}")
 
@@ -181,6 +185,10 @@ def load_toml(path: str | Path) -> tuple[dict[str, Any], Path]:
             data = tomllib.load(f)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{p}: not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{p}: not UTF-8 text (byte {e.start}); TOML files are UTF-8") from None
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot be read ({e.strerror})") from None
     unknown = sorted(set(data) - set(KNOWN_TABLES))
     if unknown:
         raise ConfigError(
@@ -284,6 +292,7 @@ def apply_cli(common: CommonConfig, args: Any) -> CommonConfig:
         run = replace(run, timing=args.timing)
     if getattr(args, "duration", None) is not None:
         run = replace(run, duration_s=float(args.duration))
+        run.validate()  # --duration -5 is an error, not a run that never ends
     if getattr(args, "seed", None) is not None:
         run = replace(run, seed=int(args.seed))
     if getattr(args, "listen", None):

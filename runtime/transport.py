@@ -15,6 +15,7 @@ receives, so a refused message never reaches the daemon it was aimed at.
 from __future__ import annotations
 
 import json
+import os
 import logging
 import socket
 import threading
@@ -192,7 +193,13 @@ def zenoh_config(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Config:
 
 def open_session(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Session:
     """Open a session; ``role`` names this process in the secure profile (least: viewer)."""
-    zenoh.try_init_log_from_env()
+    level = os.environ.get("RUST_LOG", "").lower()
+    if cfg.security.users is not None and ("debug" in level or "trace" in level):
+        # Zenoh's debug log prints the configuration, this process's password included
+        log.warning("RUST_LOG=%s would print this process's password (user/password authentication): "
+                    "Zenoh's own log stays off", level)
+    else:
+        zenoh.try_init_log_from_env()
     log.debug("opening zenoh session mode=%s listen=%s connect=%s%s", cfg.mode, cfg.listen, cfg.connect,
               f" (TLS as {role!r})" if cfg.security.enabled else "")
     try:

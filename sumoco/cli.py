@@ -7,6 +7,7 @@ Subcommands import their package lazily so ``sumoco sumo`` never loads MuJoCo an
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import sys
@@ -244,6 +245,12 @@ def main(argv: list[str] | None = None) -> int:
         return ExitCode.FAILURE
     except KeyboardInterrupt:
         return ExitCode.INTERRUPTED
+    except OSError as e:
+        if e.errno != errno.EADDRINUSE:
+            raise
+        # a port taken by another program: one line, not a traceback (--port picks another)
+        print(f"sumoco {args.cmd}: cannot listen: {e.strerror} ({e}); choose another --port", file=sys.stderr)
+        return ExitCode.USAGE
 
 
 #: Subcommand -> "module:function" it runs; imported only when chosen.
