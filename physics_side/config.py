@@ -50,6 +50,7 @@ class PhysicsConfig:
     sideways_jump_speed: float = 5.0  # [m/s] "slow" for sideways_jump_m (SUMO's instant lane changes in queues)
     flip_deg: float = 60.0  # [deg] |roll| or |pitch| beyond which an agent is placed upright again
     stall: tuple[str, ...] = ()  # faults: "ID@FROM-TO" holds agent ID stopped in physics from SUMO time FROM to TO [s]
+    brake_failure: tuple[str, ...] = ()  # faults: "ID@FROM-TO": agent ID has neither drive nor brakes then (coasts)
     contact_guard: bool = True  # carry (show kinematic, on SUMO's poses) a pair of agents about to touch where SUMO has a gap
     carry_infeasible: bool = True  # show a vehicle kinematic (SUMO's pose) through a manoeuvre it cannot drive (U-turns, tight corners for its size)
     reference: Literal["auto", "interpolate", "extrapolate"] = "auto"  # interpolate: physics runs one SUMO step behind, between the last two samples (SUMO's own motion); extrapolate: ahead of the newest sample; auto: interpolate steps longer than interpolate_above_s
@@ -77,6 +78,8 @@ class PhysicsConfig:
 
         for i, spec in enumerate(self.stall):
             parse_stall(spec, f"physics.stall[{i}]")
+        for i, spec in enumerate(self.brake_failure):
+            parse_stall(spec, f"physics.brake_failure[{i}]")
 
         try:
             check_chunk(self.instance, "physics.instance")

@@ -312,8 +312,9 @@ class Fleet:
         self.two_way = False
         self.authoritative = np.zeros(0, bool)
         self.touching = np.zeros(0, bool)  # agents touching another agent's body at the last tick
-        self.faults = Faults(self.cfg.stall)
+        self.faults = Faults(self.cfg.stall, self.cfg.brake_failure)
         self._stalled: np.ndarray | None = None
+        self._unbraked: np.ndarray | None = None
 
     def _empty(self) -> None:
         n = 0
@@ -580,6 +581,7 @@ class Fleet:
         self.authoritative = ((flags & AgentFlag.PHYSICS_AUTHORITY) != 0) & self.two_way
         self.touching = np.zeros(len(ids), bool)
         self._stalled = self.faults.stalled(self._index, len(ids), msg.time)
+        self._unbraked = self.faults.unbraked(self._index, len(ids), msg.time)
         self.preset = preset
         mode = np.where(preset == P_KINEMATIC, AgentMode.KINEMATIC, AgentMode.PHYSICAL)
         self.mode = np.where(ego, AgentMode.EXTERNAL, mode).astype(np.uint8)
@@ -1247,6 +1249,9 @@ class Fleet:
         if self._stalled is not None:  # faults: a stalled vehicle brakes fully, no drive
             u.drive[self._stalled] = 0.0
             u.brake[self._stalled] = self.world.tables.max_brake[self.slots[self._stalled]]
+        if self._unbraked is not None:  # faults: no drive, no brakes: it coasts
+            u.drive[self._unbraked] = 0.0
+            u.brake[self._unbraked] = 0.0
         self._actuate(u, obs)
         w.step()
         self.tick_count += 1

@@ -237,6 +237,9 @@ class CouplingConfig:
     ids: tuple[str, ...] = ()  # vehicle id patterns (fnmatch: "truck*") that are physics-authoritative
     instance: str = ""  # the physics instance SUMO follows ("": the one running the `default` preset); others shadow
     feedback_steps: int = 1  # [steps] realtime: a state at most this many steps old is written back
+    # what SUMO does when physics-authoritative vehicles touch (a crash in physics): "stay" (SUMO
+    # warns, both stay where physics has them), "remove" them, or SUMO's own "teleport"
+    collision: Literal["stay", "remove", "teleport"] = "stay"
 
     def validate(self) -> None:
         bad = sorted(set(self.classes) - VEHICLE_CLASSES)
@@ -247,6 +250,13 @@ class CouplingConfig:
             raise ConfigError(f"coupling.instance: expected a physics instance name, got {self.instance!r}")
         if not 0 <= self.feedback_steps <= 10:
             raise ConfigError(f"coupling.feedback_steps: expected 0..10, got {self.feedback_steps}")
+
+    def sumo_args(self, extra_args: tuple[str, ...]) -> tuple[str, ...]:
+        """SUMO options two-way coupling needs (a crash is physics' fact: SUMO keeps the cars,
+        ``collision``), unless the scenario's own ``extra_args`` set them."""
+        if not self.two_way or any(a.lstrip("-").startswith("collision.action") for a in extra_args):
+            return ()
+        return ("--collision.action", {"stay": "warn", "remove": "remove", "teleport": "teleport"}[self.collision])
 
     def follows(self, instance: str, preset: str) -> bool:
         """True when physics instance ``instance`` (shards: ``<base>.<i>of<k>``) running control

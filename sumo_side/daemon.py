@@ -589,6 +589,7 @@ def load_configs(args) -> tuple[CommonConfig, SumoConfig]:
     if getattr(args, "begin", None) is not None:
         scfg = replace(scfg, begin_s=float(args.begin))
         scfg.validate()
+    scfg = replace(scfg, extra_args=scfg.extra_args + common.coupling.sumo_args(scfg.extra_args))
     if scfg.sumocfg is None:
         where = f"{args.config}: " if getattr(args, "config", None) else ""
         raise ConfigError(f"{where}no SUMO scenario: set [sumo] sumocfg or pass --sumocfg PATH")

@@ -24,7 +24,7 @@ STALL = (15.0, 35.0)  # [s] SUMO time the lead car is held in physics
 CAR_LENGTH_M = 4.5
 
 
-def _run(tmp_path: Path, authority: str, duration_s: float = 45.0) -> tuple[list, list, dict]:
+def _run(tmp_path: Path, authority: str, duration_s: float = 45.0, faults: str = "") -> tuple[list, list, dict]:
     cfg = tmp_path / f"{authority}.toml"
     cfg.write_text(f"""
 [run]
@@ -39,6 +39,7 @@ sumocfg = "{STRAIGHT}"
 [physics]
 preset = "default"
 stall = ["lead@{STALL[0]:g}-{STALL[1]:g}"]
+{faults}
 """)
     keys = Keys("sumoco", "couple")
     sumo_ep, phys_ep = endpoint(), endpoint()
@@ -48,7 +49,9 @@ stall = ["lead@{STALL[0]:g}-{STALL[1]:g}"]
     sumo = Daemon("sumo", ["sumo", "--config", str(cfg), "--listen", sumo_ep, "--connect", phys_ep,
                            "--output-dir", str(out), "--quiet"], tmp_path / authority)
     try:
-        wait_until(lambda: sumo.poll() is not None, 240, "the run to end", poll_s=0.2, procs=[phys])
+        # physics leaves on the final step too, possibly a moment before SUMO: only a failure counts
+        wait_until(lambda: sumo.poll() is not None or phys.poll() not in (None, 0), 240, "the run to end",
+                   poll_s=0.2)
         phys.leave(30)
     finally:
         probe.close()
@@ -95,3 +98,22 @@ def test_a_stall_in_physics_makes_sumo_traffic_queue_and_drive_on(tmp_path):
     assert moving_again is not None and moving_again <= 5.0, moving_again
     # physics and SUMO agree where the lead is (the intent gap stays small)
     assert stats["intent_gap_p95_m"] < 0.5, stats
+
+
+def test_a_crash_in_physics_leaves_both_cars_stopped_in_sumo_where_physics_has_them(tmp_path):
+    """``lead`` stalls at 15 s; the car behind it, ``f.0``, loses its brakes at 14.5 s and
+    coasts into it. The crash is a physics fact: SUMO shows both stopped where physics has
+    them, neither removed nor teleported, and the cars behind queue."""
+    steps, states, stats = _run(tmp_path, "physics", duration_s=30.0, faults='brake_failure = ["f.0@14.5-40"]')
+    assert stats["teleports"] == 0 and stats["feedback_late"] == 0, stats
+    last_state = max(states, key=lambda st: st.time)
+    assert last_state.counters.get("collisions", 0) >= 1, last_state.counters  # they did collide in physics
+    m = steps[-1]
+    phys = last_state.agents
+    for car in ("lead", "f.0"):
+        i, j = _row(m, car), phys.ids.index(car)
+        assert i is not None, f"{car} vanished from SUMO"
+        assert m.agents.speed[i] < 0.5 and phys.speed[j] < 0.5, (car, m.agents.speed[i], phys.speed[j])
+        assert abs(m.agents.x[i] - phys.x[j]) < 0.5, (car, m.agents.x[i], phys.x[j])
+    gap = m.agents.x[_row(m, "lead")] - CAR_LENGTH_M - m.agents.x[_row(m, "f.0")]
+    assert gap < 0.5, gap  # f.0 ended against the lead's rear, as in physics
