@@ -14,9 +14,12 @@ ends step k:
   (``moveToXY`` is applied after the movement phase: one step of lag, sumo#11091.)
 - ``vehicle.setPreviousSpeed(speed)`` with the measured speed (not one implied by the move).
 - A position beyond the lane's ends (the body is behind SUMO's sample across a lane
-  boundary, or ahead into the next lane) falls back to ``moveToXY`` with ``keepRoute=1``
-  (mapped onto the route, so the route is never replaced by a single edge: sumo#2401);
-  counted as ``feedback_xy``.
+  boundary, or ahead into the next lane) is kept on the lane, ``LANE_END_MARGIN_M`` inside
+  its end (counted ``clamped``): ``moveToXY`` there acts after the movement phase, a step
+  late, and in a filled grid its late moves made SUMO report collisions and teleport cars.
+- On a junction's internal lane only the speed is written (counted ``internal``):
+  ``moveTo`` onto internal lanes made SUMO count the move along the whole route (implied
+  speeds of 10^4 m/s) and picked wrong internal lanes (sumo#15282).
 
 libsumo has no batched setters: everything is computed with numpy over all vehicles and
 only the calls themselves loop.
@@ -62,7 +65,8 @@ class FeedbackStats:
     applied_steps: int = 0  # steps whose states were written back
     late_steps: int = 0  # steps with two-way vehicles but no state in time: SUMO kept its own motion
     moved: int = 0  # moveTo calls (vehicle-steps)
-    moved_xy: int = 0  # moveToXY fallbacks (beyond a lane's ends)
+    clamped: int = 0  # positions beyond a lane's end, kept on it
+    internal: int = 0  # vehicle-steps on junction lanes: speed only
     speeds: int = 0  # setPreviousSpeed calls
     unknown: int = 0  # states of vehicles SUMO no longer has (arrived meanwhile)
     stopped: int = 0  # vehicle-steps written back at a standstill
@@ -122,9 +126,11 @@ class Authority:
 class FeedbackWriter:
     """Writes the physical states of step k into SUMO before its step k+1."""
 
-    def __init__(self, api, lane_ids: list[str], lane_lengths: np.ndarray, pos_factor: np.ndarray) -> None:
+    def __init__(self, api, lane_ids: list[str], lane_lengths: np.ndarray, pos_factor: np.ndarray,
+                 internal: np.ndarray | None = None) -> None:
         self.api = api
         self.lane_ids = lane_ids
+        self.internal = np.zeros(len(lane_ids), bool) if internal is None else np.asarray(internal, bool)
         self.lane_lengths = np.asarray(lane_lengths, np.float64)
         self.pos_factor = np.asarray(pos_factor, np.float64)
         self.stats = FeedbackStats()
@@ -144,22 +150,21 @@ class FeedbackWriter:
         factor = np.where(on_lane, self.pos_factor[np.maximum(ln, 0)], 1.0)
         pos = lane_pos[r] + fb.d_lon[idx].astype(np.float64) / factor
         length = np.where(on_lane, self.lane_lengths[np.maximum(ln, 0)], 0.0)
-        inside = on_lane & (pos >= 0.0) & (pos <= length)
-        move = inside & (np.abs(fb.d_lon[idx]) >= MOVE_MIN_M)
-        xy = ~inside
+        junction = on_lane & self.internal[np.maximum(ln, 0)]
+        hi = np.maximum(length - LANE_END_MARGIN_M, 0.0)
+        clamped = on_lane & ~junction & ((pos < 0.0) | (pos > hi))
+        pos = np.clip(pos, 0.0, hi)
+        move = on_lane & ~junction & (np.abs(fb.d_lon[idx]) >= MOVE_MIN_M)
         v = self.api.vehicle
         ids = fb.ids
         speed = fb.speed.astype(np.float64)
         for j in np.flatnonzero(move):
-            i = idx[j]
-            v.moveTo(ids[i], self.lane_ids[ln[j]], float(min(pos[j], length[j] - LANE_END_MARGIN_M)))
-        for j in np.flatnonzero(xy):
-            i = idx[j]
-            v.moveToXY(ids[i], "", -1, float(fb.x[i]), float(fb.y[i]), float(fb.heading[i]), 1)
+            v.moveTo(ids[idx[j]], self.lane_ids[ln[j]], float(pos[j]))
         for i in idx:
             v.setPreviousSpeed(ids[i], float(speed[i]))
         st.moved += int(move.sum())
-        st.moved_xy += int(xy.sum())
+        st.clamped += int((clamped & move).sum())
+        st.internal += int(junction.sum())
         st.speeds += len(idx)
         st.stopped += int((speed[idx] <= STOPPED_SPEED).sum())
         st.applied_steps += 1
@@ -208,7 +213,7 @@ class SumoCoupling:
         self.reject = reject
         self.authority = Authority(cfg)
         g = sim.graph
-        self.writer = FeedbackWriter(sim.api, g.ids, g.lengths, g.pos_factor)
+        self.writer = FeedbackWriter(sim.api, g.ids, g.lengths, g.pos_factor, g.internal)
         self._inbox: LatestPerKey[bytes] = LatestPerKey(MAX_FEEDERS)
         self._latest: dict[str, PhysicsFeedback] = {}
         self._expected: dict[str, int] = {}  # instance -> newest step whose ack announced feedback
@@ -290,7 +295,8 @@ class SumoCoupling:
             "feedback_steps_applied": st.applied_steps,
             "feedback_late": st.late_steps,
             "feedback_moves": st.moved,
-            "feedback_moves_xy": st.moved_xy,
+            "feedback_clamped": st.clamped,
+            "feedback_internal": st.internal,
             "feedback_speeds": st.speeds,
             "feedback_unknown": st.unknown,
             "feedback_stopped": st.stopped,

@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
 
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
-    p.add_argument("what", choices=["sumo", "physics", "e2e", "codec", "fidelity", "soak", "record", "gateway",
+    p.add_argument("what", choices=["sumo", "physics", "coupling", "e2e", "codec", "fidelity", "soak", "record", "gateway",
                                     "scenarios", "generated", "scale", "viewer"])
     p.add_argument("--pack", help="scenarios, generated: folder of the scenario pack (default ../shared/scenarios "
                                   "beside the repository)")

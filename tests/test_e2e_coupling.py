@@ -72,7 +72,7 @@ def test_a_stall_in_physics_makes_sumo_traffic_queue_and_drive_on(tmp_path):
     steps, states, stats = _run(tmp_path, "physics")
     assert steps[-1].final and stats["teleports"] == 0
     assert stats["feedback_late"] == 0 and stats["feedback_steps_applied"] >= len(steps) - 2
-    assert stats["feedback_moves_xy"] == 0
+    assert stats["feedback_clamped"] == 0
     gaps, lead_speed, moving_again = [], [], None
     for m in steps:
         i = _row(m, "lead")

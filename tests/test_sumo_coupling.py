@@ -118,6 +118,6 @@ def test_a_vehicle_held_by_physics_makes_sumo_traffic_queue_and_dissolve():
         assert gap_min > 4.5  # the follower stopped behind it (its length 4.5 m), never through it
         assert sim.counters["teleports"] == 0
         assert moving_again is not None and moving_again <= 5.0
-        assert writer.stats.moved > 0 and writer.stats.stopped > 0 and writer.stats.moved_xy == 0
+        assert writer.stats.moved > 0 and writer.stats.stopped > 0 and writer.stats.clamped == 0
     finally:
         sim.close()

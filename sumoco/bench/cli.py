@@ -1,4 +1,4 @@
-"""``sumoco bench {sumo,physics,e2e,codec,fidelity,scenarios,generated,viewer,...} --json``: benchmark rows as JSON on stdout.
+"""``sumoco bench {sumo,physics,coupling,e2e,codec,fidelity,scenarios,generated,viewer,...} --json``: benchmark rows as JSON on stdout.
 
 Benchmarks measure speed; tests check correctness. Each area owns its benchmark
 function (``sumoco.bench.sumo``, ``sumoco.bench.physics``, ``sumoco.bench.e2e``); this module
@@ -166,6 +166,10 @@ def cli_main(args) -> int:
         counts = getattr(args, "agents", None)
         rows = run_viewer_bench(tuple(int(x) for x in counts.split(",")) if counts else None,
                                 getattr(args, "duration", None), quick=quick)
+    elif args.what == "coupling":
+        from sumoco.bench.coupling import run_coupling_bench
+
+        rows = run_coupling_bench(quick=quick)
     elif args.what == "e2e":
         from sumoco.bench.e2e import run_e2e_bench
 
