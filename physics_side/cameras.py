@@ -56,9 +56,10 @@ class ViewerCameras:
         if sample.kind != zenoh.SampleKind.PUT:
             self.forget(who)
             return
+        size = len(sample.payload)  # checked before the payload is copied out of Zenoh's buffer
+        if size > MAX_CAMERA_BYTES:
+            return self._reject(key, f"{size} bytes, at most {MAX_CAMERA_BYTES}")
         data = sample.payload.to_bytes()
-        if len(data) > MAX_CAMERA_BYTES:
-            return self._reject(key, f"{len(data)} bytes, at most {MAX_CAMERA_BYTES}")
         try:
             msg = decode_as(data, CameraPose, _LIMITS)
         except ProtocolError as e:

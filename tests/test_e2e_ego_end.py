@@ -65,4 +65,5 @@ preset = "kinematic"
     assert last.final, "the last step is marked final"
     assert last.step == round(DURATION_S / last.step_length) - 1  # the duration's step, none past it
     assert "ego" in last.agents.ids  # the ego was still driving when the run ended
-    assert ended_s < 15.0  # no lockstep timeout waited out (20 s)
+    del ended_s
+    assert "no acknowledgement" not in sumo.log.read_text()  # no lockstep timeout waited out
