@@ -115,7 +115,8 @@ class Processes:
             f.close()
 
 
-def _cli(*args: str) -> list[str]:
+def cli_argv(*args: str) -> list[str]:
+    """The command line of ``sumoco <args>`` run by this interpreter (the venv's, not PATH's)."""
     return [sys.executable, "-m", "sumoco.cli", *args]
 
 
@@ -218,9 +219,9 @@ def _start_daemons(procs: Processes, common_args: list[str], hub: str, sumo_ep: 
         sumo_args += ["--begin", repr(float(begin))]
     if common.run.seed is not None:
         sumo_args += ["--seed", str(common.run.seed)]
-    procs.start("sumo", _cli(*sumo_args))
+    procs.start("sumo", cli_argv(*sumo_args))
     for p in demo.presets:
-        procs.start(f"physics-{p}", _cli(
+        procs.start(f"physics-{p}", cli_argv(
             "physics", *common_args, "--instance", p, "--preset", p,
             "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub))
 
@@ -233,6 +234,148 @@ def default_out(sumocfg: str | Path | None) -> Path:
     return Path("runs") / p.parent.name / p.stem
 
 
+class _DemoRun:
+    """One demo run's daemons and how they ended: started, watched, collected."""
+
+    def __init__(self, config_path: Path, out: Path, common: CommonConfig, demo: DemoConfig,
+                 sumocfg: str | None, begin: float | None, quiet: bool) -> None:
+        self.config_path, self.out, self.common, self.demo = config_path, out, common, demo
+        self.sumocfg, self.begin, self.quiet = sumocfg, begin, quiet
+        self.keys = Keys(common.zenoh.root, common.run.id)
+        self.hub = f"tcp/127.0.0.1:{free_tcp_port()}"  # the demo's own session: recorder and liveliness
+        self.sumo_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.progress = _Progress()
+        self.procs = Processes(out / "logs")
+        self.alive: set[str] = set()  # liveliness tokens seen
+        self.t_start = time.monotonic()
+        self.interrupted = False
+        self.ended_by = ""
+        self.failure: DaemonFailed | None = None
+        self.codes: dict[str, int | None] = {}
+
+    def zenoh(self) -> ZenohConfig:
+        return replace(self.common.zenoh, mode="peer", listen=(self.hub,), connect=())
+
+    def watch_liveliness(self, session: zenoh.Session):
+        def on_token(s: zenoh.Sample) -> None:
+            if s.kind == zenoh.SampleKind.PUT:
+                self.alive.add(str(s.key_expr))
+            else:
+                self.alive.discard(str(s.key_expr))
+
+        return session.liveliness().declare_subscriber(f"{self.keys.base}/**", on_token, history=True)
+
+    def daemon_args(self) -> list[str]:
+        """The flags every daemon of the run gets."""
+        run = self.common.run
+        args = ["--config", str(self.config_path), "--run", run.id, "--timing", run.timing,
+                "--duration", repr(float(run.duration_s))]
+        if self.common.coupling.authority != "sumo":
+            args += ["--authority", self.common.coupling.authority]
+        if self.quiet:
+            args.append("--quiet")
+        return args
+
+    def start(self, live: LiveRecorder) -> None:
+        """Start the daemons and wait until each is up (the static data recorded meanwhile);
+        on a port taken between choosing and listening, again on new ports."""
+        demo, keys, procs = self.demo, self.keys, self.procs
+        for attempt in range(1, PORT_ATTEMPTS + 1):
+            try:
+                _start_daemons(procs, self.daemon_args(), self.hub, self.sumo_ep, demo, self.out, self.sumocfg,
+                               self.begin, self.common)
+                _wait_for(lambda: keys.sumo_alive in self.alive, demo.startup_timeout_s, "the SUMO side", procs)
+                if live.fetch_static(timeout_s=10.0) is None:
+                    log.warning("no static data from the SUMO side")
+                want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
+                _wait_for(lambda: want <= self.alive, demo.startup_timeout_s, "the physics processes", procs)
+                break
+            except DaemonFailed as e:
+                if procs.procs["sumo"].poll() == ExitCode.USAGE:
+                    raise self._scenario_error(e) from None
+                if attempt == PORT_ATTEMPTS or not _port_clash(procs):
+                    raise
+                # Another program took a port between choosing and listening: new ports.
+                log.warning("a daemon's port was taken meanwhile; starting the daemons again on new ports")
+                procs.stop(timeout_s=demo.stop_timeout_s)
+                self.sumo_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+        log.info("all daemons up after %.1f s; running (wall limit %.0f s)",
+                 time.monotonic() - self.t_start, self.demo.wall_limit_s)
+
+    def _scenario_error(self, e: DaemonFailed) -> ConfigError:
+        """SUMO could not load the scenario: a configuration problem, not a run."""
+        log_file = self.procs.log_dir / "sumo.log"
+        own = (_last_error_line(log_file, "sumo")
+               .removeprefix("configuration error: ").replace("; SUMO's own messages are above", ""))
+        said = _sumo_error(log_file)
+        return ConfigError((own or str(e)) + (f"; SUMO said: {said}" if said else ""))
+
+    def wait_for_end(self) -> None:
+        """Progress lines until the SUMO side ends, another daemon fails or the wall-clock limit."""
+        procs, demo = self.procs, self.demo
+        t_run = time.monotonic()
+        next_progress = t_run
+        while procs.procs["sumo"].poll() is None:
+            now = time.monotonic()
+            for name, p in procs.procs.items():
+                if name != "sumo" and p.poll() not in (None, 0):
+                    self.failure = daemon_failure(name, p.returncode, procs.log_dir)
+            if self.failure is not None:
+                break
+            if now - t_run > demo.wall_limit_s:
+                log.info("wall-clock limit reached; stopping")
+                self.ended_by = "wall-clock limit"
+                break
+            if now >= next_progress:
+                _print_progress(self.progress, now - t_run)
+                next_progress = now + demo.progress_period_s
+            time.sleep(0.05)
+
+    def collect(self) -> None:
+        """Every daemon's exit code, and the first failure among them."""
+        # SUMO ends on its own (or on SIGTERM) with a step marked final; the physics
+        # processes acknowledge it and leave by themselves.
+        procs, timeout, codes = self.procs, self.demo.stop_timeout_s, self.codes
+        codes["sumo"] = procs.stop(["sumo"], timeout)["sumo"]
+        others = [n for n in procs.procs if n != "sumo"]
+        if codes["sumo"] == 0:
+            codes.update(procs.wait(others, timeout))
+        codes.update(procs.stop([n for n in others if n not in codes], timeout))
+        if self.failure is None:
+            for name, code in codes.items():
+                if code not in (0, None):
+                    self.failure = daemon_failure(name, code, procs.log_dir)
+                    break
+
+    def report(self, rec_path: Path) -> dict:
+        """Summary, figures and report of the recording, with how the daemons ended; written
+        to ``summary.json``."""
+        from sumoco.analysis.report import write_report
+
+        try:
+            summary = write_report(rec_path, self.out, lad_sweep=self.demo.lad_sweep)
+        except Exception as e:  # nothing usable recorded: the failure is the news
+            if self.failure is None:
+                raise
+            log.warning("no report: %s", e)
+            summary = {}
+        codes, failure, interrupted, ended_by = self.codes, self.failure, self.interrupted, self.ended_by
+        summary["daemons"] = {
+            "exit_codes": codes,
+            "completed": bool(codes) and not interrupted and failure is None and not ended_by
+            and all(c == 0 for c in codes.values()),
+            "ended_by": "interrupted" if interrupted else ended_by or (str(failure) if failure else "the run's end"),
+        }
+        summary["interrupted"] = interrupted
+        summary["sumo_side"] = _sumo_side_stats(self.out / "sumo")
+        (self.out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+        return summary
+
+
+def _on_stop_signal(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfig,
              sumocfg: str | None = None, quiet: bool = False, begin: float | None = None,
              record: RecordConfig | None = None) -> dict:
@@ -242,128 +385,36 @@ def run_demo(config_path: Path, out: Path, common: CommonConfig, demo: DemoConfi
     A daemon that crashes or fails raises ``DaemonFailed`` after the report of what was
     recorded is written.
     """
-    from sumoco.analysis.report import write_report
-
     out.mkdir(parents=True, exist_ok=True)
-    keys = Keys(common.zenoh.root, common.run.id)
-    hub_port, sumo_port = free_tcp_port(), free_tcp_port()
-    hub = f"tcp/127.0.0.1:{hub_port}"
-    sumo_ep = f"tcp/127.0.0.1:{sumo_port}"
+    run = _DemoRun(config_path, out, common, demo, sumocfg, begin, quiet)
     rec_path = out / "run.mcap"
-    progress = _Progress()
-    procs = Processes(out / "logs")
     recorder = McapRecorder(rec_path)
-    zcfg = replace(common.zenoh, mode="peer", listen=(hub,), connect=())
-    t_start = time.monotonic()
-    interrupted = False
-    ended_by = ""
-    failure: DaemonFailed | None = None
-    codes: dict[str, int | None] = {}
-
-    def _on_sigint(signum, frame):
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, _on_sigint)
+    old = signal.signal(signal.SIGTERM, _on_stop_signal)
     # Ctrl-C stops the run even when the shell that started us ignores SIGINT (a script's
     # background job inherits SIG_IGN, and Python then installs no KeyboardInterrupt)
     old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        with open_session(zcfg) as session:
-            live = LiveRecorder(session, keys, recorder, on_message=progress,
+        with open_session(run.zenoh()) as session:
+            live = LiveRecorder(session, run.keys, recorder, on_message=run.progress,
                                 config=record or RecordConfig(physics_hz=0.0),
                                 limits=common.run.decode_limits).start()
-            alive = set()
-            tok_sub = session.liveliness().declare_subscriber(
-                f"{keys.base}/**", lambda s: (alive.add(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT
-                                               else alive.discard(str(s.key_expr))),
-                history=True)
-            common_args = ["--config", str(config_path), "--run", common.run.id,
-                           "--timing", common.run.timing, "--duration", repr(float(common.run.duration_s))]
-            if common.coupling.authority != "sumo":
-                common_args += ["--authority", common.coupling.authority]
-            if quiet:
-                common_args.append("--quiet")
-            for attempt in range(1, PORT_ATTEMPTS + 1):
-                try:
-                    _start_daemons(procs, common_args, hub, sumo_ep, demo, out, sumocfg, begin, common)
-                    _wait_for(lambda: keys.sumo_alive in alive, demo.startup_timeout_s, "the SUMO side", procs)
-                    if live.fetch_static(timeout_s=10.0) is None:
-                        log.warning("no static data from the SUMO side")
-                    want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
-                    _wait_for(lambda: want <= alive, demo.startup_timeout_s, "the physics processes", procs)
-                    break
-                except DaemonFailed as e:
-                    if procs.procs["sumo"].poll() == ExitCode.USAGE:
-                        # SUMO could not load the scenario: a configuration problem, not a run.
-                        own = (_last_error_line(procs.log_dir / "sumo.log", "sumo")
-                               .removeprefix("configuration error: ").replace("; SUMO's own messages are above", ""))
-                        said = _sumo_error(procs.log_dir / "sumo.log")
-                        raise ConfigError((own or str(e)) + (f"; SUMO said: {said}" if said else "")) from None
-                    if attempt == PORT_ATTEMPTS or not _port_clash(procs):
-                        raise
-                    # Another program took a port between choosing and listening: new ports.
-                    log.warning("a daemon's port was taken meanwhile; starting the daemons again on new ports")
-                    procs.stop(timeout_s=demo.stop_timeout_s)
-                    sumo_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-            log.info("all daemons up after %.1f s; running (wall limit %.0f s)",
-                     time.monotonic() - t_start, demo.wall_limit_s)
-            t_run = time.monotonic()
-            next_progress = t_run
-            while procs.procs["sumo"].poll() is None:
-                now = time.monotonic()
-                for name, p in procs.procs.items():
-                    if name != "sumo" and p.poll() not in (None, 0):
-                        failure = daemon_failure(name, p.returncode, procs.log_dir)
-                if failure is not None:
-                    break
-                if now - t_run > demo.wall_limit_s:
-                    log.info("wall-clock limit reached; stopping")
-                    ended_by = "wall-clock limit"
-                    break
-                if now >= next_progress:
-                    _print_progress(progress, now - t_run)
-                    next_progress = now + demo.progress_period_s
-                time.sleep(0.05)
-            # SUMO ends on its own (or on SIGTERM) with a step marked final; the physics
-            # processes acknowledge it and leave by themselves.
-            codes["sumo"] = procs.stop(["sumo"], demo.stop_timeout_s)["sumo"]
-            others = [n for n in procs.procs if n != "sumo"]
-            if codes["sumo"] == 0:
-                codes.update(procs.wait(others, demo.stop_timeout_s))
-            codes.update(procs.stop([n for n in others if n not in codes], demo.stop_timeout_s))
-            if failure is None:
-                for name, code in codes.items():
-                    if code not in (0, None):
-                        failure = daemon_failure(name, code, procs.log_dir)
-                        break
+            tok_sub = run.watch_liveliness(session)
+            run.start(live)
+            run.wait_for_end()
+            run.collect()
             tok_sub.undeclare()
             live.stop()
     except KeyboardInterrupt:
-        interrupted = True
+        run.interrupted = True
         log.warning("interrupted: stopping the daemons")
     finally:
         signal.signal(signal.SIGTERM, old)
         signal.signal(signal.SIGINT, old_int)
-        procs.close()
+        run.procs.close()
         recorder.close()
-    try:
-        summary = write_report(rec_path, out, lad_sweep=demo.lad_sweep)
-    except Exception as e:  # nothing usable recorded: the failure below is the news
-        if failure is None:
-            raise
-        log.warning("no report: %s", e)
-        summary = {}
-    summary["daemons"] = {
-        "exit_codes": codes,
-        "completed": bool(codes) and not interrupted and failure is None and not ended_by
-        and all(c == 0 for c in codes.values()),
-        "ended_by": "interrupted" if interrupted else ended_by or (str(failure) if failure else "the run's end"),
-    }
-    summary["interrupted"] = interrupted
-    summary["sumo_side"] = _sumo_side_stats(out / "sumo")
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
-    if failure is not None:
-        raise failure
+    summary = run.report(rec_path)
+    if run.failure is not None:
+        raise run.failure
     return summary
 
 
