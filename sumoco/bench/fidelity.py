@@ -24,11 +24,11 @@ import numpy as np
 
 from protocol.codec import decode_as, encode
 from protocol.messages import PhysicsState, StepMessage
+from sumoco.bench.scenario import PAPER_SUMOCFG
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[2]
-DEMO_SUMOCFG = ROOT / "configs" / "scenarios" / "paper" / "paper.sumocfg"
+DEMO_SUMOCFG = PAPER_SUMOCFG  # the step-length sweep runs on the demo's scenario
 STEP_LENGTHS = (0.05, 0.1, 0.2, 0.5, 1.0)
 PRESETS = ("paper", "default")
 

@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 
 from sumo_side.scenarios import find_sumo_binary, sumo_home
+from sumoco.bench.scenario import demo_config
 from sumoco.bench.scenarios import default_pack, run_one
 
 STEP_S = 0.05  # [s]
@@ -48,20 +49,6 @@ REAL_NETWORKS: dict[str, tuple[str, int, dict]] = {
                                                       "depart_lane": "random"}),
     "doerpfeldstr": ("doerpfeldstr/net.net.xml.gz", 53, {"depart_lane": "free"}),
 }
-
-_CONFIG = """
-[run]
-id = "generated"
-timing = "lockstep"
-lockstep_timeout_s = 60.0
-[physics]
-preset = "default"
-[demo]
-presets = ["default"]
-lad_sweep = false
-wall_limit_s = {wall}
-"""
-
 
 def generate(name: str, folder: Path, seed: int = 11, net: Path | None = None, lateral_resolution: float = 0.8,
              ballistic: bool = False, depart_lane: str = "best") -> Path:
@@ -121,9 +108,7 @@ def run_generated_bench(duration: float = 60.0, quick: bool = False, out_root: P
     ``nets`` (``quick``: 10 s each, the generated networks only)."""
     duration = 10.0 if quick else duration
     root = Path(out_root) if out_root else Path(tempfile.mkdtemp(prefix="sumoco-generated-"))
-    root.mkdir(parents=True, exist_ok=True)
-    cfg = root / "bench.toml"
-    cfg.write_text(_CONFIG.format(wall=max(600.0, duration * 20)))
+    cfg = demo_config(root, "generated", ("default",), duration, preset="default")
     todo: list[tuple[str, dict]] = [(name, {}) for name in NETWORKS]
     if not quick:
         pack = Path(pack) if pack else default_pack()

@@ -48,8 +48,14 @@ import resource
 import signal
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
+from typing import NamedTuple
+
 import numpy as np
+
+from sumoco.bench.scenario import FILL_SHARE, PAPER_SUMOCFG, fill, grid_scenario, write_toml
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +79,11 @@ print(json.dumps({{"pool_slots": w.capacity, "simulations": w.shards, "build_s":
 """
 
 
+def _load() -> float:
+    """The host's 1-minute load average: other processes share the cores the rows measure."""
+    return round(os.getloadavg()[0], 2)
+
+
 def pool_row(slots: int) -> dict:
     """Build a world of about ``slots`` passenger slots in a fresh process."""
     out = subprocess.run([sys.executable, "-c", _POOL_CODE.format(slots=slots)], capture_output=True, text=True,
@@ -80,8 +91,8 @@ def pool_row(slots: int) -> dict:
     row = json.loads(out.stdout.strip().splitlines()[-1])
     one = json.loads(subprocess.run([sys.executable, "-c", _POOL_CODE.format(slots=2)], capture_output=True,
                                     text=True, timeout=600, check=True).stdout.strip().splitlines()[-1])
-    row.update(load_avg_1min=round(os.getloadavg()[0], 2), template_build_s=one["build_s"], template_rss_mb=one["rss_mb"], goal_build_s=GOAL_BUILD_S,
-               goal_rss_mb=GOAL_RSS_MB)
+    row.update(load_avg_1min=_load(), template_build_s=one["build_s"], template_rss_mb=one["rss_mb"],
+               goal_build_s=GOAL_BUILD_S, goal_rss_mb=GOAL_RSS_MB)
     return row
 
 
@@ -93,124 +104,136 @@ def _lod_region(x: np.ndarray, y: np.ndarray, n_full: int) -> tuple[float, float
     return cx, cy, max(r, 1.0)
 
 
-def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -> list[dict]:
-    """SUMO alone, then the lockstep chain with LOD off / on, on one grid scenario."""
+def _alone_steps(sim, bridge, k: int, snap, steps: int):
+    """SUMO's own step [s] (wall and CPU lists) for ``steps`` steps after step ``k``; the
+    read and bridge run between steps, untimed. Returns the last step index and snapshot too."""
+    wall, cpu = [], []
+    for _ in range(steps):
+        k += 1
+        t0, c0 = time.perf_counter(), time.process_time()
+        sim.step()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        snap = sim.read()
+        bridge.build(k, snap)
+    return k, snap, wall, cpu
+
+
+def _cosim_fleet(snap, lod: bool):
+    """The physics side of one co-simulation row, sized for ``snap``: its fleet, rates and
+    (LOD on) the detail split that keeps agents outside its zone out of the fleet."""
     from physics_side.config import PhysicsConfig, PhysicsSettings, check_rates
     from physics_side.daemon import build_fleet
     from physics_side.lod import DetailSplit, DetailZones
+
+    split = None
+    expect = snap.n * 1.1
+    if lod:  # as the daemon does: agents outside the zone never reach the fleet
+        region = _lod_region(np.asarray(snap.x), np.asarray(snap.y), FULL_AGENTS)
+        split = DetailSplit(DetailZones.from_config(0.0, [region]))
+        expect = FULL_AGENTS * 1.3
+    phys = PhysicsConfig(shards=2, threads=2, initial_slots={}, expect={"passenger": int(expect)}, preset="default")
+    rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
+    return build_fleet(PhysicsSettings(physics=phys)), rates, split
+
+
+def _cosim_steps(sim, bridge, fleet, rates, split, k: int, steps: int) -> dict[str, list]:
+    """The lockstep chain for ``steps`` steps (after 5 that spawn the whole network): per
+    step its wall and CPU times by part, message size, agents and agents in full physics."""
     from protocol.codec import decode_as, encode
     from protocol.messages import AgentMode, PhysicsState, StepMessage
-    from sumoco.bench.sumo import cache_dir
+
+    perf, cpu = time.perf_counter, time.process_time
+    t = {name: [] for name in ("sumo_wall", "bridge_wall", "total_wall", "total_cpu", "tick_wall", "mujoco_wall",
+                               "bytes", "agents", "full", *PHASES)}
+    for i in range(steps + 5):
+        k += 1
+        t0, c0 = perf(), cpu()
+        sim.step()
+        t1, c1 = perf(), cpu()
+        snap = sim.read()
+        data = encode(bridge.build(k, snap))
+        t2, c2 = perf(), cpu()
+        msg = decode_as(data, StepMessage)
+        cd = cpu()
+        near = msg if split is None else split.apply(msg)
+        cl = cpu()
+        fleet.apply_step(near)
+        ca = cpu()
+        m0 = fleet.world.mujoco_s
+        mc0 = fleet.world.mujoco_cpu_s
+        ticks = []
+        for _ in range(rates.ticks_per_step):
+            tt = perf()
+            fleet.tick()
+            ticks.append(perf() - tt)
+        ct = cpu()
+        agents = fleet.snapshot() if split is None else split.snapshot(fleet.snapshot(), msg.time)
+        encode(PhysicsState(run="bench", tick=fleet.tick_count, time=msg.time, sumo_step=msg.step,
+                            agents=agents, counters={}))
+        t3, c3 = perf(), cpu()
+        if i < 5:  # the first steps spawn the whole network
+            continue
+        mj_cpu = fleet.world.mujoco_cpu_s - mc0
+        for p, v in zip(PHASES, (c1 - c0, c2 - c1, cd - c2, cl - cd, ca - cl, mj_cpu, ct - ca - mj_cpu, c3 - ct)):
+            t[p].append(v)
+        t["sumo_wall"].append(t1 - t0)
+        t["bridge_wall"].append(t2 - t1)
+        t["total_wall"].append(t3 - t0)
+        t["total_cpu"].append(c3 - c0)
+        t["tick_wall"].append(float(np.mean(ticks)))
+        t["mujoco_wall"].append((fleet.world.mujoco_s - m0) / rates.ticks_per_step)
+        t["bytes"].append(len(data))
+        t["agents"].append(msg.agents.n)
+        t["full"].append(int((fleet.mode == AgentMode.PHYSICAL).sum()))
+    return t
+
+
+def _cosim_row(lod: bool, steps: int, alone: list, alone_cpu: list, t: dict[str, list], ticks_per_step: int,
+               simulations: int) -> dict:
+    ms = lambda xs: round(float(np.mean(xs)) * 1e3, 3)  # noqa: E731
+    return {
+        "agents": int(round(float(np.mean(t["agents"])))), "lod": lod, "full_physics_agents": int(np.mean(t["full"])),
+        "sumo_alone_steps_per_s": round(1.0 / float(np.mean(alone)), 2),
+        "cosim_steps_per_s": round(1.0 / float(np.mean(t["total_wall"])), 2),
+        "cosim_to_sumo_ratio": round(float(np.mean(alone)) / float(np.mean(t["total_wall"])), 3),
+        "bridge_ms": ms(t["bridge_wall"]), "sumo_step_ms": ms(t["sumo_wall"]),
+        "bridge_to_sumo_ratio": round(float(np.mean(t["bridge_wall"])) / float(np.mean(t["sumo_wall"])), 3),
+        "bytes_per_step": int(np.mean(t["bytes"])), "physics_tick_ms": ms(t["tick_wall"]),
+        "mujoco_ms": ms(t["mujoco_wall"]),
+        "ticks_per_step": ticks_per_step, "simulations": simulations,
+        "rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1), "steps": steps,
+        # CPU time (all threads of this process): robust to other load on the machine
+        "sumo_alone_cpu_ms": ms(alone_cpu), "cosim_cpu_ms": ms(t["total_cpu"]),
+        "cosim_to_sumo_cpu_ratio": round(float(np.mean(alone_cpu)) / float(np.mean(t["total_cpu"])), 3),
+        "load_avg_1min": _load(),
+        **{f"cpu_ms_{p}": ms(t[p]) for p in PHASES},
+    }
+
+
+def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -> list[dict]:
+    """SUMO alone, then the lockstep chain with LOD off / on, on one grid scenario."""
     from sumo_side.bridge import Bridge
     from sumo_side.config import SumoConfig
-    from sumo_side.scenarios import make_grid_scenario
     from sumo_side.simulation import SumoSim
 
-    cfg_path = make_grid_scenario(cache_dir(), size, seed=seed)
-    cfg = SumoConfig(sumocfg=cfg_path)
+    cfg = SumoConfig(sumocfg=grid_scenario(size, seed=seed))
     rows = []
     for lod in lod_modes:
         sim = SumoSim(cfg, seed=seed, run_id="bench")
         sim.start()
         try:
             bridge = Bridge(sim, cfg, "bench")
-            k = 0
-            snap = None
-            for k in range(6000):  # fill the network to the target size
-                sim.step()
-                snap = sim.read()
-                bridge.build(k, snap)
-                if snap.n >= 0.97 * size:
-                    break
-            perf = time.perf_counter
-            cpu = time.process_time
-            alone, alone_cpu = [], []
-            for _ in range(steps):  # SUMO alone: its own step, nothing else
-                k += 1
-                t0, c0 = perf(), cpu()
-                sim.step()
-                alone.append(perf() - t0)
-                alone_cpu.append(cpu() - c0)
-                snap = sim.read()
-                bridge.build(k, snap)
-            split = None
-            expect = snap.n * 1.1
-            if lod:  # as the daemon does: agents outside the zone never reach the fleet
-                region = _lod_region(np.asarray(snap.x), np.asarray(snap.y), FULL_AGENTS)
-                split = DetailSplit(DetailZones.from_config(0.0, [region]))
-                expect = FULL_AGENTS * 1.3
-            phys = PhysicsConfig(shards=2, threads=2, initial_slots={}, expect={"passenger": int(expect)},
-                                 preset="default")
-            settings = PhysicsSettings(physics=phys)
-            rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
-            fleet = build_fleet(settings)
-            sumo_t, bridge_t, total_t, tick_t, mj_t, nbytes, agents_n, full, total_cpu = ([] for _ in range(9))
-            phase = {p: [] for p in PHASES}
-            for i in range(steps + 5):
-                k += 1
-                t0, c0 = perf(), cpu()
-                sim.step()
-                t1, c1 = perf(), cpu()
-                snap = sim.read()
-                data = encode(bridge.build(k, snap))
-                t2, c2 = perf(), cpu()
-                msg = decode_as(data, StepMessage)
-                cd = cpu()
-                near = msg if split is None else split.apply(msg)
-                cl = cpu()
-                fleet.apply_step(near)
-                ca = cpu()
-                m0 = fleet.world.mujoco_s
-                mc0 = fleet.world.mujoco_cpu_s
-                ticks = []
-                for _ in range(rates.ticks_per_step):
-                    tt = perf()
-                    fleet.tick()
-                    ticks.append(perf() - tt)
-                ct = cpu()
-                agents = fleet.snapshot() if split is None else split.snapshot(fleet.snapshot(), msg.time)
-                encode(PhysicsState(run="bench", tick=fleet.tick_count, time=msg.time, sumo_step=msg.step,
-                                    agents=agents, counters={}))
-                t3, c3 = perf(), cpu()
-                if i < 5:  # the first steps spawn the whole network
-                    continue
-                mj_cpu = fleet.world.mujoco_cpu_s - mc0
-                for p, v in zip(PHASES, (c1 - c0, c2 - c1, cd - c2, cl - cd, ca - cl, mj_cpu, ct - ca - mj_cpu,
-                                         c3 - ct)):
-                    phase[p].append(v)
-                sumo_t.append(t1 - t0)
-                bridge_t.append(t2 - t1)
-                total_t.append(t3 - t0)
-                total_cpu.append(c3 - c0)
-                tick_t.append(float(np.mean(ticks)))
-                mj_t.append((fleet.world.mujoco_s - m0) / rates.ticks_per_step)
-                nbytes.append(len(data))
-                agents_n.append(msg.agents.n)
-                full.append(int((fleet.mode == AgentMode.PHYSICAL).sum()))
+            k, snap = fill(sim, bridge, size)
+            k, snap, alone, alone_cpu = _alone_steps(sim, bridge, k, snap, steps)
+            fleet, rates, split = _cosim_fleet(snap, lod)
+            times = _cosim_steps(sim, bridge, fleet, rates, split, k, steps)
             fleet.world.close()
         finally:
             sim.close()
-        ms = lambda xs: round(float(np.mean(xs)) * 1e3, 3)  # noqa: E731
-        rows.append({
-            "agents": int(round(float(np.mean(agents_n)))), "lod": lod, "full_physics_agents": int(np.mean(full)),
-            "sumo_alone_steps_per_s": round(1.0 / float(np.mean(alone)), 2),
-            "cosim_steps_per_s": round(1.0 / float(np.mean(total_t)), 2),
-            "cosim_to_sumo_ratio": round(float(np.mean(alone)) / float(np.mean(total_t)), 3),
-            "bridge_ms": ms(bridge_t), "sumo_step_ms": ms(sumo_t),
-            "bridge_to_sumo_ratio": round(float(np.mean(bridge_t)) / float(np.mean(sumo_t)), 3),
-            "bytes_per_step": int(np.mean(nbytes)), "physics_tick_ms": ms(tick_t), "mujoco_ms": ms(mj_t),
-            "ticks_per_step": rates.ticks_per_step, "simulations": fleet.world.shards,
-            "rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1), "steps": steps,
-            # CPU time (all threads of this process): robust to other load on the machine
-            "sumo_alone_cpu_ms": ms(alone_cpu), "cosim_cpu_ms": ms(total_cpu),
-            "cosim_to_sumo_cpu_ratio": round(float(np.mean(alone_cpu)) / float(np.mean(total_cpu)), 3),
-            "load_avg_1min": round(os.getloadavg()[0], 2),
-            **{f"cpu_ms_{p}": ms(v) for p, v in phase.items()},
-        })
+        rows.append(_cosim_row(lod, steps, alone, alone_cpu, times, rates.ticks_per_step, fleet.world.shards))
         log.info("bench scale: %s", rows[-1])
     return rows
-
-
 
 
 # ---------------------------------------------------------------------- shard processes
@@ -291,7 +314,7 @@ def shard_rows(counts=(1, 2), probe=(150, 450), seconds: float = 3.0) -> list[di
                      "agents_realtime_cpu": most(c_a, c_b, dt) * k,
                      "tick_ms_at": {probe[0]: round(t_a, 3), probe[1]: round(t_b, 3)},
                      "tick_cpu_ms_at": {probe[0]: round(c_a, 3), probe[1]: round(c_b, 3)},
-                     "control_dt_ms": dt, "threads_per_shard": 1, "load_avg_1min": round(os.getloadavg()[0], 2)})
+                     "control_dt_ms": dt, "threads_per_shard": 1, "load_avg_1min": _load()})
         log.info("bench scale: %s", rows[-1])
     if len(rows) >= 2 and rows[0]["agents_realtime"]:
         for r in rows[1:]:
@@ -300,30 +323,27 @@ def shard_rows(counts=(1, 2), probe=(150, 450), seconds: float = 3.0) -> list[di
     return rows
 
 
-def _paper_cfg():
-    from pathlib import Path
-
-    return Path(__file__).resolve().parents[2] / "configs" / "scenarios" / "paper" / "paper.sumocfg"
-
-
 class _Procs:
-    """``sumoco`` daemons as OS processes, output to log files, and a Zenoh probe of the run."""
+    """``sumoco`` daemons as OS processes (the demo's ``Processes``: output to log files, none
+    outlives the row), and a Zenoh probe of the run."""
 
     def __init__(self, run: str, connect: list[str], log_dir, probe: bool = True):
-        """``probe`` False: no subscription to steps and states (decoding 10,000 agents
+        """``connect``: the endpoints the daemons listen on (``endpoints``), the probe connects
+        to them. ``probe`` False: no subscription to steps and states (decoding 10,000 agents
         at 50 Hz would take a core from the daemons being measured)."""
         import threading
-
-        import zenoh
 
         from protocol.codec import decode
         from protocol.keys import Keys
         from runtime.config import ZenohConfig
         from runtime.transport import free_tcp_port, open_session
+        from sumoco.orchestrate.demo import Processes
 
         self.keys = Keys("sumoco", run)
+        self.endpoints = list(connect)
         self.log_dir = log_dir
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.daemons = Processes(log_dir)
+        self.procs: dict[str, subprocess.Popen] = self.daemons.procs
         self.lock = threading.Lock()
         self.steps: dict = {}
         self.states: dict = {}
@@ -343,13 +363,17 @@ class _Procs:
 
         self.subs = [self.session.declare_subscriber(self.keys.step, on_step),
                      self.session.declare_subscriber(self.keys.physics_state_all, on_state)] if probe else []
-        _ = zenoh
 
     def start(self, name: str, args: list[str]) -> None:
-        f = (self.log_dir / f"{name}.log").open("wb")
-        self.procs[name] = subprocess.Popen([sys.executable, "-m", "sumoco.cli", *args], stdout=f,
-                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+        from sumoco.orchestrate.demo import cli_argv
+
+        self.daemons.start(name, cli_argv(*args))
+
+    def start_pair(self, config) -> None:
+        """The SUMO side on the first endpoint and one physics process on the second."""
+        eps = self.endpoints
+        self.start("physics", ["physics", "--config", str(config), "--listen", eps[1], "--connect", eps[0]])
+        self.start("sumo", ["sumo", "--config", str(config), "--listen", eps[0]])  # INFO: its summary
 
     def wait(self, cond, timeout_s: float, what: str):
         deadline = time.monotonic() + timeout_s
@@ -387,103 +411,94 @@ class _Procs:
         return out
 
     def close(self) -> None:
-        import signal
-
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs.values():
-            try:
-                p.wait(15)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
+        self.daemons.stop(timeout_s=15.0)
+        self.daemons.close()
         for s in self.subs:
             s.undeclare()
         self.session.close()
+
+
+SURVIVOR, VICTIM = "main.0of2", "main.1of2"  # the take-over row's shards: the second is killed
+
+
+class _Takeover:
+    """What the probe of the take-over row's run says about its two shards."""
+
+    def __init__(self, run: _Procs, kill_at_s: float) -> None:
+        self.run, self.kill_at_s = run, kill_at_s
+        self.seen: set = set()  # vehicle sizes the survivor has simulated
+
+    @staticmethod
+    def sizes(st, m) -> set:
+        """(class, length, width) of the agents of state ``st``, from their step ``m``."""
+        a = m.agents
+        size = {a.ids[i]: (int(a.cls[i]), round(float(a.length[i]), 1), round(float(a.width[i]), 1))
+                for i in range(a.n)}
+        return {size[i] for i in st.agents.ids if i in size}
+
+    def _latest(self, inst: str):
+        with self.run.lock:
+            st = self.run.states.get(inst)
+            return st, self.run.steps.get(st.sumo_step) if st is not None else None
+
+    def busy(self, new_size: bool) -> bool:
+        """Both shards simulate agents past ``kill_at_s``; with ``new_size``, the one to kill
+        also has a vehicle size the survivor has not simulated (so far)."""
+        with self.run.lock:
+            s0, s1 = self.run.states.get(SURVIVOR), self.run.states.get(VICTIM)
+            m = self.run.steps.get(s1.sumo_step) if s1 is not None else None
+        if not (s0 is not None and m is not None and s0.time >= self.kill_at_s and len(s0.agents.ids) > 0
+                and len(s1.agents.ids) > 0):
+            return False
+        return not new_size or bool(self.sizes(s1, m) - self.seen)
+
+    def track(self) -> bool:
+        """``busy(True)``, noting the sizes the survivor simulates meanwhile."""
+        st, m = self._latest(SURVIVOR)
+        if m is not None:
+            self.seen.update(self.sizes(st, m))
+        return self.busy(True)
+
+    def taken_over(self):
+        """The survivor's state once it simulates every agent of its step alone, else None."""
+        from protocol.messages import AgentFlag
+
+        st, m = self._latest(SURVIVOR)
+        if m is None or st.counters.get("shards_alive") != 1:
+            return None
+        a = m.agents
+        want = {a.ids[i] for i in range(a.n) if not a.flags[i] & AgentFlag.INSIDE_VEHICLE}
+        return st if want and want <= set(st.agents.ids) else None
 
 
 def takeover_row(kill_at_s: float = 20.0) -> dict:
     """Two physics shards in lockstep on the bundled scenario; one is killed (SIGKILL) once
     SUMO time passes ``kill_at_s``: ``takeover_s`` is the wall time from the kill until the
     survivor publishes a state with every agent of that step."""
-    import tempfile
-    from pathlib import Path
-
-    from protocol.messages import AgentFlag
-    from runtime.transport import free_tcp_port
-
     tmp = Path(tempfile.mkdtemp(prefix="sumoco-takeover-"))
-    cfg = tmp / "run.toml"
-    cfg.write_text(f"""
-[run]
-id = "takeover"
-timing = "lockstep"
-duration_s = {kill_at_s + 200.0}
-lockstep_timeout_s = 20.0
-[sumo]
-sumocfg = "{_paper_cfg()}"
-lockstep_instances = ["main.0of2", "main.1of2"]
-[physics]
-preset = "default"
-shards = 1
-shard_tile_m = 60.0
-shard_halo_m = 10.0
-""")
-    eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(3)]
+    cfg = write_toml(tmp / "run.toml", {
+        "run": {"id": "takeover", "timing": "lockstep", "duration_s": kill_at_s + 200.0, "lockstep_timeout_s": 20.0},
+        "sumo": {"sumocfg": PAPER_SUMOCFG, "lockstep_instances": [SURVIVOR, VICTIM]},
+        "physics": {"preset": "default", "shards": 1, "shard_tile_m": 60.0, "shard_halo_m": 10.0}})
+    eps = _endpoints(3)
     run = _Procs("takeover", eps, tmp)
+    watch = _Takeover(run, kill_at_s)
     try:
         for i in (0, 1):
             run.start(f"physics{i}", ["physics", "--config", str(cfg), "--shard", f"{i}/2", "--listen", eps[1 + i],
                                       "--connect", eps[0]])
         run.start("sumo", ["sumo", "--config", str(cfg), "--listen", eps[0], "--quiet"])
-
-        def sizes(st, m):
-            a = m.agents
-            size = {a.ids[i]: (int(a.cls[i]), round(float(a.length[i]), 1), round(float(a.width[i]), 1))
-                    for i in range(a.n)}
-            return {size[i] for i in st.agents.ids if i in size}
-
-        def busy(new_size: bool):
-            with run.lock:
-                s0, s1 = run.states.get("main.0of2"), run.states.get("main.1of2")
-                m = run.steps.get(s1.sumo_step) if s1 is not None else None
-            if not (s0 is not None and m is not None and s0.time >= kill_at_s and len(s0.agents.ids) > 0
-                    and len(s1.agents.ids) > 0):
-                return False
-            # the killed shard has a vehicle size the survivor has not simulated (so far)
-            return not new_size or bool(sizes(s1, m) - seen0)
-
-        seen0: set = set()
-
-        def track():  # sizes the survivor has simulated
-            with run.lock:
-                s0 = run.states.get("main.0of2")
-                m = run.steps.get(s0.sumo_step) if s0 is not None else None
-            if m is not None:
-                seen0.update(sizes(s0, m))
-            return busy(True)
-        run.wait(lambda: busy(False), 300, "both shards simulating agents")
+        run.wait(lambda: watch.busy(False), 300, "both shards simulating agents")
         try:
-            run.wait(track, 20, "a vehicle size only the shard to kill has")
+            run.wait(watch.track, 20, "a vehicle size only the shard to kill has")
             new_size = True
         except RuntimeError:
             new_size = False
         with run.lock:
-            victim = len(run.states["main.1of2"].agents.ids)
+            victim = len(run.states[VICTIM].agents.ids)
         run.procs["physics1"].kill()
         t_kill = time.monotonic()
-
-        def taken_over():
-            with run.lock:
-                st = run.states.get("main.0of2")
-                m = run.steps.get(st.sumo_step) if st is not None else None
-            if m is None or st.counters.get("shards_alive") != 1:
-                return None
-            a = m.agents
-            want = {a.ids[i] for i in range(a.n) if not a.flags[i] & AgentFlag.INSIDE_VEHICLE}
-            return st if want and want <= set(st.agents.ids) else None
-        st = run.wait(taken_over, 60, "shard 0 simulating every agent")
+        st = run.wait(watch.taken_over, 60, "shard 0 simulating every agent")
         took = time.monotonic() - t_kill
     finally:
         run.close()
@@ -491,7 +506,7 @@ shard_halo_m = 10.0
     row = {"shards": 2, "takeover_s": round(took, 3), "agents_of_killed_shard": victim, "new_size": new_size,
            "agents_after": len(st.agents.ids), "shard_takeovers": c.get("shard_takeovers"),
            "pool_grows": c.get("pool_grows"), "growth_waits": c.get("growth_waits"), "goal_takeover_s": 1.0,
-           "load_avg_1min": round(os.getloadavg()[0], 2)}
+           "load_avg_1min": _load()}
     log.info("bench scale: %s", row)
     return row
 
@@ -509,25 +524,57 @@ def _sumo_alone(sumocfg, size: int, steps: int, seed: int = 42) -> tuple[float, 
     sim.start()
     try:
         bridge = Bridge(sim, cfg, "bench")
-        k = 0
-        for k in range(6000):
-            sim.step()
-            snap = sim.read()
-            bridge.build(k, snap)
-            if snap.n >= 0.97 * size:
-                break
-        wall, cpu = [], []
-        for _ in range(steps):
-            k += 1
-            t0, c0 = time.perf_counter(), time.process_time()
-            sim.step()
-            wall.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-            snap = sim.read()
-            bridge.build(k, snap)
+        k, snap = fill(sim, bridge, size)
+        _, snap, wall, cpu = _alone_steps(sim, bridge, k, snap, steps)
     finally:
         sim.close()
     return float(np.mean(wall)), float(np.mean(cpu)), np.asarray(snap.x), np.asarray(snap.y)
+
+
+def _endpoints(n: int) -> list[str]:
+    from runtime.transport import free_tcp_port
+
+    return [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(n)]
+
+
+class _GridRun(NamedTuple):
+    folder: Path  # the run's config and the daemons' logs
+    config: Path  # its run TOML
+    alone_wall_s: float  # [s] SUMO's own step on the same scenario, wall clock
+    alone_cpu_s: float  # [s] the same in CPU time
+
+    def alone_ms(self) -> dict:
+        return {"sumo_alone_ms": round(self.alone_wall_s * 1e3, 2),
+                "sumo_alone_cpu_ms": round(self.alone_cpu_s * 1e3, 2)}
+
+    def full_physics_counts(self) -> list[int]:
+        """Agents in full physics in the physics process's status lines, in order."""
+        text = (self.folder / "physics.log").read_text(errors="replace")
+        return [int(n) for n in re.findall(r"\(phys (\d+) ", text)]
+
+
+def _grid_run(timing: str, agents: int, full: int, alone_steps: int, shards: int, run: dict,
+              sumo: dict | None = None) -> _GridRun:
+    """The lockstep and realtime rows' set-up: the grid scenario of ``agents`` vehicles, SUMO
+    alone on it in this process (before any daemon starts), and the run config of a SUMO side
+    and one physics process of ``shards`` simulations (one thread each) with LOD, a region of
+    about ``full`` agents in full physics. ``run`` and ``sumo`` add to those tables."""
+    from physics_side.lod import HYSTERESIS
+
+    sumocfg = grid_scenario(agents, seed=42)
+    alone_wall, alone_cpu, x, y = _sumo_alone(sumocfg, agents, alone_steps)
+    # the same run (seed) in the daemons: a region around ``full`` / HYSTERESIS agents of this
+    # fill keeps about ``full`` in full physics (an agent enters at 0.9 r and leaves at r)
+    cx, cy, radius = _lod_region(x, y, int(full / HYSTERESIS))
+    folder = Path(tempfile.mkdtemp(prefix=f"sumoco-{timing}-"))
+    config = write_toml(folder / "run.toml", {
+        "run": {"id": timing, "timing": timing, "seed": 42, **run},
+        "sumo": {"sumocfg": sumocfg, **(sumo or {})},
+        # a thread per simulation; with one, the SUMO process has the other core of two
+        "physics": {"preset": "default", "shards": shards, "threads": shards,
+                    "expect": {"passenger": int(full * 1.3)},
+                    "lod_regions": [[round(cx, 1), round(cy, 1), round(radius, 1)]]}})
+    return _GridRun(folder, config, alone_wall, alone_cpu)
 
 
 def lockstep_row(agents: int = 10000, seconds: float = 20.0, full: int = FULL_AGENTS, alone_steps: int = 20,
@@ -543,48 +590,17 @@ def lockstep_row(agents: int = 10000, seconds: float = 20.0, full: int = FULL_AG
     and nothing else running, which a loaded host cannot show. The
     physics process runs ``shards`` simulations on as many threads (1: on 2 cores the SUMO
     process has the other)."""
-    import tempfile
-    from pathlib import Path
-
-    from physics_side.lod import HYSTERESIS
-    from sumoco.bench.sumo import cache_dir
-    from sumo_side.scenarios import make_grid_scenario
-    from runtime.transport import free_tcp_port
-
-    sumocfg = make_grid_scenario(cache_dir(), agents, seed=42)
-    alone_wall, alone_cpu, x, y = _sumo_alone(sumocfg, agents, alone_steps)
-    # the same run (seed) in the daemons: a region around ``full`` / HYSTERESIS agents of this
-    # fill keeps about ``full`` in full physics (an agent enters at 0.9 r and leaves at r)
-    cx, cy, radius = _lod_region(x, y, int(full / HYSTERESIS))
-    tmp = Path(tempfile.mkdtemp(prefix="sumoco-lockstep-"))
-    cfg = tmp / "run.toml"
-    cfg.write_text(f"""
-[run]
-id = "lockstep"
-timing = "lockstep"
-seed = 42
-duration_s = 3600.0
-lockstep_timeout_s = 60.0
-[sumo]
-sumocfg = "{sumocfg}"
-lockstep_instances = ["main"]
-lockstep_start_timeout_s = 120.0
-[physics]
-preset = "default"
-shards = {shards}  # one simulation on one thread: the SUMO process has the other core
-threads = {shards}
-expect = {{passenger = {int(full * 1.3)}}}
-lod_regions = [[{cx:.1f}, {cy:.1f}, {radius:.1f}]]
-""")
-    eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2)]
-    run = _Procs("lockstep", eps, tmp, probe=False)
+    grid = _grid_run("lockstep", agents, full, alone_steps, shards,
+                     run={"duration_s": 3600.0, "lockstep_timeout_s": 60.0},
+                     sumo={"lockstep_instances": ["main"], "lockstep_start_timeout_s": 120.0})
+    tmp = grid.folder
+    run = _Procs("lockstep", _endpoints(2), tmp, probe=False)
     try:
-        run.start("physics", ["physics", "--config", str(cfg), "--listen", eps[1], "--connect", eps[0]])
-        run.start("sumo", ["sumo", "--config", str(cfg), "--listen", eps[0]])
+        run.start_pair(grid.config)
 
         def filled():
             c = run.sumo_counters()
-            return c if c is not None and c.get("max_agents", 0) >= 0.97 * agents else None
+            return c if c is not None and c.get("max_agents", 0) >= FILL_SHARE * agents else None
         run.wait(filled, 600, "the network filled")
         # the map mesh is built once on a worker thread of the SUMO side: not in the window
         sumo_log = tmp / "sumo.log"
@@ -604,17 +620,17 @@ lod_regions = [[{cx:.1f}, {cy:.1f}, {radius:.1f}]]
     cpu = sum(per.values())
     # each process on a core of its own (an idle 2-core host): the busier one paces the chain
     critical = max(per.values())
-    phys = re.findall(r"\(phys (\d+) ", (tmp / "physics.log").read_text(errors="replace"))
+    phys = grid.full_physics_counts()
     row = {"timing": "lockstep", "agents": int(c1["max_agents"]), "processes": 2, "steps": steps,
-           "wall_s": round(t1 - t0, 2), "full_physics_agents": max(map(int, phys[-5:])) if phys else None,
-           "sumo_alone_ms": round(alone_wall * 1e3, 2), "sumo_alone_cpu_ms": round(alone_cpu * 1e3, 2),
+           "wall_s": round(t1 - t0, 2), "full_physics_agents": max(phys[-5:]) if phys else None,
+           **grid.alone_ms(),
            "lockstep_ms": round(wall * 1e3, 2), "lockstep_cpu_ms": round(cpu * 1e3, 2),
-           "lockstep_to_sumo_ratio": round(alone_wall / wall, 3),
-           "lockstep_to_sumo_cpu_ratio": round(alone_cpu / cpu, 3),
+           "lockstep_to_sumo_ratio": round(grid.alone_wall_s / wall, 3),
+           "lockstep_to_sumo_cpu_ratio": round(grid.alone_cpu_s / cpu, 3),
            "sumo_side_cpu_ms": round(per.get("sumo", 0.0) * 1e3, 2), "physics_cpu_ms": round(per.get("physics", 0.0) * 1e3, 2),
-           "lockstep_to_sumo_critical_ratio": round(alone_cpu / critical, 3),
+           "lockstep_to_sumo_critical_ratio": round(grid.alone_cpu_s / critical, 3),
            "strict_steps": int(c1.get("strict_steps", 0)) - int(c0.get("strict_steps", 0)),
-           "goal_ratio": 0.6, "load_avg_1min": round(os.getloadavg()[0], 2)}
+           "goal_ratio": 0.6, "load_avg_1min": _load()}
     log.info("bench scale: %s", row)
     return row
 
@@ -628,43 +644,14 @@ def realtime_row(agents: int = 5000, seconds: float = 15.0, full: int = FULL_AGE
     step on the same scenario in this process before the daemons start (above the step
     length, real time is out of reach whatever the rest costs), ``sumo_ms`` / ``bridge_ms``
     the SUMO side's own figures per step during the run (its status lines)."""
-    import tempfile
-    from pathlib import Path
-
-    from physics_side.lod import HYSTERESIS
-    from sumoco.bench.sumo import cache_dir
-    from sumo_side.scenarios import make_grid_scenario
-    from runtime.transport import free_tcp_port
-
-    sumocfg = make_grid_scenario(cache_dir(), agents, seed=42)
-    # SUMO alone on this host: above the step length, no SUMO side can keep real time
-    alone_wall, alone_cpu, x, y = _sumo_alone(sumocfg, agents, alone_steps)
-    cx, cy, radius = _lod_region(x, y, int(full / HYSTERESIS))
-    tmp = Path(tempfile.mkdtemp(prefix="sumoco-realtime-"))
-    cfg = tmp / "run.toml"
-    cfg.write_text(f"""
-[run]
-id = "realtime"
-timing = "realtime"
-seed = 42
-duration_s = {seconds + 120.0}
-[sumo]
-sumocfg = "{sumocfg}"
-[physics]
-preset = "default"
-shards = 1  # one simulation on one thread: the SUMO process has the other core
-threads = 1
-expect = {{passenger = {int(full * 1.3)}}}
-lod_regions = [[{cx:.1f}, {cy:.1f}, {radius:.1f}]]
-""")
-    eps = [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2)]
+    grid = _grid_run("realtime", agents, full, alone_steps, 1, run={"duration_s": seconds + 120.0})
     # The SUMO side's own duration leaves room for a late probe (its Zenoh connect is retried
     # until the SUMO side listens): the row's window is wall time from the first step seen,
     # and SIGTERM ends the SUMO side after it.
-    run = _Procs("realtime", eps, tmp, probe=False)
+    tmp = grid.folder
+    run = _Procs("realtime", _endpoints(2), tmp, probe=False)
     try:
-        run.start("physics", ["physics", "--config", str(cfg), "--listen", eps[1], "--connect", eps[0]])
-        run.start("sumo", ["sumo", "--config", str(cfg), "--listen", eps[0]])  # INFO: its summary
+        run.start_pair(grid.config)
         run.wait(lambda: (run.sumo_counters() or {}).get("steps", 0) > 0, 180, "the first step")
         t_end = time.monotonic() + seconds  # wall clock: a SUMO side behind real time ends here
         while time.monotonic() < t_end and run.procs["sumo"].poll() is None:
@@ -678,16 +665,16 @@ lod_regions = [[{cx:.1f}, {cy:.1f}, {radius:.1f}]]
     if m is None:
         raise RuntimeError(f"realtime run: no summary in the SUMO log:\n{text[-2000:]}")
     stats = dict(kv.split("=", 1) for kv in m[1].split(", "))
-    phys = re.findall(r"\(phys (\d+) ", (tmp / "physics.log").read_text(errors="replace"))
+    phys = grid.full_physics_counts()
     status = re.findall(r"sumo ([\d.]+) ms bridge ([\d.]+) ms", text)
     row = {"timing": "realtime", "agents": int(stats["max_agents"]), "lag_resets": int(stats["lag_resets"]),
            "steps": int(stats["steps"]), "wall_s": seconds, "realtime_steps": int(seconds / 0.1), "sumo_step_s": 0.1,
            # most in full physics in the physics side's status lines (it stops them when SUMO ends)
-           "full_physics_agents": max(map(int, phys)) if phys else None,
-           "sumo_alone_ms": round(alone_wall * 1e3, 2), "sumo_alone_cpu_ms": round(alone_cpu * 1e3, 2),
+           "full_physics_agents": max(phys) if phys else None,
+           **grid.alone_ms(),
            "sumo_ms": round(float(np.mean([float(a) for a, _ in status])), 2) if status else None,
            "bridge_ms": round(float(np.mean([float(b) for _, b in status])), 2) if status else None,
-           "goal_lag_resets": 0, "load_avg_1min": round(os.getloadavg()[0], 2)}
+           "goal_lag_resets": 0, "load_avg_1min": _load()}
     log.info("bench scale: %s", row)
     return row
 

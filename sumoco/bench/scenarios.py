@@ -16,6 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from sumoco.bench.scenario import REPO_ROOT, demo_config
+
 #: Scenario of each pack folder (the .sumocfg the pack's MANIFEST names to run) and its --begin.
 PACK_RUNS: tuple[tuple[str, str, float | None], ...] = (
     ("bologna_acosta", "sumoco_60s.sumocfg", None),
@@ -28,25 +30,12 @@ PACK_RUNS: tuple[tuple[str, str, float | None], ...] = (
     ("synth_features_grid", "features.sumocfg", None),
 )
 
-_CONFIG = """
-[run]
-id = "bench"
-timing = "lockstep"
-lockstep_timeout_s = 60.0
-[demo]
-presets = ["paper", "default"]
-lad_sweep = false
-wall_limit_s = {wall}
-"""
-
-
 def default_pack() -> Path:
     """``shared/scenarios`` beside the repository (or beside a parent folder)."""
-    root = Path(__file__).resolve().parents[2]
-    for base in (root.parent, *root.parent.parents):
+    for base in (REPO_ROOT.parent, *REPO_ROOT.parent.parents):
         if (base / "shared" / "scenarios" / "MANIFEST.md").is_file():
             return base / "shared" / "scenarios"
-    return root.parent / "shared" / "scenarios"
+    return REPO_ROOT.parent / "shared" / "scenarios"
 
 
 def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float | None,
@@ -81,7 +70,7 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
     if "feedback_steps_applied" in side:  # two-way coupling: what SUMO did with the physical states
         row["coupling"] = {k: side.get(k) for k in (
             "intent_gap_p50_m", "intent_gap_p95_m", "intent_gap_max_m", "feedback_ms", "feedback_late",
-            "feedback_moves_xy", "feedback_unknown", "teleports", "arrived", "departed")}
+            "feedback_clamped", "feedback_internal", "feedback_unknown", "teleports", "arrived", "departed")}
     for inst, p in s.get("presets", {}).items():
         e = p["error_m"]["overall"]
         at = p["error_m"].get("at_samples", {}).get("overall", {})
@@ -102,9 +91,7 @@ def run_scenario_bench(pack: Path | None = None, duration: float = 60.0, quick: 
     pack = Path(pack) if pack else default_pack()
     duration = 10.0 if quick else duration
     root = Path(out_root) if out_root else Path(tempfile.mkdtemp(prefix="sumoco-scenarios-"))
-    cfg = root / "bench.toml"
-    root.mkdir(parents=True, exist_ok=True)
-    cfg.write_text(_CONFIG.format(wall=max(600.0, duration * 20)))
+    cfg = demo_config(root, "bench", ("paper", "default"), duration)
     rows = []
     for folder, name, begin in PACK_RUNS:
         sumocfg = pack / folder / name

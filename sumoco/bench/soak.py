@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import secrets
 import signal
@@ -32,14 +33,12 @@ from protocol.codec import decode
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsState
-from sumoco.orchestrate.demo import Processes, _cli
 from runtime.config import load_common, replace
 from runtime.transport import free_tcp_port, open_session
+from sumoco.bench.scenario import CONFIGS, write_toml
+from sumoco.orchestrate.demo import Processes, cli_argv
 
 log = logging.getLogger(__name__)
-
-#: The bundled configs of a source checkout (``configs/`` beside the package).
-REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 _ERROR_LINE = re.compile(rb"\bERROR\b|Traceback")
 _DONE_LINE = re.compile(rb"SUMO side done: .*?\brejected=(\d+)")
@@ -48,7 +47,7 @@ _DONE_LINE = re.compile(rb"SUMO side done: .*?\brejected=(\d+)")
 @dataclass(frozen=True)
 class SoakConfig:
     minutes: float = 60.0  # [min] wall time of the whole soak
-    config: Path = REPO_CONFIGS / "soak.toml"
+    config: Path = CONFIGS / "soak.toml"
     presets: tuple[str, ...] = ("paper", "default")  # one physics process each
     sample_period_s: float = 60.0  # [s] between rows
     startup_timeout_s: float = 60.0  # [s] for every process to come up
@@ -182,139 +181,152 @@ def _sumo_rejected(log_file: Path) -> int:
     return int(m.group(1)) if m else 0
 
 
+class _Soak:
+    """The processes of one soak (the SUMO side restarted per loop, the long-lived rest) and
+    what they did so far: loops, bad exits, messages the SUMO sides rejected."""
+
+    def __init__(self, cfg: SoakConfig, root: str, run_id: str) -> None:
+        self.cfg, self.run_id = cfg, run_id
+        self.keys = Keys(root, run_id)
+        self.log_dir = cfg.out / "logs"
+        self.procs = Processes(self.log_dir)
+        self.hub_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.sumo_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.view_port = free_tcp_port()
+        self.base = ["--config", str(cfg.config), "--run", run_id, "--timing", "realtime", "--quiet"]
+        self.exits: list[dict] = []
+        self.loops = 0
+        self.sumo_rejected = 0
+        self.sumo_started = time.monotonic()
+
+    @property
+    def sumo_name(self) -> str:
+        return f"sumo-{self.loops:03d}"
+
+    def start_sumo(self) -> None:
+        self.loops += 1
+        self.sumo_started = time.monotonic()
+        self.procs.start(self.sumo_name, cli_argv("sumo", *self.base, "--listen", self.sumo_ep,
+                                                  "--connect", self.hub_ep))
+
+    def start_all(self, view_cfg: Path) -> None:
+        """The first SUMO side, a physics process per preset, the recorder and the viewer."""
+        self.start_sumo()
+        for p in self.cfg.presets:
+            # --duration 0: physics follows every loop instead of stopping after the first
+            self.procs.start(f"physics-{p}", cli_argv(
+                "physics", *self.base, "--duration", "0", "--instance", p, "--preset", p,
+                "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", self.sumo_ep, "--connect", self.hub_ep))
+        self.procs.start("record", cli_argv("record", *self.base, "--connect", self.hub_ep,
+                                            "--out", str(self.cfg.out / "run.mcap")))
+        self.procs.start("view", cli_argv("view", "--config", str(view_cfg), "--run", self.run_id, "--quiet",
+                                          "--connect", self.hub_ep, "--port", str(self.view_port)))
+
+    def alive_keys(self) -> set[str]:
+        """The liveliness tokens of the SUMO side and every physics instance."""
+        return {self.keys.sumo_alive} | {Keys(self.keys.root, self.run_id, p).physics_alive for p in self.cfg.presets}
+
+    def wait(self, cond, what: str) -> None:
+        deadline = time.monotonic() + self.cfg.startup_timeout_s
+        while not cond():
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"soak: timed out after {self.cfg.startup_timeout_s:.0f} s waiting for {what}")
+            time.sleep(0.1)
+
+    def check(self, loop_again: bool) -> None:
+        """A SUMO side that finished its loop is counted (and started again while
+        ``loop_again``); any other process that ended is a bad exit."""
+        sumo = self.procs.procs.get(self.sumo_name)
+        if sumo.poll() is not None:
+            self.sumo_rejected += _sumo_rejected(self.log_dir / f"{self.sumo_name}.log")
+            if sumo.returncode != 0:
+                self.exits.append({"process": self.sumo_name, "code": sumo.returncode})
+            if loop_again:
+                self.start_sumo()
+        for name, p in self.procs.procs.items():
+            if not name.startswith("sumo-") and p.poll() is not None and \
+                    not any(e["process"] == name for e in self.exits):
+                self.exits.append({"process": name, "code": p.returncode})
+
+    def sample(self, hub: _Hub, ws: _WsClient, emit) -> list[dict]:
+        """Rows every ``sample_period_s`` until ``minutes`` have passed, SUMO looping meanwhile."""
+        rows: list[dict] = []
+        t_first = time.monotonic()
+        next_row = t_first + self.cfg.sample_period_s
+        t_end = t_first + self.cfg.minutes * 60.0
+        while True:
+            now = time.monotonic()
+            self.check(loop_again=now < t_end)
+            if now >= next_row or now >= t_end:
+                # a SUMO side still loading its scenario would show a partial RSS
+                sumo_up = now - self.sumo_started > 5.0
+                rows.append(self.row(len(rows) + 1, now - t_first, hub, ws, sumo_up))
+                emit(rows[-1])
+                next_row += self.cfg.sample_period_s
+            if now >= t_end:
+                return rows
+            time.sleep(0.2)
+
+    def row(self, minute: int, elapsed: float, hub: _Hub, ws: _WsClient, sumo_up: bool) -> dict:
+        rss, heap = {}, {}
+        for name, p in self.procs.procs.items():
+            if name.startswith("sumo-"):
+                if p.poll() is None and sumo_up:
+                    rss["sumo"], heap["sumo"] = round(rss_mb(p.pid), 1), round(heap_mb(p.pid), 1)
+            else:
+                rss[name], heap[name] = round(rss_mb(p.pid), 1), round(heap_mb(p.pid), 1)
+        rss["soak+ws-client"] = round(rss_mb(os.getpid()), 1)
+        heap["soak+ws-client"] = round(heap_mb(os.getpid()), 1)
+        pc = hub.physics_counters()
+        with hub.lock:
+            steps = hub.steps
+        dropped = sum(c.get("dropped_steps", 0) for c in pc.values())
+        rejected = sum(c.get("rejected", 0) for c in pc.values()) + self.sumo_rejected
+        log_errors = _log_errors(self.log_dir)
+        errors = len(self.exits) + log_errors + rejected + ws.disconnects
+        return {
+            "bench": "soak", "minute": minute, "wall_s": round(elapsed, 1), "rss_mb": rss, "heap_mb": heap,
+            "steps": steps, "sumo_loops": self.loops, "viewer_frames": ws.frames,
+            "dropped_steps": dropped, "rejected": rejected, "log_errors": log_errors,
+            "ws_disconnects": ws.disconnects, "bad_exits": list(self.exits), "errors": errors,
+        }
+
+
 def run_soak(cfg: SoakConfig, emit=None) -> list[dict]:
     """Run the soak; ``emit(row)`` is called with each row as it is measured."""
     emit = emit or (lambda row: None)
     common = load_common(cfg.config)[0]
     run_id = f"soak{int(time.time()) % 100000}"
     common = replace(common, run=replace(common.run, id=run_id, timing="realtime"))
-    keys = Keys(common.zenoh.root, run_id)
-    out = cfg.out
-    out.mkdir(parents=True, exist_ok=True)
-    log_dir = out / "logs"
-    procs = Processes(log_dir)
-    hub_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    sumo_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    view_port = free_tcp_port()
-    base = ["--config", str(cfg.config), "--run", run_id, "--timing", "realtime", "--quiet"]
-    rows: list[dict] = []
-    exits: list[dict] = []
-    loops = 0
-    sumo_rejected = 0
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    soak = _Soak(cfg, common.zenoh.root, run_id)
     # The viewer serves its data only with the run's token: give it one we know.
     token = secrets.token_urlsafe(18)
-    view_cfg = out / "viewer.toml"
-    view_cfg.write_text(f'[zenoh]\nroot = "{common.zenoh.root}"\n[viewer]\ntoken = "{token}"\n')
-    ws = _WsClient(f"ws://127.0.0.1:{view_port}/ws?token={token}")
-    zcfg = replace(common.zenoh, mode="peer", listen=(hub_ep,), connect=())
+    view_cfg = write_toml(cfg.out / "viewer.toml", {"zenoh": {"root": common.zenoh.root}, "viewer": {"token": token}})
+    ws = _WsClient(f"ws://127.0.0.1:{soak.view_port}/ws?token={token}")
+    zcfg = replace(common.zenoh, mode="peer", listen=(soak.hub_ep,), connect=())
     t0 = time.monotonic()
-    sumo_started = [t0]
-
-    def start_sumo() -> None:
-        nonlocal loops
-        loops += 1
-        sumo_started[0] = time.monotonic()
-        procs.start(f"sumo-{loops:03d}", _cli("sumo", *base, "--listen", sumo_ep, "--connect", hub_ep))
-
-    def current_sumo():
-        return procs.procs.get(f"sumo-{loops:03d}")
-
-    def wait(cond, what: str) -> None:
-        deadline = time.monotonic() + cfg.startup_timeout_s
-        while not cond():
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"soak: timed out after {cfg.startup_timeout_s:.0f} s waiting for {what}")
-            time.sleep(0.1)
-
     with open_session(zcfg) as session:
-        hub = _Hub(session, keys)
+        hub = _Hub(session, soak.keys)
         try:
-            start_sumo()
-            for p in cfg.presets:
-                # --duration 0: physics follows every loop instead of stopping after the first
-                procs.start(f"physics-{p}", _cli(
-                    "physics", *base, "--duration", "0", "--instance", p, "--preset", p,
-                    "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub_ep))
-            procs.start("record", _cli("record", *base, "--connect", hub_ep, "--out", str(out / "run.mcap")))
-            procs.start("view", _cli("view", "--config", str(view_cfg), "--run", run_id, "--quiet",
-                                     "--connect", hub_ep, "--port", str(view_port)))
-            want = {keys.sumo_alive} | {Keys(keys.root, run_id, p).physics_alive for p in cfg.presets}
-            wait(lambda: want <= hub.alive, "the SUMO side and the physics instances")
+            soak.start_all(view_cfg)
+            want = soak.alive_keys()
+            soak.wait(lambda: want <= hub.alive, "the SUMO side and the physics instances")
             ws.start()
-            wait(ws.connected.is_set, "the viewer's WebSocket")
-            t_first = time.monotonic()
-            next_row = t_first + cfg.sample_period_s
-            t_end = t_first + cfg.minutes * 60.0
-            minute = 0
-            while True:
-                now = time.monotonic()
-                sumo = current_sumo()
-                if sumo.poll() is not None:
-                    code = sumo.returncode
-                    sumo_rejected += _sumo_rejected(log_dir / f"sumo-{loops:03d}.log")
-                    if code != 0:
-                        exits.append({"process": f"sumo-{loops:03d}", "code": code})
-                    if now < t_end:
-                        start_sumo()
-                for name, p in procs.procs.items():
-                    if not name.startswith("sumo-") and p.poll() is not None and \
-                            not any(e["process"] == name for e in exits):
-                        exits.append({"process": name, "code": p.returncode})
-                if now >= next_row or now >= t_end:
-                    minute += 1
-                    # a SUMO side still loading its scenario would show a partial RSS
-                    sumo_up = now - sumo_started[0] > 5.0
-                    rows.append(_row(minute, now - t_first, procs, hub, ws, loops, sumo_rejected,
-                                     exits, log_dir, sumo_up))
-                    emit(rows[-1])
-                    next_row += cfg.sample_period_s
-                if now >= t_end:
-                    break
-                time.sleep(0.2)
+            soak.wait(ws.connected.is_set, "the viewer's WebSocket")
+            rows = soak.sample(hub, ws, emit)
         finally:
             ws.stop()
-            codes = procs.stop(timeout_s=15.0)
-            procs.close()
+            codes = soak.procs.stop(timeout_s=15.0)
+            soak.procs.close()
             hub.close()
-    summary = _summary(rows, codes, exits, time.monotonic() - t0, out)
+    summary = soak_summary(rows, codes, soak.exits, time.monotonic() - t0, cfg.out)
     emit(summary)
     rows.append(summary)
     return rows
 
 
-def _row(minute: int, elapsed: float, procs: Processes, hub: _Hub, ws: _WsClient, loops: int,
-         sumo_rejected: int, exits: list[dict], log_dir: Path, sumo_up: bool) -> dict:
-    rss, heap = {}, {}
-    for name, p in procs.procs.items():
-        if name.startswith("sumo-"):
-            if p.poll() is None and sumo_up:
-                rss["sumo"], heap["sumo"] = round(rss_mb(p.pid), 1), round(heap_mb(p.pid), 1)
-        else:
-            rss[name], heap[name] = round(rss_mb(p.pid), 1), round(heap_mb(p.pid), 1)
-    rss["soak+ws-client"] = round(rss_mb(_self_pid()), 1)
-    heap["soak+ws-client"] = round(heap_mb(_self_pid()), 1)
-    pc = hub.physics_counters()
-    with hub.lock:
-        steps = hub.steps
-    dropped = sum(c.get("dropped_steps", 0) for c in pc.values())
-    rejected = sum(c.get("rejected", 0) for c in pc.values()) + sumo_rejected
-    log_errors = _log_errors(log_dir)
-    errors = len(exits) + log_errors + rejected + ws.disconnects
-    return {
-        "bench": "soak", "minute": minute, "wall_s": round(elapsed, 1), "rss_mb": rss, "heap_mb": heap,
-        "steps": steps, "sumo_loops": loops, "viewer_frames": ws.frames,
-        "dropped_steps": dropped, "rejected": rejected, "log_errors": log_errors,
-        "ws_disconnects": ws.disconnects, "bad_exits": list(exits), "errors": errors,
-    }
-
-
-def _self_pid() -> int:
-    import os
-
-    return os.getpid()
-
-
-def _summary(rows: list[dict], codes: dict, exits: list[dict], wall: float, out: Path) -> dict:
+def soak_summary(rows: list[dict], codes: dict, exits: list[dict], wall: float, out: Path) -> dict:
     """Growth of each long-lived process's RSS from the first row to the last [%] (the verdict),
     and of its anonymous memory (``heap_growth_pct``), which tells a leak from library pages."""
     growth = {}

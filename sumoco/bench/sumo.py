@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -28,19 +27,9 @@ from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig
 from sumo_side.daemon import HotLoopGC
 from sumo_side.simulation import SumoSim
+from sumoco.bench.scenario import fill, grid_scenario
 
 log = logging.getLogger(__name__)
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def cache_dir() -> Path:
-    d = ROOT / "runs" / "scenarios"
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-        return d
-    except OSError:
-        return Path(tempfile.gettempdir()) / "sumoco-scenarios"
 
 
 class _Sink:
@@ -89,13 +78,7 @@ def bench_one(sumocfg: Path, target: int, steps: int, warmup_max: int = 3000, se
     try:
         bridge = Bridge(sim, cfg, "bench")
         # Warm up: let the network fill to the target size (and the path cache with it).
-        k = 0
-        for k in range(warmup_max):
-            sim.step()
-            snap = sim.read()
-            bridge.build(k, snap)
-            if snap.n >= 0.97 * target:
-                break
+        k, _ = fill(sim, bridge, target, warmup_max)
         warm_steps = k + 1
         t_sumo, t_read, t_build, t_enc, t_pub, t_gc = ([] for _ in range(6))
         agents, nbytes = [], []
@@ -191,12 +174,10 @@ def bench_one(sumocfg: Path, target: int, steps: int, warmup_max: int = 3000, se
 
 def run_sumo_bench(sizes=(250, 2500), steps: int | None = None, quick: bool = False, seed: int = 42) -> list[dict]:
     """One row per scenario size (about ``size`` vehicles in the network)."""
-    from sumo_side.scenarios import make_grid_scenario
-
     steps = steps or (30 if quick else 300)
     rows = []
     for size in sizes:
-        cfg = make_grid_scenario(cache_dir(), size, seed=seed)
+        cfg = grid_scenario(size, seed=seed)
         log.info("bench sumo: %d agents target, scenario %s", size, cfg)
         rows.append({"target_agents": size, **bench_one(Path(cfg), size, steps, seed=seed)})
     return rows
