@@ -27,22 +27,39 @@ def _env_list(name: str) -> list[str] | None:
     return [x.strip() for x in v.split(",") if x.strip()] or None
 
 
-def _add_common(p: argparse.ArgumentParser) -> None:
-    # Environment variables (SUMOCO_*) give the defaults, for containers; flags win.
-    p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None,
-                   help="TOML config file (configs/*.toml) [env SUMOCO_CONFIG]")
-    p.add_argument("--run", default=os.environ.get("SUMOCO_RUN") or None,
-                   help="run id (overrides [run].id) [env SUMOCO_RUN]")
-    p.add_argument("--listen", action="append", default=None,
-                   help="zenoh endpoint to listen on (repeatable) [env SUMOCO_LISTEN, comma-separated]")
-    p.add_argument("--connect", action="append", default=None,
-                   help="zenoh endpoint to connect to (repeatable) [env SUMOCO_CONNECT]")
-    p.add_argument("--mode", choices=["peer", "client", "router"], default=os.environ.get("SUMOCO_MODE") or None,
-                   help="zenoh session mode [env SUMOCO_MODE]")
-    p.add_argument("--timing", choices=["realtime", "lockstep"], help="overrides [run].timing")
-    p.add_argument("--duration", type=float, help="simulated seconds to run (overrides [run].duration_s)")
+_CONFIG_HELP = "TOML config file (configs/*.toml) [env SUMOCO_CONFIG]"
+_LISTEN_HELP = "zenoh endpoint to listen on (repeatable) [env SUMOCO_LISTEN, comma-separated]"
+_CONNECT_HELP = "zenoh endpoint to connect to (repeatable) [env SUMOCO_CONNECT]"
+
+
+def _add_logging(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="warnings and errors only")
     p.add_argument("--verbose", action="store_true", help="debug logging")
+
+
+def _add_zenoh(p: argparse.ArgumentParser, *, config_help: str = _CONFIG_HELP, run: bool = True,
+               listen_help: str = _LISTEN_HELP, connect_help: str = _CONNECT_HELP, connect_metavar: str | None = None,
+               mode: bool = True) -> None:
+    """Where a process meets the run on Zenoh: ``--config`` (its ``[zenoh]`` table), ``--run``,
+    ``--listen``, ``--connect``, ``--mode``. Environment variables (SUMOCO_*) give the
+    defaults, for containers; flags win (``parse_args`` reads the endpoint lists)."""
+    p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None, help=config_help)
+    if run:
+        p.add_argument("--run", default=os.environ.get("SUMOCO_RUN") or None,
+                       help="run id (overrides [run].id) [env SUMOCO_RUN]")
+    p.add_argument("--listen", action="append", default=None, help=listen_help)
+    p.add_argument("--connect", action="append", default=None, metavar=connect_metavar, help=connect_help)
+    if mode:
+        p.add_argument("--mode", choices=["peer", "client", "router"], default=os.environ.get("SUMOCO_MODE") or None,
+                       help="zenoh session mode [env SUMOCO_MODE]")
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    """Every daemon's flags: Zenoh, timing, duration, logging."""
+    _add_zenoh(p)
+    p.add_argument("--timing", choices=["realtime", "lockstep"], help="overrides [run].timing")
+    p.add_argument("--duration", type=float, help="simulated seconds to run (overrides [run].duration_s)")
+    _add_logging(p)
 
 
 def _add_authority(p: argparse.ArgumentParser) -> None:
@@ -57,12 +74,7 @@ def _add_scenario(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="SUMO random seed (default: the scenario's own)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="sumoco", description="SUMO <-> MuJoCo co-simulation over Zenoh")
-    ap.add_argument("--version", action="version",
-                    version=f"sumoco {__version__} (protocol {SCHEMA_VERSION[0]}.{SCHEMA_VERSION[1]})")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-
+def _sumo_parser(sub) -> None:
     p = sub.add_parser("sumo", help="run the SUMO side daemon")
     _add_common(p)
     _add_authority(p)
@@ -75,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="lockstep: physics instance whose acks to wait for (repeatable; "
                         "overrides [sumo].lockstep_instances)")
 
+
+def _physics_parser(sub) -> None:
     p = sub.add_parser("physics", help="run the physics side daemon")
     _add_common(p)
     _add_authority(p)
@@ -85,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--expect", help="agents expected at once, to size the pools up front: N passenger cars "
                                     "or type=N,type=N (overrides [physics].expect)")
 
+
+def _demo_parser(sub) -> None:
     p = sub.add_parser("demo", help="both daemons on loopback, bounded run, report")
     _add_common(p)
     _add_authority(p)
@@ -93,9 +109,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: runs/demo, or runs/<scenario name> with --sumocfg)")
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
 
+
+def _bench_parser(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
-    p.add_argument("what", choices=["sumo", "physics", "coupling", "e2e", "codec", "fidelity", "soak", "record", "gateway",
-                                    "scenarios", "generated", "scale", "viewer"])
+    p.add_argument("what", choices=["sumo", "physics", "coupling", "e2e", "codec", "fidelity", "soak", "record",
+                                    "gateway", "scenarios", "generated", "scale", "viewer"])
     p.add_argument("--pack", help="scenarios, generated: folder of the scenario pack (default ../shared/scenarios "
                                   "beside the repository)")
     p.add_argument("--net", action="append", default=[],
@@ -113,9 +131,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
     p.add_argument("--authority", choices=["sumo", "physics"],
                    help="scenarios: who owns the vehicles' motion in every run (default: the config's, sumo)")
-    p.add_argument("--quiet", action="store_true")
-    p.add_argument("--verbose", action="store_true")
+    _add_logging(p)
 
+
+def _record_parser(sub) -> None:
     p = sub.add_parser("record", help="record every key of a run (and a Foxglove scene) to MCAP")
     _add_common(p)
     p.add_argument("--out", required=True, help="output file, e.g. runs/x/run.mcap")
@@ -128,31 +147,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep step and physics payloads as they came (byte-exact replay, ~5x larger); "
                         "default: compact, quantised (protocol/SPEC.md 11)")
 
+
+def _report_parser(sub) -> None:
     p = sub.add_parser("report", help="rebuild summary.json, figures and report.md from a recording")
     p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
     p.add_argument("--out", help="output folder (default: the recording's folder)")
     p.add_argument("--no-sweep", action="store_true", help="skip the LAD_min replay figure")
-    p.add_argument("--quiet", action="store_true")
-    p.add_argument("--verbose", action="store_true")
+    _add_logging(p)
 
+
+def _replay_parser(sub) -> None:
     p = sub.add_parser("replay", help="republish a recording on Zenoh as the daemons did (no SUMO/MuJoCo needed)")
     p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
     p.add_argument("--speed", type=float, default=1.0, help="playback speed factor (1 = as recorded)")
     p.add_argument("--loop", action="store_true", help="start over at the end until stopped")
     p.add_argument("--wait-subscriber", dest="wait_subscriber", type=float, default=0.0, metavar="S",
                    help="hold the first step until a subscriber to the steps appears, at most S seconds")
-    p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None,
-                   help="TOML config file for the [zenoh] table [env SUMOCO_CONFIG]")
-    p.add_argument("--listen", action="append", default=None,
-                   help="zenoh endpoint to listen on (repeatable) [env SUMOCO_LISTEN, comma-separated]")
-    p.add_argument("--connect", action="append", default=None,
-                   help="zenoh endpoint to connect to (repeatable) [env SUMOCO_CONNECT]")
-    p.add_argument("--mode", choices=["peer", "client", "router"], default=os.environ.get("SUMOCO_MODE") or None,
-                   help="zenoh session mode [env SUMOCO_MODE]")
+    # the recording names its run: no --run
+    _add_zenoh(p, config_help="TOML config file for the [zenoh] table [env SUMOCO_CONFIG]", run=False)
     p.add_argument("--duration", type=float, help="replay only the first N seconds of the recording [s]")
-    p.add_argument("--quiet", action="store_true", help="warnings and errors only")
-    p.add_argument("--verbose", action="store_true", help="debug logging")
+    _add_logging(p)
 
+
+def _gateway_parser(sub) -> None:
     p = sub.add_parser("gateway", help="a run's keys over one WebSocket (for engines without Zenoh)")
     _add_common(p)
     p.add_argument("--host", help="address to listen on (default 127.0.0.1)")
@@ -165,6 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the per-run token here (mode 0600); the token is also in the printed URL "
                         "[env SUMOCO_GATEWAY_TOKEN fixes it]")
 
+
+def _foxglove_parser(sub) -> None:
     p = sub.add_parser("foxglove", help="live 3D scene of a run for the Foxglove app (needs the foxglove extra)")
     _add_common(p)
     p.add_argument("--host", help="address of the Foxglove WebSocket server (default 127.0.0.1)")
@@ -172,6 +191,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene-hz", dest="scene_hz", type=float,
                    help="scene updates per key at most [Hz of simulated time], 0 = all (default 10)")
 
+
+def _view_parser(sub) -> None:
     p = sub.add_parser("view", help="live 3D view of a run in the browser (three.js; a 2D page is linked)")
     _add_common(p)
     p.add_argument("--host", help="address to serve the page on (default 127.0.0.1)")
@@ -185,14 +206,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene-hz", dest="scene_hz", type=float,
                    help="with --foxglove: scene updates per key at most [Hz of simulated time], 0 = all (default 10)")
 
+
+def _map_parser(sub) -> None:
     p = sub.add_parser("map", help="the road network as a file for renderers and game engines")
     msub = p.add_subparsers(dest="map_cmd", required=True)
     m = msub.add_parser("export", help="write a SUMO network as glTF 2.0 binary (GLB)")
     m.add_argument("net", help="SUMO network file (.net.xml or .net.xml.gz)")
     m.add_argument("--out", required=True, help="output file, e.g. map.glb")
-    m.add_argument("--quiet", action="store_true")
-    m.add_argument("--verbose", action="store_true")
+    _add_logging(m)
 
+
+def _certs_parser(sub) -> None:
     p = sub.add_parser("certs", help="certificates for the secure profile (configs/secure.toml)")
     p.add_argument("action", choices=["init"], help="init: a CA and one certificate per role")
     p.add_argument("dir", help="folder to write ca.pem and <role>.pem/.key into")
@@ -205,30 +229,51 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--router", action="store_true",
                    help="also a router certificate (only for runs through `sumoco router`: it may forward anything)")
     p.add_argument("--force", action="store_true", help="replace certificates already in DIR")
-    p.add_argument("--quiet", action="store_true")
-    p.add_argument("--verbose", action="store_true")
+    _add_logging(p)
 
+
+def _router_parser(sub) -> None:
     p = sub.add_parser("router", help="a Zenoh router (Python session in router mode)")
-    p.add_argument("--config", default=os.environ.get("SUMOCO_CONFIG") or None,
-                   help="run config whose [zenoh] table to use, with the secure profile's TLS and access "
-                        "control (the router presents the 'router' certificate) [env SUMOCO_CONFIG]")
-    p.add_argument("--listen", action="append", default=None,
-                   help="zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:7447) "
-                        "[env SUMOCO_LISTEN, comma-separated]")
-    p.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
-                   help="another router to connect to (repeatable): routers form a mesh "
-                        "[env SUMOCO_CONNECT, comma-separated]")
-    p.add_argument("--quiet", action="store_true")
-    p.add_argument("--verbose", action="store_true")
+    # a router is in router mode and belongs to no run: no --mode, no --run
+    _add_zenoh(p, run=False, mode=False,
+               config_help="run config whose [zenoh] table to use, with the secure profile's TLS and access "
+                           "control (the router presents the 'router' certificate) [env SUMOCO_CONFIG]",
+               listen_help="zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:7447) "
+                           "[env SUMOCO_LISTEN, comma-separated]",
+               connect_help="another router to connect to (repeatable): routers form a mesh "
+                            "[env SUMOCO_CONNECT, comma-separated]", connect_metavar="ENDPOINT")
+    _add_logging(p)
+
+
+#: One parser builder per subcommand, in the order ``sumoco --help`` lists them.
+_PARSERS = (_sumo_parser, _physics_parser, _demo_parser, _bench_parser, _record_parser, _report_parser,
+            _replay_parser, _gateway_parser, _foxglove_parser, _view_parser, _map_parser, _certs_parser,
+            _router_parser)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="sumoco", description="SUMO <-> MuJoCo co-simulation over Zenoh")
+    ap.add_argument("--version", action="version",
+                    version=f"sumoco {__version__} (protocol {SCHEMA_VERSION[0]}.{SCHEMA_VERSION[1]})")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for add in _PARSERS:
+        add(sub)
     return ap
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line with the environment's defaults: ``--listen`` / ``--connect`` not
+    given come from SUMOCO_LISTEN / SUMOCO_CONNECT (comma-separated)."""
     args = build_parser().parse_args(argv)
     if hasattr(args, "listen") and args.listen is None:
         args.listen = _env_list("SUMOCO_LISTEN")
     if hasattr(args, "connect") and args.connect is None:
         args.connect = _env_list("SUMOCO_CONNECT")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     from runtime.logs import setup_logging
 
     setup_logging(getattr(args, "quiet", False), getattr(args, "verbose", False))

@@ -116,10 +116,12 @@ def test_compose_services_run_as_local_processes(tmp_path, monkeypatch):
 
 
 def test_cli_takes_settings_from_environment(monkeypatch):
-    from sumoco.cli import build_parser, _env_list
+    from sumoco.cli import parse_args
 
     monkeypatch.setenv("SUMOCO_CONNECT", "tcp/router:7447, tcp/other:7447")
-    assert _env_list("SUMOCO_CONNECT") == ["tcp/router:7447", "tcp/other:7447"]
     monkeypatch.setenv("SUMOCO_MODE", "client")
-    args = build_parser().parse_args(["sumo"])
-    assert args.mode == "client"
+    args = parse_args(["sumo"])
+    assert args.connect == ["tcp/router:7447", "tcp/other:7447"] and args.mode == "client"
+    # a flag wins over the environment; every command that opens a session reads it
+    assert parse_args(["sumo", "--connect", "tcp/a:1"]).connect == ["tcp/a:1"]
+    assert parse_args(["replay", "run.mcap"]).connect == ["tcp/router:7447", "tcp/other:7447"]
