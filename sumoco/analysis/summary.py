@@ -86,6 +86,27 @@ class RunData:
     first_seen: dict[str, tuple[float, int]] = field(default_factory=dict)
 
 
+class AgentIndex:
+    """Agent names -> global agent indexes, numbered in order of first appearance (a name
+    keeps its index for the whole run)."""
+
+    def __init__(self, ids=()) -> None:
+        self.ids: list[str] = list(ids)
+        self.index: dict[str, int] = {n: i for i, n in enumerate(self.ids)}
+
+    def __call__(self, names: list[str]) -> np.ndarray:
+        """The indexes of ``names``; names not seen before get the next ones."""
+        out = np.empty(len(names), np.int64)
+        index, ids = self.index, self.ids
+        for i, n in enumerate(names):
+            j = index.get(n)
+            if j is None:
+                j = index[n] = len(ids)
+                ids.append(n)
+            out[i] = j
+        return out
+
+
 def _cat(parts, dtype):
     return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
 
@@ -112,19 +133,7 @@ def build_run_data(static: StaticData | None, steps: list[StepMessage], states: 
 
 def _run_data(items, truncated: bool = False) -> RunData:
     """Tables from (physics instance, log time [ns], message) triples in recording order."""
-    index: dict[str, int] = {}
-    ids: list[str] = []
-
-    def aids(names: list[str]) -> np.ndarray:
-        out = np.empty(len(names), np.int64)
-        for i, n in enumerate(names):
-            j = index.get(n)
-            if j is None:
-                j = index[n] = len(ids)
-                ids.append(n)
-            out[i] = j
-        return out
-
+    aids = AgentIndex()
     static = None
     ref_cols: dict[str, list] = {k: [] for k in ("t", "aid", "x", "y", "angle", "speed", "lane", "cls", "flags")}
     phys_cols: dict[str, dict[str, list]] = {}
@@ -176,7 +185,7 @@ def _run_data(items, truncated: bool = False) -> RunData:
             counters=counters.get(inst, {}),
         )
     return RunData(
-        static=static, ids=ids, ref=ref, phys=phys, steps=steps,
+        static=static, ids=aids.ids, ref=ref, phys=phys, steps=steps,
         sim_span_s=float((t_last or 0.0) - (t_first or 0.0)),
         wall_span_s=float(((w_last or 0) - (w_first or 0)) / 1e9),
         truncated=truncated, first_seen=first_seen,
@@ -484,8 +493,7 @@ class Analysis:
 
     def __init__(self, ref_id: str | None = None, window_s: float = WINDOW_S) -> None:
         self.window_s = float(window_s)
-        self.index: dict[str, int] = {}
-        self.ids: list[str] = []
+        self.agents = AgentIndex()
         self.static: StaticData | None = None
         self.steps = 0
         self.t_first = self.t_last = None
@@ -507,18 +515,15 @@ class Analysis:
         self._lc_until = -np.inf
         self._lc_next = 0
 
-    # ---------------------------------------------------------------- input
-    def _aids(self, names: list[str]) -> np.ndarray:
-        out = np.empty(len(names), np.int64)
-        index, ids = self.index, self.ids
-        for i, n in enumerate(names):
-            j = index.get(n)
-            if j is None:
-                j = index[n] = len(ids)
-                ids.append(n)
-            out[i] = j
-        return out
+    @property
+    def ids(self) -> list[str]:
+        return self.agents.ids
 
+    @property
+    def index(self) -> dict[str, int]:
+        return self.agents.index
+
+    # ---------------------------------------------------------------- input
     def feed(self, inst: str, log_time_ns: int, msg) -> None:
         if isinstance(msg, StaticData):
             self.static = self.static or msg
@@ -535,7 +540,7 @@ class Analysis:
             self.late += 1
             return
         a = msg.agents
-        aid = self._aids(a.ids)
+        aid = self.agents(a.ids)
         if isinstance(msg, StepMessage):
             self.steps += 1
             self.t_first = t if self.t_first is None else self.t_first
@@ -810,7 +815,7 @@ def analyse_recording(res: ReadResult | Recording, ref_id: str | None = None,
 def _feed_tables(an: Analysis, data: RunData) -> None:
     """Run data already in memory, summarised as one window."""
     an.static = data.static
-    an.ids, an.index = list(data.ids), {n: i for i, n in enumerate(data.ids)}
+    an.agents = AgentIndex(data.ids)
     an.steps = data.steps
     an.t_first, an.t_last = 0.0, data.sim_span_s
     an.w_first, an.w_last = 0, int(round(data.wall_span_s * 1e9))
