@@ -104,11 +104,11 @@ def test_recorder_never_blocks_the_transport_and_counts_drops():
     live = LiveRecorder(None, keys, slow, config=RecordConfig(queue=10, queue_mb=1.0, scene=False, physics_hz=0))
     t0 = time.perf_counter()
     for _ in range(200):  # the writer is stalled: the callback must still return at once
-        live._cb(_Sample(keys.step, b"x" * 1000))
+        live.on_sample(_Sample(keys.step, b"x" * 1000))
     assert time.perf_counter() - t0 < 0.5
     assert live.received == 200 and 185 <= live.dropped <= 190  # 10 queued, 1 in the writer's hands
     big = _Sample(keys.step, b"x" * 2_000_000)  # over the byte bound on its own
-    live._cb(big)
+    live.on_sample(big)
     slow.release.set()
     live.stop(10)
     assert live.dropped >= 186 and live.written == len(slow.written) == live.received - live.dropped

@@ -25,7 +25,7 @@ from runtime.config import ZenohConfig
 from runtime.transport import open_session
 from synthetic.feed import FakePublisher
 from synthetic.traffic import FakeRun
-from tests.harness import endpoint, wait_until
+from tests.harness import endpoint
 
 pytestmark = pytest.mark.integration
 
@@ -53,12 +53,6 @@ class _RenamingRun(FakeRun):
         return super().physics(tick, t, sumo_step, gain)
 
 
-def _drained(live: LiveRecorder) -> None:
-    wait_until(lambda: live._q.unfinished_tasks == 0, 10.0, "the writer queue drained")
-    if live._scene_worker is not None:
-        assert live._scene_worker.drain(10.0)
-
-
 def test_recorder_state_stays_bounded_across_sumo_restarts(tmp_path):
     keys = Keys("sumoco", "soak")
     path = tmp_path / "soak.mcap"
@@ -81,7 +75,7 @@ def test_recorder_state_stays_bounded_across_sumo_restarts(tmp_path):
                         assert live.fetch_static(5.0, map_timeout_s=0) is not None
                     time.sleep(PASS_S)
                     pub.stop()
-                _drained(live)
+                assert live.drain(10.0), "the writer queue and the scene worker drained"
                 gc.collect()
                 heap.append(tracemalloc.get_traced_memory()[0])
                 threads.append(threading.active_count())
@@ -93,13 +87,14 @@ def test_recorder_state_stays_bounded_across_sumo_restarts(tmp_path):
     state_keys = {keys.step} | {Keys(keys.root, keys.run, p).physics_state for p in ("paper", "default")}
     assert live.written > RESTARTS * 50 and live.dropped == 0 and live.compact_errors == 0
     # per key, never per restart, step or agent name
-    assert set(live._encoder._st) == state_keys
-    assert all(len(st.ids) == AGENTS for st in live._encoder._st.values())
-    assert set(live._last_t) <= state_keys
-    assert len(rec._channels) <= len(state_keys) + 1  # + the static data
+    kept = live.debug_state()
+    assert set(kept.encoder_agents) == state_keys
+    assert all(n == AGENTS for n in kept.encoder_agents.values())
+    assert kept.thinning_keys <= state_keys
+    assert rec.channel_count <= len(state_keys) + 1  # + the static data
     if scene_mod.available():
-        assert set(live._scene._last_t) <= state_keys
-        assert len(live._scene._sizes) == AGENTS
+        assert kept.scene_keys <= state_keys
+        assert kept.scene_sizes == AGENTS
     # no thread left behind per restart (Zenoh's own threads are not Python threads)
     assert threads[-1] <= threads[1], threads
     # Python heap after passes 2..6 with the queues drained (tracemalloc: Python allocations

@@ -177,6 +177,10 @@ class CompactEncoder:
         """Forget a key's state (its next message is a keyframe): after a failed write."""
         self._st.pop(topic, None)
 
+    def agents_per_key(self) -> dict[str, int]:
+        """Agents remembered per key (what the encoder's memory grows with)."""
+        return {topic: len(st.ids) for topic, st in self._st.items()}
+
     def encode(self, topic: str, msg) -> tuple[str, bytes]:
         """(schema name, record bytes) of a step or physics message."""
         st = self._st.get(topic)

@@ -25,7 +25,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, NamedTuple
 
 import msgpack
 import zenoh
@@ -139,6 +139,12 @@ class McapRecorder:
             self._channels[(topic, schema)] = ch
         return ch
 
+    @property
+    def channel_count(self) -> int:
+        """MCAP channels opened so far (one per key and schema)."""
+        with self._lock:
+            return len(self._channels)
+
     def write(self, topic: str, payload: bytes, stamp_ns: int | None = None,
               schema: str | None = None) -> None:
         stamp = time.time_ns() if stamp_ns is None else stamp_ns
@@ -183,6 +189,16 @@ class McapRecorder:
         return (f"{self.path}: disk nearly full ({free / 2**20:.1f} MiB free, {RESERVE_BYTES / 2**20:.0f} MiB "
                 f"kept in reserve): recording stopped after {self.count} messages; the file is complete "
                 "up to there")
+
+
+class RecorderState(NamedTuple):
+    """What a ``LiveRecorder`` keeps between messages (``debug_state``): all of it should be
+    bounded by the keys of the run, never grow with steps, restarts or agent names."""
+
+    encoder_agents: dict[str, int]  # key -> agents the compact encoder remembers
+    thinning_keys: frozenset[str]  # keys whose last kept physics time is remembered
+    scene_keys: frozenset[str]  # keys the scene thins by time ({} without a scene)
+    scene_sizes: int  # agent sizes the scene remembers (0 without a scene)
 
 
 class LiveRecorder:
@@ -238,8 +254,9 @@ class LiveRecorder:
     def scene_dropped(self) -> int:
         return self._scene_worker.dropped if self._scene_worker else 0
 
-    def _cb(self, sample: zenoh.Sample) -> None:
-        # Zenoh's thread: copy the bytes and hand them over, nothing else.
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        """The subscriber's callback (Zenoh's thread): copy the bytes and hand them over to
+        the writer, nothing else; a full queue drops the sample and counts it."""
         self.received += 1
         item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
         n = len(item[1])
@@ -372,7 +389,7 @@ class LiveRecorder:
             self._refetching.clear()
 
     def start(self) -> "LiveRecorder":
-        self._sub = self.session.declare_subscriber(self.keys.everything, self._cb)
+        self._sub = self.session.declare_subscriber(self.keys.everything, self.on_sample)
         return self
 
     def _query(self, key: str, kind: str, timeout_s: float) -> bytes | None:
@@ -402,6 +419,26 @@ class LiveRecorder:
             threading.Thread(target=self._query, args=(self.keys.sumo_map, "map", map_timeout_s),
                              name="record-map", daemon=True).start()
         return data
+
+    def drain(self, timeout_s: float = 10.0) -> bool:
+        """Wait until everything received so far is written (and its scene built); False on
+        timeout."""
+        deadline = time.monotonic() + timeout_s
+        while self._q.unfinished_tasks:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+        worker = self._scene_worker
+        return worker is None or worker.drain(max(0.0, deadline - time.monotonic()))
+
+    def debug_state(self) -> RecorderState:
+        """Sizes of what the recorder keeps between messages (read-only, for soak checks)."""
+        scene = self._scene
+        return RecorderState(
+            encoder_agents=self._encoder.agents_per_key() if self._encoder is not None else {},
+            thinning_keys=frozenset(self._last_t),
+            scene_keys=scene.thinned_keys if scene is not None else frozenset(),
+            scene_sizes=scene.known_sizes if scene is not None else 0)
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Stop listening, then write what is queued (bounded wait)."""

@@ -146,6 +146,16 @@ class ScenePublisher:
         self.errors = 0
         self.thinned = 0
 
+    @property
+    def thinned_keys(self) -> frozenset[str]:
+        """Keys whose last update time is kept for thinning."""
+        return frozenset(self._last_t)
+
+    @property
+    def known_sizes(self) -> int:
+        """Agents whose size (from the newest step) the physics scene draws with."""
+        return len(self._sizes)
+
     def _due(self, key: str, t: float) -> bool:
         last = self._last_t.get(key)
         if last is not None and last - 1.0 <= t < last + self.min_period_s - 1e-6:  # back > 1 s: restart
