@@ -247,23 +247,9 @@ def track_reference(
     ``length`` and ``width`` [m] (SUMO's vType size; default: the family's at the wire class's size).
     """
     cls = AgentClass(int(agent_class))
-    settings = settings or PhysicsSettings()
-    phys = replace(settings.physics, preset=preset, presets={}, shards=1, initial_slots={})
-    ctl = settings.control
-    if lad_min is not None:
-        ctl = replace(ctl, paper=replace(ctl.paper, lad_min=lad_min, lad_max=max(lad_min, ctl.paper.lad_max)))
-    if lateral is not None:
-        ctl = replace(ctl, default=replace(ctl.default, lateral=lateral))
-    settings = PhysicsSettings(phys, ctl)
-    rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
-    if vclass is None:
-        spec = default_spec(cls if cls != AgentClass.OTHER else AgentClass.PASSENGER)
-        initial = {cls if cls != AgentClass.OTHER else AgentClass.PASSENGER: 1}
-    else:  # the family's pool is made at the first spawn
-        base = default_spec(cls if cls != AgentClass.OTHER else AgentClass.PASSENGER)
-        L, W = length or base.length, width or base.width
-        spec = spec_for_size(family_for(cls, vclass, L), L, W)
-        initial = {}
+    settings, rates = _experiment_settings(settings or PhysicsSettings(), preset, lad_min, lateral)
+    phys, ctl = settings.physics, settings.control
+    spec, initial = _experiment_spec(cls, vclass, length, width)
     length = spec.length if length is None else length
     width = spec.width if width is None else width
     world = PhysicsWorld(phys.timestep_s, rates.substeps, shards=1, initial=initial)
@@ -271,9 +257,7 @@ def track_reference(
         world.tables.max_steer[:] = np.minimum(world.tables.max_steer, np.radians(max_steer_deg))
     fleet = Fleet(world, settings, rates)
     lad_params = (ctl.paper.lad_min, ctl.paper.lad_max, ctl.paper.k_lad)
-    rec: dict[str, list] = {k: [] for k in (
-        "t", "x", "y", "held_x", "held_y", "err_lon", "err_lat", "speed", "v_ref", "steer_deg", "steer_pct",
-        "drive", "brake", "u", "roll", "pitch", "z", "mode")}
+    rec: dict[str, list] = {k: [] for k in _SERIES}
     max_steer = np.rad2deg(world.tables.max_steer[0]) if len(world.tables.max_steer) else spec.max_steer_deg
     t = None
     for msg in step_messages(traj, cls, length, width, phys.sumo_step_s, lad_params, vclass=vclass):
@@ -290,24 +274,63 @@ def track_reference(
             t += rates.control_dt
             if t < -1e-9:  # interpolating, the first step covers the time before the reference starts
                 continue
-            snap = fleet.snapshot()
-            rec["t"].append(t)
-            rec["x"].append(snap.x[0])
-            rec["y"].append(snap.y[0])
-            rec["held_x"].append(msg.agents.x[0])
-            rec["held_y"].append(msg.agents.y[0])
-            rec["err_lon"].append(snap.err_lon[0])
-            rec["err_lat"].append(snap.err_lat[0])
-            rec["speed"].append(snap.speed[0])
-            rec["steer_deg"].append(snap.steer[0])
-            rec["steer_pct"].append(100.0 * snap.steer[0] / max_steer)
-            rec["drive"].append(snap.drive[0])
-            rec["brake"].append(snap.brake[0])
-            rec["u"].append(fleet.aux[0] if len(fleet.aux) else 0.0)
-            rec["roll"].append(snap.roll[0])
-            rec["pitch"].append(snap.pitch[0])
-            rec["z"].append(snap.z[0])
-            rec["mode"].append(snap.mode[0])
+            _sample(rec, t, fleet, msg, max_steer)
+    return _series(rec, traj, world, fleet)
+
+
+#: The time series ``track_reference`` samples every control tick.
+_SERIES = ("t", "x", "y", "held_x", "held_y", "err_lon", "err_lat", "speed", "v_ref", "steer_deg", "steer_pct",
+           "drive", "brake", "u", "roll", "pitch", "z", "mode")
+
+
+def _experiment_settings(settings: PhysicsSettings, preset: str, lad_min: float | None, lateral: str | None):
+    """One simulation of ``preset``, with the paper's LAD_min or the default lateral law changed
+    when given; its rates."""
+    phys = replace(settings.physics, preset=preset, presets={}, shards=1, initial_slots={})
+    ctl = settings.control
+    if lad_min is not None:
+        ctl = replace(ctl, paper=replace(ctl.paper, lad_min=lad_min, lad_max=max(lad_min, ctl.paper.lad_max)))
+    if lateral is not None:
+        ctl = replace(ctl, default=replace(ctl.default, lateral=lateral))
+    return PhysicsSettings(phys, ctl), check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
+
+
+def _experiment_spec(cls: AgentClass, vclass: str | None, length: float | None, width: float | None):
+    """The model of the agent and the pool made up front (none for a vClass family: its pool
+    is made at the first spawn)."""
+    wire = cls if cls != AgentClass.OTHER else AgentClass.PASSENGER
+    if vclass is None:
+        return default_spec(wire), {wire: 1}
+    base = default_spec(wire)
+    L, W = length or base.length, width or base.width
+    return spec_for_size(family_for(cls, vclass, L), L, W), {}
+
+
+def _sample(rec: dict[str, list], t: float, fleet, msg, max_steer: float) -> None:
+    """The agent's state at physics time ``t`` and the SUMO sample it follows."""
+    snap = fleet.snapshot()
+    rec["t"].append(t)
+    rec["x"].append(snap.x[0])
+    rec["y"].append(snap.y[0])
+    rec["held_x"].append(msg.agents.x[0])
+    rec["held_y"].append(msg.agents.y[0])
+    rec["err_lon"].append(snap.err_lon[0])
+    rec["err_lat"].append(snap.err_lat[0])
+    rec["speed"].append(snap.speed[0])
+    rec["steer_deg"].append(snap.steer[0])
+    rec["steer_pct"].append(100.0 * snap.steer[0] / max_steer)
+    rec["drive"].append(snap.drive[0])
+    rec["brake"].append(snap.brake[0])
+    rec["u"].append(fleet.aux[0] if len(fleet.aux) else 0.0)
+    rec["roll"].append(snap.roll[0])
+    rec["pitch"].append(snap.pitch[0])
+    rec["z"].append(snap.z[0])
+    rec["mode"].append(snap.mode[0])
+
+
+def _series(rec: dict[str, list], traj: Trajectory, world, fleet) -> dict[str, np.ndarray]:
+    """The sampled series as arrays, with the errors against the exact reference, the distance
+    travelled and the run's counters."""
     out = {k: np.asarray(v, np.float64) for k, v in rec.items()}
     exact = traj.at(out["t"])
     out["ref_x"], out["ref_y"], out["v_ref"] = exact["x"], exact["y"], exact["speed"]

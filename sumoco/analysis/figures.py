@@ -32,19 +32,61 @@ def _save(fig, out: Path, name: str) -> str:
 
 def make_figures(data: FigureData, ref_id: str, out: Path, lad_sweep: bool = True,
                  summary: dict | None = None) -> list[str]:
+    """The figures of the reference car ``ref_id`` in ``out``; their file names. With
+    ``lad_sweep``, Fig. 9 replays the car alone (its rows also go to ``summary["lad_sweep"]``)."""
     series = {k: v for k, v in data.series.items() if len(v["t"])}
     track = dict(data.track)
     track["internal"] = internal_lane_mask(data.static, track["lane"])
-    names: list[str] = []
     if not series:
-        return names
+        return []
+    names = [_trajectory_figure(track, series, ref_id, out),
+             _series_figure(out, "fig08_error_over_distance.png", "Fig. 8: position error over distance",
+                            "distance along reference [m]", "front-bumper error [m]",
+                            [(s["dist"], s["err"], _line(inst)) for inst, s in series.items()])]
+    if lad_sweep:
+        names += _lad_sweep_figure(track, out, summary)
+    # Figs. 10-12: steering, torque, velocity over time.
+    t_label = "simulation time [s]"
+    names.append(_series_figure(out, "fig10_steering.png", "Fig. 10: front-wheel steering", t_label,
+                                "front-wheel steering [deg]",
+                                [(s["t"], s["steer"], _line(inst)) for inst, s in series.items()]))
+    torque = []
+    for inst, s in series.items():
+        torque += [(s["t"], s["drive"], _line(inst)),
+                   (s["t"], -s["brake"], dict(lw=0.8, ls=":", label=f"{inst} brake (−)", **_style(inst)))]
+    names.append(_series_figure(out, "fig11_torque.png", "Fig. 11: drive torque u_in", t_label,
+                                "drive torque u_in [N·m]", torque))
+    reference = (track["t"], track["speed"], dict(fmt="r--", lw=1.5, label="SUMO reference"))
+    names.append(_series_figure(out, "fig12_velocity.png", "Fig. 12: velocity tracking", t_label, "speed [m/s]",
+                                [reference] + [(s["t"], s["speed"], _line(inst)) for inst, s in series.items()]))
+    return names
 
-    # Fig. 7: trajectory overlay.
+
+def _line(inst: str) -> dict:
+    """A preset's line in the series figures."""
+    return dict(lw=1, label=inst, **_style(inst))
+
+
+def _series_figure(out: Path, fname: str, title: str, xlabel: str, ylabel: str, lines) -> str:
+    """One wide figure of ``lines`` (x, y, plot keywords; ``fmt`` a format string)."""
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for x, y, kw in lines:
+        kw = dict(kw)
+        fmt = kw.pop("fmt", None)
+        ax.plot(x, y, *([fmt] if fmt else []), **kw)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend()
+    return _save(fig, out, fname)
+
+
+def _trajectory_figure(track: dict, series: dict, ref_id: str, out: Path) -> str:
+    """Fig. 7: the trajectory overlay, distance marks as on Fig. 8's x axis (as in the paper)."""
     fig, ax = plt.subplots(figsize=(7, 6))
     ax.plot(track["x"], track["y"], "r--", lw=1.5, label="SUMO reference")
     for inst, s in series.items():
         ax.plot(s["x"], s["y"], lw=1.2, label=f"physics ({inst})", **_style(inst))
-    # Distance markers on the reference (aligned with Fig. 8's x axis, as in the paper).
     s0 = next(iter(series.values()))
     marks = np.arange(0, s0["dist"].max() + 1, 25)
     for d, i in zip(marks, np.searchsorted(s0["dist"], marks)):
@@ -55,73 +97,37 @@ def make_figures(data: FigureData, ref_id: str, out: Path, lad_sweep: bool = Tru
     ax.set_ylabel("y [m]")
     ax.set_title(f"Fig. 7: trajectory of '{ref_id}', actual vs reference")
     ax.legend()
-    names.append(_save(fig, out, "fig07_trajectory.png"))
+    return _save(fig, out, "fig07_trajectory.png")
 
-    # Fig. 8: position error over distance.
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    for inst, s in series.items():
-        ax.plot(s["dist"], s["err"], lw=1, label=inst, **_style(inst))
-    ax.set_xlabel("distance along reference [m]")
-    ax.set_ylabel("front-bumper error [m]")
-    ax.set_title("Fig. 8: position error over distance")
-    ax.legend()
-    names.append(_save(fig, out, "fig08_error_over_distance.png"))
 
-    # Fig. 9: LAD_min sweep through the right turn (paper preset, car replayed alone).
-    if lad_sweep:
-        try:
-            sweep = lad_min_sweep(track)
-        except Exception as e:  # the sweep is an extra; the report stands without it
-            log.warning("LAD_min sweep skipped: %s", e)
-            sweep = None
-        if sweep:
-            if summary is not None:
-                summary["lad_sweep"] = [
-                    {k: v for k, v in row.items() if not isinstance(v, np.ndarray)} for row in sweep
-                ]
-            fig, axes = plt.subplots(1, len(sweep), figsize=(4 * len(sweep), 4), sharey=True)
-            inside = turn_passage(track)  # centre the plots on the turn
-            cx = track["x"][inside].mean() if inside.any() else track["x"].mean()
-            cy = track["y"][inside].mean() if inside.any() else track["y"].mean()
-            for ax, row in zip(np.atleast_1d(axes), sweep):
-                ax.plot(row["ref_x"], row["ref_y"], "r--", lw=1.2, label="reference")
-                ax.plot(row["x"], row["y"], "b-", lw=1.2, label="actual")
-                ax.set_xlim(cx - 25, cx + 25)
-                ax.set_ylim(cy - 25, cy + 25)
-                ax.set_title(f"LAD_min = {row['lad_min_m']} m")
-                ax.set_aspect("equal", adjustable="box")
-                ax.set_xlabel("x [m]")
-            np.atleast_1d(axes)[0].set_ylabel("y [m]")
-            np.atleast_1d(axes)[0].legend()
-            fig.suptitle("Fig. 9: influence of LAD_min in the right turn (paper preset)")
-            names.append(_save(fig, out, "fig09_lad_sweep.png"))
-
-    # Figs. 10-12: steering, torque, velocity over time.
-    for num, key, ylabel, fname in (
-        (10, "steer", "front-wheel steering [deg]", "fig10_steering.png"),
-        (11, "drive", "drive torque u_in [N·m]", "fig11_torque.png"),
-    ):
-        fig, ax = plt.subplots(figsize=(8, 3.5))
-        for inst, s in series.items():
-            ax.plot(s["t"], s[key], lw=1, label=inst, **_style(inst))
-            if key == "drive":
-                ax.plot(s["t"], -s["brake"], lw=0.8, ls=":", label=f"{inst} brake (−)", **_style(inst))
-        ax.set_xlabel("simulation time [s]")
-        ax.set_ylabel(ylabel)
-        ax.set_title(f"Fig. {num}: {ylabel.split(' [')[0]}")
-        ax.legend()
-        names.append(_save(fig, out, fname))
-
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    ax.plot(track["t"], track["speed"], "r--", lw=1.5, label="SUMO reference")
-    for inst, s in series.items():
-        ax.plot(s["t"], s["speed"], lw=1, label=inst, **_style(inst))
-    ax.set_xlabel("simulation time [s]")
-    ax.set_ylabel("speed [m/s]")
-    ax.set_title("Fig. 12: velocity tracking")
-    ax.legend()
-    names.append(_save(fig, out, "fig12_velocity.png"))
-    return names
+def _lad_sweep_figure(track: dict, out: Path, summary: dict | None) -> list[str]:
+    """Fig. 9: LAD_min sweep through the right turn (paper preset, car replayed alone); no
+    figure when the sweep cannot run."""
+    try:
+        sweep = lad_min_sweep(track)
+    except Exception as e:  # the sweep is an extra; the report stands without it
+        log.warning("LAD_min sweep skipped: %s", e)
+        return []
+    if not sweep:
+        return []
+    if summary is not None:
+        summary["lad_sweep"] = [{k: v for k, v in row.items() if not isinstance(v, np.ndarray)} for row in sweep]
+    fig, axes = plt.subplots(1, len(sweep), figsize=(4 * len(sweep), 4), sharey=True)
+    inside = turn_passage(track)  # centre the plots on the turn
+    cx = track["x"][inside].mean() if inside.any() else track["x"].mean()
+    cy = track["y"][inside].mean() if inside.any() else track["y"].mean()
+    for ax, row in zip(np.atleast_1d(axes), sweep):
+        ax.plot(row["ref_x"], row["ref_y"], "r--", lw=1.2, label="reference")
+        ax.plot(row["x"], row["y"], "b-", lw=1.2, label="actual")
+        ax.set_xlim(cx - 25, cx + 25)
+        ax.set_ylim(cy - 25, cy + 25)
+        ax.set_title(f"LAD_min = {row['lad_min_m']} m")
+        ax.set_aspect("equal", adjustable="box")
+        ax.set_xlabel("x [m]")
+    np.atleast_1d(axes)[0].set_ylabel("y [m]")
+    np.atleast_1d(axes)[0].legend()
+    fig.suptitle("Fig. 9: influence of LAD_min in the right turn (paper preset)")
+    return [_save(fig, out, "fig09_lad_sweep.png")]
 
 
 def turn_passage(track: dict, approach_m: float = 3.0) -> np.ndarray:

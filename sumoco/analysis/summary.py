@@ -31,7 +31,7 @@ import numpy as np
 from protocol.keys import Keys
 from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsState, StaticData, StepMessage
 from sumo_side.config import SumoConfig
-from sumoco.recording.record import ReadResult, Recording, iter_decoded, read_recording
+from sumoco.recording.record import ReadResult, Recording, iter_decoded
 
 log = logging.getLogger(__name__)
 
