@@ -18,7 +18,7 @@ from protocol.codec import decode, encode
 from synthetic.traffic import circle_traffic, synthetic_step
 
 
-def _best_ms(fn, repeat: int) -> float:
+def median_ms(fn, repeat: int) -> float:
     """Median wall time of ``fn`` over ``repeat`` calls [ms]."""
     times = []
     for _ in range(repeat):
@@ -40,8 +40,8 @@ def run_codec_bench(sizes=(250, 1000, 2500), repeat: int = 200) -> list[dict]:
                 "path_points_per_agent": pts,
                 "bytes": len(data),
                 "bytes_per_agent": round(len(data) / n, 2),
-                "encode_ms": round(_best_ms(lambda: encode(msg), repeat), 4),
-                "decode_ms": round(_best_ms(lambda: decode(data), repeat), 4),
+                "encode_ms": round(median_ms(lambda: encode(msg), repeat), 4),
+                "decode_ms": round(median_ms(lambda: decode(data), repeat), 4),
             })
     return rows + run_position_encoding_bench(repeat=repeat)
 
@@ -105,12 +105,12 @@ def run_position_encoding_bench(sizes=(1000, 2500), repeat: int = 200) -> list[d
             "path_points_per_agent": int(len(a.path_xy) // n),
             "f64_bytes_per_agent": round(len(w64) / n, 1),
             "offsets_bytes_per_agent": round(len(wire) / n, 1),
-            "f64_encode_ms": round(_best_ms(enc_f64, repeat), 4),
-            "offsets_encode_ms": round(_best_ms(enc_offsets, repeat), 4),
-            "f64_decode_ms": round(_best_ms(dec_f64, repeat), 4),
-            "offsets_decode_ms": round(_best_ms(dec_offsets, repeat), 4),
-            "codec_encode_ms": round(_best_ms(lambda: encode(msg), repeat), 4),
-            "codec_decode_ms": round(_best_ms(lambda: decode(wire), repeat), 4),
+            "f64_encode_ms": round(median_ms(enc_f64, repeat), 4),
+            "offsets_encode_ms": round(median_ms(enc_offsets, repeat), 4),
+            "f64_decode_ms": round(median_ms(dec_f64, repeat), 4),
+            "offsets_decode_ms": round(median_ms(dec_offsets, repeat), 4),
+            "codec_encode_ms": round(median_ms(lambda: encode(msg), repeat), 4),
+            "codec_decode_ms": round(median_ms(lambda: decode(wire), repeat), 4),
             "offsets_max_error_mm": round(float(err) * 1e3, 4),
         })
     return rows

@@ -28,6 +28,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import NamedTuple
 
 import numpy as np
 import zenoh
@@ -115,25 +116,20 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
                "handoff_ns": handoff_ns}, sys.stdout)
 
 
-def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
-            path_points: int = 12) -> dict:
-    """One row: raw and end-to-end latency at ``agents``, measured in the same run."""
-    load_before = os.getloadavg()[0]
-    port = free_tcp_port()
-    ep = f"tcp/127.0.0.1:{port}"
-    cfg = ZenohConfig(listen=(ep,), shared_memory=shm)
-    def build(i: int):
-        # Built just before it is sent, as the SUMO side's bridge builds each step: the
-        # arrays are fresh in cache for both streams (a few seeds: no repeat is cheaper).
-        return synthetic_step(agents, seed=i % 4, step=i, path_points=path_points)
+class _Sent(NamedTuple):
+    """The publisher's side of one row: send stamps [ns] and the encode cost of the e2e stream."""
 
-    nbytes = len(encode(build(0)))
-    raw_sent: list[int] = []
-    e2e_sent: list[int] = []
-    encode_ns: list[int] = []
-    encode_cpu_ns: list[int] = []
-    tune_allocator()
-    freeze_startup_objects()
+    raw: list[int]
+    e2e: list[int]
+    encode_ns: list[int]
+    encode_cpu_ns: list[int]
+
+
+def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: int, period_s: float
+              ) -> tuple[_Sent, dict]:
+    """Start the subscriber process, then send ``steps`` of both streams half a period apart;
+    the subscriber's receive stamps and costs (its JSON) with our send stamps."""
+    sent = _Sent([], [], [], [])
     with open_session(cfg) as s:
         pub_raw = s.declare_publisher(RAW_KEY, **STEP_PUT)
         pub = s.declare_publisher(KEYS.step, **STEP_PUT)
@@ -156,17 +152,17 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
             for i in range(steps):
                 nxt += half
                 wire = encode(build(i))
-                raw_sent.append(time.monotonic_ns())
+                sent.raw.append(time.monotonic_ns())
                 pub_raw.put(wire)
                 time.sleep(max(0.0, nxt - time.monotonic()))
                 nxt += half
                 msg = build(i)
                 t0 = time.monotonic_ns()
-                e2e_sent.append(t0)
+                sent.e2e.append(t0)
                 c0 = time.thread_time_ns()
                 data = encode(msg)
-                encode_cpu_ns.append(time.thread_time_ns() - c0)
-                encode_ns.append(time.monotonic_ns() - t0)
+                sent.encode_cpu_ns.append(time.thread_time_ns() - c0)
+                sent.encode_ns.append(time.monotonic_ns() - t0)
                 pub.put(data)
                 time.sleep(max(0.0, nxt - time.monotonic()))
             out, _ = proc.communicate(timeout=steps * period_s + 60)
@@ -174,15 +170,33 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
             if proc.poll() is None:
                 proc.kill()
             gc.unfreeze()
-    got = json.loads(out or b"{}")
+    return sent, json.loads(out or b"{}")
+
+
+def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
+            path_points: int = 12) -> dict:
+    """One row: raw and end-to-end latency at ``agents``, measured in the same run."""
+    load_before = os.getloadavg()[0]
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    cfg = ZenohConfig(listen=(ep,), shared_memory=shm)
+    def build(i: int):
+        # Built just before it is sent, as the SUMO side's bridge builds each step: the
+        # arrays are fresh in cache for both streams (a few seeds: no repeat is cheaper).
+        return synthetic_step(agents, seed=i % 4, step=i, path_points=path_points)
+
+    nbytes = len(encode(build(0)))
+    tune_allocator()
+    freeze_startup_objects()
+    sent, got = _exchange(cfg, ep, build, agents, shm, steps, period_s)
     raw_at = got.get("raw", [])
     e2e_at = {int(k): v for k, v in got.get("e2e", {}).items()}
-    raw = np.array([(raw_at[i] - raw_sent[i]) / 1e6 for i in range(warmup, min(steps, len(raw_at)))])
-    e2e = np.array([(e2e_at[i] - e2e_sent[i]) / 1e6 for i in range(warmup, steps) if i in e2e_at])
+    raw = np.array([(raw_at[i] - sent.raw[i]) / 1e6 for i in range(warmup, min(steps, len(raw_at)))])
+    e2e = np.array([(e2e_at[i] - sent.e2e[i]) / 1e6 for i in range(warmup, steps) if i in e2e_at])
     r50, r99, rmax = _percentiles(raw)
     e50, e99, emax = _percentiles(e2e)
     dec = np.asarray(got.get("decode_ns", []), float)[warmup:] / 1e6
-    enc = np.asarray(encode_ns, float)[warmup:] / 1e6
+    enc = np.asarray(sent.encode_ns, float)[warmup:] / 1e6
     hand = np.asarray(got.get("handoff_ns", []), float)[warmup:] / 1e6
     return {
         "agents": agents,
@@ -200,7 +214,7 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
         "decode_ms_p50": round(float(np.median(dec)), 4) if len(dec) else None,
         "handoff_ms_p50": round(float(np.median(hand)), 4) if len(hand) else None,
         # CPU time of the same calls: wall minus CPU is time spent waiting for a core
-        "encode_cpu_ms_p50": _median_ms(encode_cpu_ns, warmup),
+        "encode_cpu_ms_p50": _median_ms(sent.encode_cpu_ns, warmup),
         "decode_cpu_ms_p50": _median_ms(got.get("decode_cpu_ns", []), warmup),
         # 1-minute load average before and after the row: other processes share the cores,
         # and every cost here after an idle wait is cold-cache cost, which load inflates

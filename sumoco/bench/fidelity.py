@@ -20,8 +20,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from protocol.codec import decode_as, encode
 from protocol.messages import PhysicsState, StepMessage
 from sumoco.bench.scenario import PAPER_SUMOCFG

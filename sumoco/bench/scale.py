@@ -50,6 +50,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple
 
@@ -102,6 +103,24 @@ def _lod_region(x: np.ndarray, y: np.ndarray, n_full: int) -> tuple[float, float
     d = np.sort(np.hypot(x - cx, y - cy))
     r = float(d[min(n_full, len(d)) - 1]) if len(d) else 1.0
     return cx, cy, max(r, 1.0)
+
+
+@contextmanager
+def _filled(sumocfg, size: int, seed: int):
+    """SUMO on ``sumocfg`` in this process, filled to about ``size`` vehicles: (simulation,
+    bridge, last step index, snapshot); closed on leaving."""
+    from sumo_side.bridge import Bridge
+    from sumo_side.config import SumoConfig
+    from sumo_side.simulation import SumoSim
+
+    cfg = SumoConfig(sumocfg=sumocfg)
+    sim = SumoSim(cfg, seed=seed, run_id="bench")
+    sim.start()
+    try:
+        bridge = Bridge(sim, cfg, "bench")
+        yield (sim, bridge, *fill(sim, bridge, size))
+    finally:
+        sim.close()
 
 
 def _alone_steps(sim, bridge, k: int, snap, steps: int):
@@ -213,24 +232,14 @@ def _cosim_row(lod: bool, steps: int, alone: list, alone_cpu: list, t: dict[str,
 
 def cosim_rows(size: int, steps: int, lod_modes=(False, True), seed: int = 42) -> list[dict]:
     """SUMO alone, then the lockstep chain with LOD off / on, on one grid scenario."""
-    from sumo_side.bridge import Bridge
-    from sumo_side.config import SumoConfig
-    from sumo_side.simulation import SumoSim
-
-    cfg = SumoConfig(sumocfg=grid_scenario(size, seed=seed))
+    sumocfg = grid_scenario(size, seed=seed)
     rows = []
     for lod in lod_modes:
-        sim = SumoSim(cfg, seed=seed, run_id="bench")
-        sim.start()
-        try:
-            bridge = Bridge(sim, cfg, "bench")
-            k, snap = fill(sim, bridge, size)
+        with _filled(sumocfg, size, seed) as (sim, bridge, k, snap):
             k, snap, alone, alone_cpu = _alone_steps(sim, bridge, k, snap, steps)
             fleet, rates, split = _cosim_fleet(snap, lod)
             times = _cosim_steps(sim, bridge, fleet, rates, split, k, steps)
             fleet.world.close()
-        finally:
-            sim.close()
         rows.append(_cosim_row(lod, steps, alone, alone_cpu, times, rates.ticks_per_step, fleet.world.shards))
         log.info("bench scale: %s", rows[-1])
     return rows
@@ -515,19 +524,8 @@ def _sumo_alone(sumocfg, size: int, steps: int, seed: int = 42) -> tuple[float, 
     """SUMO's own step [s] (wall, CPU) on ``sumocfg`` filled to ``size`` vehicles, averaged
     over ``steps`` (the read and bridge run between steps, untimed, as in ``cosim_rows``),
     and the vehicles' last positions x, y [m]."""
-    from sumo_side.bridge import Bridge
-    from sumo_side.config import SumoConfig
-    from sumo_side.simulation import SumoSim
-
-    cfg = SumoConfig(sumocfg=sumocfg)
-    sim = SumoSim(cfg, seed=seed, run_id="bench")
-    sim.start()
-    try:
-        bridge = Bridge(sim, cfg, "bench")
-        k, snap = fill(sim, bridge, size)
+    with _filled(sumocfg, size, seed) as (sim, bridge, k, snap):
         _, snap, wall, cpu = _alone_steps(sim, bridge, k, snap, steps)
-    finally:
-        sim.close()
     return float(np.mean(wall)), float(np.mean(cpu)), np.asarray(snap.x), np.asarray(snap.y)
 
 

@@ -54,28 +54,27 @@ class SoakConfig:
     out: Path = Path("runs/soak")
 
 
-def rss_mb(pid: int) -> float:
-    """Resident set size of process ``pid`` [MB] (Linux ``/proc``); NaN if it is gone."""
+def _proc_mb(pid: int, file: str, field: str) -> float:
+    """A ``field: N kB`` line of ``/proc/<pid>/<file>`` in MB; NaN if the process is gone."""
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+        for line in Path(f"/proc/{pid}/{file}").read_text().splitlines():
+            if line.startswith(field):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         pass
     return float("nan")
+
+
+def rss_mb(pid: int) -> float:
+    """Resident set size of process ``pid`` [MB] (Linux ``/proc``); NaN if it is gone."""
+    return _proc_mb(pid, "status", "VmRSS:")
 
 
 def heap_mb(pid: int) -> float:
     """Anonymous memory of process ``pid`` [MB] (Linux ``smaps_rollup``): the heap and other
     private allocations, without the shared libraries' pages that RSS gains as new code paths
     run; a leak shows here. NaN if unknown."""
-    try:
-        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
-            if line.startswith("Anonymous:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float("nan")
+    return _proc_mb(pid, "smaps_rollup", "Anonymous:")
 
 
 class _Hub:

@@ -27,6 +27,7 @@ from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig
 from sumo_side.daemon import HotLoopGC
 from sumo_side.simulation import SumoSim
+from sumoco.bench.cli import median_ms
 from sumoco.bench.scenario import fill, grid_scenario
 
 log = logging.getLogger(__name__)
@@ -57,6 +58,56 @@ def _sessions():
     return pub_s, sub_s
 
 
+def _timed_steps(sim, bridge, publisher, k: int, steps: int) -> tuple[dict[str, list], object]:
+    """The daemon's per-step work for ``steps`` steps after step ``k``, each part timed [s];
+    the last message too (for the codec figures)."""
+    t = {name: [] for name in ("sumo", "read", "build", "encode", "publish", "gc", "agents", "bytes")}
+    msg = None
+    perf = time.perf_counter
+    with HotLoopGC() as hot_gc:
+        for i in range(steps):
+            k += 1
+            t0 = perf()
+            sim.step()
+            t1 = perf()
+            snap = sim.read()
+            t2 = perf()
+            msg = bridge.build(k, snap)
+            t3 = perf()
+            data = encode(msg)
+            t4 = perf()
+            publisher.put(data)
+            t5 = perf()
+            # the daemon collects once per status period (1 s); here once per 10 steps
+            # (1 s of simulated time at 0.1 s steps), its time counted as bridge time
+            if i % 10 == 9:
+                hot_gc.tick()
+            t6 = perf()
+            for name, v in (("sumo", t1 - t0), ("read", t2 - t1), ("build", t3 - t2), ("encode", t4 - t3),
+                            ("publish", t5 - t4), ("gc", t6 - t5), ("agents", snap.n), ("bytes", len(data))):
+                t[name].append(v)
+    return t, msg
+
+
+def _codec_figures(msg) -> dict:
+    """Size per agent and decode/encode time of ``msg``, with and without its paths."""
+    a = msg.agents
+    no_paths = dataclasses.replace(
+        msg, agents=dataclasses.replace(a, path_offsets=np.zeros(0, np.uint32), path_xy=np.zeros((0, 2), np.float32))
+    )
+    data_np = encode(no_paths)
+    data_wp = encode(msg)
+    n = max(a.n, 1)
+    return {
+        "decode_ms": round(median_ms(lambda: decode(data_wp), 30), 4),
+        "bytes_per_agent": round(len(data_np) / n, 2),
+        "bytes_per_agent_with_paths": round(len(data_wp) / n, 2),
+        "path_points_per_agent": round(len(a.path_xy) / n, 2),
+        "encode_ms_no_paths": round(median_ms(lambda: encode(no_paths), 30), 4),
+        "decode_ms_no_paths": round(median_ms(lambda: decode(data_np), 30), 4),
+    }
+
+
 def bench_one(sumocfg: Path, target: int, steps: int, warmup_max: int = 3000, seed: int = 42) -> dict:
     import zenoh
 
@@ -79,88 +130,35 @@ def bench_one(sumocfg: Path, target: int, steps: int, warmup_max: int = 3000, se
         bridge = Bridge(sim, cfg, "bench")
         # Warm up: let the network fill to the target size (and the path cache with it).
         k, _ = fill(sim, bridge, target, warmup_max)
-        warm_steps = k + 1
-        t_sumo, t_read, t_build, t_enc, t_pub, t_gc = ([] for _ in range(6))
-        agents, nbytes = [], []
         walks0 = bridge.planner.resolved
-        msg = None
-        perf = time.perf_counter
-        with HotLoopGC() as hot_gc:
-            for i in range(steps):
-                k += 1
-                t0 = perf()
-                sim.step()
-                t1 = perf()
-                snap = sim.read()
-                t2 = perf()
-                msg = bridge.build(k, snap)
-                t3 = perf()
-                data = encode(msg)
-                t4 = perf()
-                publisher.put(data)
-                t5 = perf()
-                # the daemon collects once per status period (1 s); here once per 10 steps
-                # (1 s of simulated time at 0.1 s steps), its time counted as bridge time
-                if i % 10 == 9:
-                    hot_gc.tick()
-                t6 = perf()
-                t_sumo.append(t1 - t0)
-                t_read.append(t2 - t1)
-                t_build.append(t3 - t2)
-                t_enc.append(t4 - t3)
-                t_pub.append(t5 - t4)
-                t_gc.append(t6 - t5)
-                agents.append(snap.n)
-                nbytes.append(len(data))
-        # codec figures on the last message, with and without paths
-        a = msg.agents
-        no_paths = dataclasses.replace(
-            msg, agents=dataclasses.replace(a, path_offsets=np.zeros(0, np.uint32),
-                                            path_xy=np.zeros((0, 2), np.float32))
-        )
-        data_np = encode(no_paths)
-        data_wp = encode(msg)
-        n = max(a.n, 1)
-
-        def best(fn, reps=30):
-            ts = []
-            for _ in range(reps):
-                t = perf()
-                fn()
-                ts.append(perf() - t)
-            return float(np.median(ts) * 1e3)
-
+        t, msg = _timed_steps(sim, bridge, publisher, k, steps)
+        codec = _codec_figures(msg)
         ms = lambda xs: round(float(np.mean(xs)) * 1e3, 3)  # noqa: E731
-        bridge_each = np.array(t_read) + np.array(t_build) + np.array(t_enc) + np.array(t_pub) + np.array(t_gc)
+        bridge_each = sum(np.array(t[name]) for name in ("read", "build", "encode", "publish", "gc"))
         wait_end = time.monotonic() + 5.0
         while sink.count < steps and time.monotonic() < wait_end:
             time.sleep(0.01)
-        row = {
+        agents = t["agents"]
+        return {
             "scenario": sumocfg.parent.name,
             "agents": int(round(float(np.mean(agents)))),
             "agents_min": int(min(agents)),
             "agents_max": int(max(agents)),
             "steps": steps,
-            "warmup_steps": warm_steps,
-            "sumo_step_ms": ms(t_sumo),
+            "warmup_steps": k + 1,
+            "sumo_step_ms": ms(t["sumo"]),
             "bridge_ms": round(float(np.mean(bridge_each)) * 1e3, 3),
             "bridge_ms_p95": round(float(np.percentile(bridge_each, 95)) * 1e3, 3),
-            "bridge_to_sumo_ratio": round(float(np.mean(bridge_each) / max(np.mean(t_sumo), 1e-12)), 3),
-            "read_ms": ms(t_read),
-            "lookahead_build_ms": ms(t_build),
-            "encode_ms": ms(t_enc),
-            "publish_ms": ms(t_pub),
-            "gc_ms": ms(t_gc),
-            "decode_ms": round(best(lambda: decode(data_wp)), 4),
-            "bytes_per_agent": round(len(data_np) / n, 2),
-            "bytes_per_agent_with_paths": round(len(data_wp) / n, 2),
-            "path_points_per_agent": round(len(a.path_xy) / n, 2),
-            "encode_ms_no_paths": round(best(lambda: encode(no_paths)), 4),
-            "decode_ms_no_paths": round(best(lambda: decode(data_np)), 4),
+            "bridge_to_sumo_ratio": round(float(np.mean(bridge_each) / max(np.mean(t["sumo"]), 1e-12)), 3),
+            "read_ms": ms(t["read"]),
+            "lookahead_build_ms": ms(t["build"]),
+            "encode_ms": ms(t["encode"]),
+            "publish_ms": ms(t["publish"]),
+            "gc_ms": ms(t["gc"]),
+            **codec,
             "lane_walks_per_step": round((bridge.planner.resolved - walks0) / steps, 2),
             "received": sink.count,
         }
-        return row
     finally:
         for obj in (sub, publisher):
             try:

@@ -40,7 +40,7 @@ import sys
 import tempfile
 import time
 import urllib.request
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -178,6 +178,50 @@ class _Viewer:
         self._log.close()
 
 
+class _Watch(NamedTuple):
+    """What the page and the server said over one row's window."""
+
+    first: dict  # the page's stats at the start of the window
+    samples: list[dict]  # ... every 0.5 s after it (the last one ends the window)
+    cpu_s: tuple[float | None, float | None]  # the browser's CPU time [s] at the start and the end
+    stamps: np.ndarray  # the page's frame times [ms]
+    server: dict  # sumoco view's /status at the end
+    info: dict  # the browser's viewport and user agent
+
+
+def _watch(driver: Any, viewer: _Viewer, agents: int, seconds: float, load_timeout: float) -> _Watch:
+    """Load the page, wait until it draws every agent, then watch it for ``seconds``."""
+    _wait(lambda: (st := viewer.status()) and st["static"] and st["steps_received"] > 0, 60.0,
+          "sumoco view to have static data and steps")
+    driver.get(viewer.url)
+
+    def ready():
+        s = driver.execute_script(_STATS)
+        if s and s["errors"]:
+            raise SumocoError(f"bench viewer: page error: {s['lastError']}")
+        return s if (s and s["mapLoaded"] and s["agents"] == agents and s["physicsAgents"] == agents
+                     and s["renders"] > 3) else None
+
+    _wait(ready, load_timeout, f"the 3D page to load the map and draw {agents} agents")
+    driver.execute_script("window.sumoco3d.fit();")  # the whole map: every agent on screen
+    time.sleep(1.0)
+    driver.execute_script(_RAF_PROBE)
+    browser_pid = driver.service.process.pid  # chromedriver: chromium runs under it
+    cpu0 = _tree_cpu_s(browser_pid)
+    first = driver.execute_script(_STATS)
+    samples = []
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        time.sleep(min(0.5, max(0.0, t_end - time.monotonic())))
+        samples.append(driver.execute_script(_STATS))
+    cpu1 = _tree_cpu_s(browser_pid)
+    stamps = np.asarray(driver.execute_script("return window.__benchFrames;"), float)
+    server = viewer.status() or {}
+    info = driver.execute_script(
+        "return {dpr: window.devicePixelRatio, w: innerWidth, h: innerHeight, ua: navigator.userAgent};")
+    return _Watch(first, samples, (cpu0, cpu1), stamps, server, info)
+
+
 def measure(driver: Any, agents: int, seconds: float, tmp: str, load_timeout: float = 120.0) -> dict:
     """One row: the 3D page drawing ``agents`` agents, measured over ``seconds``."""
     fake = FakeRun(grid=GRID, n=agents, run=f"bench-viewer-{agents}")
@@ -187,41 +231,19 @@ def measure(driver: Any, agents: int, seconds: float, tmp: str, load_timeout: fl
         pub = FakePublisher(session, fake, step_hz=10.0, physics_hz=20.0).start()
         viewer = _Viewer(fake.run, ep, os.path.join(tmp, f"view-{agents}.log"))
         try:
-            _wait(lambda: (st := viewer.status()) and st["static"] and st["steps_received"] > 0, 60.0,
-                  "sumoco view to have static data and steps")
-            driver.get(viewer.url)
-
-            def ready():
-                s = driver.execute_script(_STATS)
-                if s and s["errors"]:
-                    raise SumocoError(f"bench viewer: page error: {s['lastError']}")
-                return s if (s and s["mapLoaded"] and s["agents"] == agents and s["physicsAgents"] == agents
-                             and s["renders"] > 3) else None
-
-            _wait(ready, load_timeout, f"the 3D page to load the map and draw {agents} agents")
-            driver.execute_script("window.sumoco3d.fit();")  # the whole map: every agent on screen
-            time.sleep(1.0)
-            driver.execute_script(_RAF_PROBE)
-            browser_pid = driver.service.process.pid  # chromedriver: chromium runs under it
-            cpu0 = _tree_cpu_s(browser_pid)
-            a = driver.execute_script(_STATS)
-            samples = []
-            t_end = time.monotonic() + seconds
-            while time.monotonic() < t_end:
-                time.sleep(min(0.5, max(0.0, t_end - time.monotonic())))
-                samples.append(driver.execute_script(_STATS))
-            b = samples[-1]
-            cpu1 = _tree_cpu_s(browser_pid)
-            stamps = np.asarray(driver.execute_script("return window.__benchFrames;"), float)
-            server = viewer.status() or {}
-            info = driver.execute_script(
-                "return {dpr: window.devicePixelRatio, w: innerWidth, h: innerHeight, ua: navigator.userAgent};")
+            w = _watch(driver, viewer, agents, seconds, load_timeout)
         finally:
             try:
                 driver.get("about:blank")
             finally:
                 viewer.close()
                 pub.stop()
+    return _row(agents, frame_bytes, w)
+
+
+def _row(agents: int, frame_bytes: int, w: _Watch) -> dict:
+    a, b, samples, stamps, server, info = w.first, w.samples[-1], w.samples, w.stamps, w.server, w.info
+    cpu0, cpu1 = w.cpu_s
     dt = (b["now"] - a["now"]) / 1000.0
     gaps = np.diff(stamps[(stamps >= a["now"]) & (stamps <= b["now"])]) if len(stamps) > 1 else np.zeros(0)
     inst = b["instances"] or {}

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, NamedTuple
 
-import msgpack
 import zenoh
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
