@@ -74,10 +74,16 @@ def _add_scenario(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="SUMO random seed (default: the scenario's own)")
 
 
-def _sumo_parser(sub) -> None:
-    p = sub.add_parser("sumo", help="run the SUMO side daemon")
+def _daemon_parser(sub, name: str, help_text: str) -> argparse.ArgumentParser:
+    """A subcommand that runs daemons of a run: the common flags and ``--authority``."""
+    p = sub.add_parser(name, help=help_text)
     _add_common(p)
     _add_authority(p)
+    return p
+
+
+def _sumo_parser(sub) -> None:
+    p = _daemon_parser(sub, "sumo", "run the SUMO side daemon")
     p.add_argument("--sumocfg", help="run this .sumocfg instead of the config's scenario")
     _add_scenario(p)
     p.add_argument("--output-dir", help="folder for SUMO's own outputs and log (default: where the scenario "
@@ -89,9 +95,7 @@ def _sumo_parser(sub) -> None:
 
 
 def _physics_parser(sub) -> None:
-    p = sub.add_parser("physics", help="run the physics side daemon")
-    _add_common(p)
-    _add_authority(p)
+    p = _daemon_parser(sub, "physics", "run the physics side daemon")
     p.add_argument("--preset", help="control preset for every agent type (paper|default|kinematic)")
     p.add_argument("--instance", help="physics instance name in the keys (default: [physics].instance or 'main')")
     p.add_argument("--shard", help="i/k: simulate only shard i of k (spatial tiles); the instance becomes "
@@ -101,9 +105,7 @@ def _physics_parser(sub) -> None:
 
 
 def _demo_parser(sub) -> None:
-    p = sub.add_parser("demo", help="both daemons on loopback, bounded run, report")
-    _add_common(p)
-    _add_authority(p)
+    p = _daemon_parser(sub, "demo", "both daemons on loopback, bounded run, report")
     p.add_argument("--sumocfg", help="bring your own SUMO scenario")
     _add_scenario(p)
     p.add_argument("--out", help="output folder (default: runs/demo, or runs/<scenario name> with --sumocfg)")
