@@ -50,6 +50,28 @@ REAR_STEER_LAG = math.radians(3.0)  # [rad] a body this far behind SUMO's angle 
 REAR_STEER_V_MIN = 1.0  # [m/s] below this the rear-axle law acts as at this speed
 STEER_SAT_SHARE = 0.97  # [1] steering at this share of its limit counts as saturated
 STEER_SAT_DECEL = 2.0  # [m/s^2] braking per m/s over the reference while saturated (at most this)
+GRIP_SAT_LAT_M = 0.3  # [m] sideways off the path beyond which a vehicle at its tyres' limit gets no drive to catch up
+MAX_GRIP_USE = 0.95  # [1] largest share of the tyres' grip a turn or a lean is taken to use (friction circles)
+# [1] tan of the steepest lean the bicycles' stabiliser leans for (31 deg): leaning up to their
+# 35 deg limit flipped a bicycle in the 1 s-step tram scenario
+MAX_LEAN_TAN = 0.6
+BIKE_MAX_LEAN_DEG = 35.0  # [deg] bicycles (a rider's lean)
+MOTORCYCLE_MAX_LEAN_DEG = 42.0  # [deg] motorcycles and mopeds: at their tyres' ~48 deg a lean transient reached 60
+MOTORCYCLE_MASS_KG = 150.0  # [kg] single-track models at least this heavy are motorcycles
+PURSUIT_MIN_DIST_M = 1e-3  # [m] floor of the pursuit distance where it divides
+STANLEY_BETA_MAX = 1.2  # [rad] largest bumper direction off the body Stanley's law asks for
+FORCE_FLOOR_N = 1e-9  # [N] floor of a force norm where it divides
+CURVATURE_FLOOR = 1e-6  # [1/m] (or tan sum [1]) floor where a curvature divides
+STEER_LIMIT_V_MIN = 0.1  # [m/s] the friction circle's steering limit is taken at least at this speed
+A_LAT_FLOOR = 1e-6  # [m/s^2] floor of a lateral acceleration limit where it divides
+SPEED2_FLOOR = 0.01  # [m^2/s^2] floor of a squared speed where it divides
+TAU_EPS_S = 1e-9  # [s] reference ages closer than this are the same
+GAIN_FLOOR = 1e-9  # [1] floor of an integral gain where it divides
+STOP_DECEL = 3.0  # [m/s^2] default braking to rest when SUMO is gone
+HOLD_ACCEL_MAX = 0.5  # [m/s^2] a standing reference holds the brakes unless more than this is asked
+ROLLING_BACK_SPEED = 0.01  # [m/s] rolling backwards faster than this continues a roll back
+CREEP_GAIN = 2.0  # [1/s] roll back: speed error -> acceleration
+REAR_STEERED_DEMAND_MAX = 1.5  # [rad] steering demand kept whole for vehicles that steer their rear axle
 
 
 def _clip(x, lo, hi):
@@ -78,7 +100,7 @@ def pursuit_alpha(bx, by, yaw, tx, ty) -> np.ndarray:
 
 def pure_pursuit_delta(alpha: np.ndarray, dist: np.ndarray, wheelbase: np.ndarray) -> np.ndarray:
     """Classic pure pursuit: road-wheel angle [rad] of the arc from the rear axle through the target."""
-    return np.arctan2(2.0 * wheelbase * np.sin(alpha), np.maximum(dist, 1e-3))
+    return np.arctan2(2.0 * wheelbase * np.sin(alpha), np.maximum(dist, PURSUIT_MIN_DIST_M))
 
 
 def paper_steer(alpha: np.ndarray, k_steer: float, max_steer: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +142,7 @@ def stanley_bumper(
     if max_correction:
         corr = max_correction * np.tanh(corr / max_correction)
     beta = -heading_err - corr
-    beta = _clip(beta, -1.2, 1.2)
+    beta = _clip(beta, -STANLEY_BETA_MAX, STANLEY_BETA_MAX)
     return np.arctan(wheelbase * np.tan(beta) / d_bumper)
 
 
@@ -142,7 +164,7 @@ def accel_to_torques(
 
 def roll_stabiliser(
     roll: np.ndarray, roll_rate: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, kp, kd,
-    limit: np.ndarray, max_lean_tan=0.6,
+    limit: np.ndarray, max_lean_tan=MAX_LEAN_TAN,
 ) -> np.ndarray:
     """Bicycle stabiliser torque about the frame's forward axis [N*m].
 
@@ -157,7 +179,7 @@ def roll_stabiliser(
 
 def steered_roll_stabiliser(
     roll: np.ndarray, roll_rate: np.ndarray, speed: np.ndarray, steer: np.ndarray, wheelbase: np.ndarray,
-    kp, kd, limit: np.ndarray, max_lean_tan=0.6,
+    kp, kd, limit: np.ndarray, max_lean_tan=MAX_LEAN_TAN,
 ) -> np.ndarray:
     """``roll_stabiliser`` [N*m] leaning for the turn the steering asks for: yaw rate
     r = v tan(delta) / L of a kinematic bicycle (speed [m/s], steer [rad], wheelbase [m]),
@@ -181,7 +203,7 @@ def _bounded_force(ex, ey, evx, evy, ax, ay, mass, omega, zeta, fmax):
     fx = mass * (ax + k * ex + c * evx)
     fy = mass * (ay + k * ey + c * evy)
     norm = np.hypot(fx, fy)
-    scale = np.where(norm > fmax, fmax / np.maximum(norm, 1e-9), 1.0)
+    scale = np.where(norm > fmax, fmax / np.maximum(norm, FORCE_FLOOR_N), 1.0)
     return fx, fy, norm, scale
 
 
@@ -233,14 +255,14 @@ def bumper_curvature_limit(
     limit, else 0); the bumper, ``d_bumper`` ahead of the rear axle, circles it."""
     tf = np.tan(max_steer)
     tr = np.zeros_like(tf) if max_rear is None else np.tan(np.maximum(max_rear, 0.0))
-    k = np.maximum(tf + tr, 1e-6)
+    k = np.maximum(tf + tr, CURVATURE_FLOOR)
     return 1.0 / np.hypot(wheelbase / k, d_bumper - wheelbase * tr / k)
 
 
 def steer_limit(speed: np.ndarray, wheelbase: np.ndarray, a_lat: np.ndarray, max_steer: np.ndarray) -> np.ndarray:
     """Largest steering angle [rad] at ``speed`` [m/s]: the friction circle's atan(L * a_lat / v^2)
     (v at least 0.1 m/s) or ``max_steer`` [rad], whichever is smaller (``friction_steer_limit``)."""
-    return np.minimum(max_steer, np.arctan(wheelbase * a_lat / np.maximum(speed, 0.1) ** 2))
+    return np.minimum(max_steer, np.arctan(wheelbase * a_lat / np.maximum(speed, STEER_LIMIT_V_MIN) ** 2))
 
 
 def friction_steer_limit(
@@ -257,19 +279,19 @@ def friction_steer_limit(
 def traction_limit(drive: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray, grip_torque: np.ndarray) -> np.ndarray:
     """Drive torque [N*m] bounded by the driven wheels' grip ``grip_torque`` [N*m] less what
     the turn uses (friction circle with the lateral acceleration v * r, speed [m/s], yaw
-    rate [rad/s], at most 0.95 g): a spinning rear axle carries no side force, and a
+    rate [rad/s], at most MAX_GRIP_USE g): a spinning rear axle carries no side force, and a
     rear-driven car pulling away in a bend spun round."""
-    use = np.minimum(np.abs(speed * yaw_rate) / G, 0.95) * GRIP_LATERAL
+    use = np.minimum(np.abs(speed * yaw_rate) / G, MAX_GRIP_USE) * GRIP_LATERAL
     return np.minimum(drive, grip_torque * np.sqrt(1.0 - use * use))
 
 
 def lean_traction_limit(torque: np.ndarray, roll: np.ndarray, a_lat: np.ndarray, max_torque: np.ndarray) -> np.ndarray:
     """Drive or brake ``torque`` [N*m] of a two-wheeler leaning at ``roll`` [rad]: its tyres
     carry the lean's lateral acceleration g tan(roll) as a share of what its lean limit allows
-    (``a_lat`` [m/s^2], at most 0.95), and of ``max_torque`` [N*m] only the rest of the friction
+    (``a_lat`` [m/s^2], at most MAX_GRIP_USE), and of ``max_torque`` [N*m] only the rest of the friction
     circle: at full throttle out of a turn a motorcycle's roll swung +-35 deg and past 50; braked
     at SUMO's 10 m/s^2 while leaning 40 deg, one fell."""
-    use = np.minimum(np.abs(np.tan(roll)) * G / np.maximum(a_lat, 1e-6), 0.95)
+    use = np.minimum(np.abs(np.tan(roll)) * G / np.maximum(a_lat, A_LAT_FLOOR), MAX_GRIP_USE)
     return np.minimum(torque, max_torque * np.sqrt(1.0 - use * use))
 
 
@@ -281,7 +303,7 @@ def curve_speed_cut(
     their reference speed ``v_ref`` [m/s] and the speed sqrt(a_lat / kappa) that the
     largest ``curvature_ahead`` |kappa| [1/m] allows at lateral acceleration ``a_lat``
     [m/s^2]: catching up into a tight turn ran cars metres wide."""
-    v_curve = np.sqrt(a_lat / np.maximum(curvature_ahead, 1e-6))
+    v_curve = np.sqrt(a_lat / np.maximum(curvature_ahead, CURVATURE_FLOOR))
     over = mask & (speed > np.maximum(v_curve, v_ref))
     return np.where(over, 0.0, drive)
 
@@ -323,7 +345,7 @@ def rear_axle_steer(
     tr_b = np.where(lag & (tr_b * tf > 0.0), np.where(tr * tf < 0.0, tr, 0.0), tr_b)
     tr = np.where(sat, tr_b, tr)
     if a_lat is not None:  # the turn's curvature (tan f - tan r) / L within the tyres' grip at this speed
-        q_max = wheelbase * a_lat / np.maximum(speed * speed, 0.01)
+        q_max = wheelbase * a_lat / np.maximum(speed * speed, SPEED2_FLOOR)
         tr = _clip(tr, tf - q_max, tf + q_max)
     return np.arctan(tf), np.arctan(tr)
 
@@ -371,7 +393,7 @@ class ControlState:
         """Track the SUMO step length from the reference's age ``tau`` [s] at each tick of
         ``dt`` [s]: when it drops, a sample arrived ``tau_last + dt - tau`` after the previous
         one. Returns the step length [s] (0 until two samples were seen)."""
-        if tau + 1e-9 < self.tau_last:
+        if tau + TAU_EPS_S < self.tau_last:
             self.step_s = self.tau_last + dt - tau
         self.tau_last = tau
         return self.step_s
@@ -468,7 +490,7 @@ def control_paper(
 
 def control_default(
     obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, dt: float, cfg: DefaultControl,
-    state: ControlState, stopping: np.ndarray | None = None, stop_decel: float = 3.0,
+    state: ControlState, stopping: np.ndarray | None = None, stop_decel: float = STOP_DECEL,
     stop_speed: np.ndarray | None = None, s_guess: np.ndarray | None = None, proj=None,
     rolls_back: np.ndarray | None = None,
 ) -> VehicleCommand:
@@ -513,7 +535,7 @@ def control_default(
     e_v = v_ref - obs.bumper_speed_along(pp.heading)
     # integral only while tracking (not while stopping or standing)
     live = (v_ref > cfg.hold_speed) if stopping is None else (v_ref > cfg.hold_speed) & ~stopping
-    int_max = cfg.int_limit / max(cfg.k_int, 1e-9)
+    int_max = cfg.int_limit / max(cfg.k_int, GAIN_FLOOR)
     state.integ = np.where(live, _clip(state.integ + e_s * dt, -int_max, int_max), 0.0)
     a_cmd = accel_command(e_s, e_v, a_ref, state.integ, cfg.pos_omega, cfg.pos_zeta, cfg.k_int)
     if cfg.brake_omega > cfg.pos_omega and ref.interpolated is None:
@@ -524,7 +546,7 @@ def control_default(
         a_cmd = np.minimum(a_cmd, accel_command(e_s, e_v, a_ref, state.integ, cfg.brake_omega, cfg.pos_zeta, cfg.k_int))
     a_cmd = _clip(a_cmd, -cfg.decel_max, cfg.accel_max)
     drive, brake = accel_to_torques(a_cmd, p.m_eff, p.r_wheel, p.max_drive, p.max_brake)
-    hold = (v_ref <= cfg.hold_speed) & (a_cmd <= 0.5)
+    hold = (v_ref <= cfg.hold_speed) & (a_cmd <= HOLD_ACCEL_MAX)
     brake = np.where(hold, np.maximum(brake, cfg.hold_brake * p.max_brake), brake)
     drive = np.where(hold, 0.0, drive)
     # SUMO's Euler steps stop a vehicle within one step from any speed (1 s steps: 3.3 m/s
@@ -534,13 +556,13 @@ def control_default(
     # (only from rest: a vehicle still rolling forwards brakes as usual; one already rolling
     # back goes on until it is within CREEP_DONE_M)
     back = ((v_ref <= cfg.hold_speed)
-            & (((e_s < -cfg.creep_back_m) & (obs.speed < CREEP_FROM_REST)) | ((e_s < -CREEP_DONE_M) & (obs.speed < -0.01)))
+            & (((e_s < -cfg.creep_back_m) & (obs.speed < CREEP_FROM_REST)) | ((e_s < -CREEP_DONE_M) & (obs.speed < -ROLLING_BACK_SPEED)))
             if cfg.creep_back_m > 0 else None)
     if back is not None and rolls_back is not None:
         back &= rolls_back
     if back is not None and back.any():
         v_back = -np.minimum(cfg.creep_speed, 0.5 * -e_s)
-        t_back = _clip(2.0 * (v_back - obs.speed), -CREEP_ACCEL, CREEP_ACCEL) * p.m_eff * p.r_wheel
+        t_back = _clip(CREEP_GAIN * (v_back - obs.speed), -CREEP_ACCEL, CREEP_ACCEL) * p.m_eff * p.r_wheel
         drive = np.where(back, _clip(t_back, -p.max_drive, p.max_drive), drive)
         brake = np.where(back, 0.0, brake)
 
@@ -568,11 +590,158 @@ def control_default(
         # arc from the front axle: steer the front wheels towards the target point
         steer = alpha
     # (vehicles that steer their rear axle keep the whole demand: ``rear_axle_steer`` splits it)
-    lim = p.max_steer if p.max_rear is None else np.where(p.max_rear > 0, 1.5, p.max_steer)
+    lim = p.max_steer if p.max_rear is None else np.where(p.max_rear > 0, REAR_STEERED_DEMAND_MAX, p.max_steer)
     steer = _clip(steer, -lim, lim)
     if back is not None and back.any():
         steer = np.where(back, 0.0, steer)
     return VehicleCommand(steer, drive, brake, a_cmd)
+
+
+
+# --------------------------------------------------------------------------- vehicle limits, composed
+
+
+@dataclass(frozen=True)
+class VehicleLimits:
+    """Per-agent limits of tyres, drivetrain and riders (arrays of length n, ``vehicle_limits``)."""
+
+    a_lat: np.ndarray
+    """Lateral acceleration the tyres carry [m/s^2]; two-wheelers: no more than their lean's."""
+    grip_torque: np.ndarray
+    """Drive torque the driven wheels carry [N*m] (inf: unlimited)."""
+    max_rear: np.ndarray
+    """Rear-axle steering limit [rad] (0: a fixed rear axle)."""
+    stab_gain: np.ndarray
+    """[1] scale of the configured (the default bicycle's) stabiliser gains."""
+    stab_max: np.ndarray
+    """Stabiliser torque limit [N*m]."""
+    mass: np.ndarray
+    """[kg]."""
+    bike: np.ndarray
+    """Two-wheelers, bool."""
+    any_grip: bool
+    """Some agent's drive is grip-limited."""
+    any_bike: bool
+
+
+def vehicle_limits(tyre_mu: np.ndarray, mass: np.ndarray, bike: np.ndarray, drive_grip: np.ndarray,
+                   r_wheel: np.ndarray, max_rear: np.ndarray, stab_gain: np.ndarray,
+                   stab_max: np.ndarray) -> VehicleLimits:
+    """The agents' ``VehicleLimits`` from their models' tyre friction ``tyre_mu`` [1], ``mass``
+    [kg], driven wheels' grip ``drive_grip`` [N] at radius ``r_wheel`` [m], rear-axle limit
+    ``max_rear`` [rad] and stabiliser (``stab_gain`` [1], ``stab_max`` [N*m]). Two-wheelers
+    lean no further than BIKE_MAX_LEAN_DEG / MOTORCYCLE_MAX_LEAN_DEG (SUMO's bicycles take
+    junction turns at 5-6 m/s: at the tyres' limit the stabiliser asked for 50-65 deg of lean
+    and they fell)."""
+    a_lat = lateral_accel_limit(tyre_mu)
+    lean = np.radians(np.where(mass < MOTORCYCLE_MASS_KG, BIKE_MAX_LEAN_DEG, MOTORCYCLE_MAX_LEAN_DEG))
+    grip = drive_grip_torque(drive_grip, r_wheel)
+    return VehicleLimits(
+        a_lat=np.where(bike, np.minimum(a_lat, G * np.tan(lean)), a_lat), grip_torque=grip, max_rear=max_rear,
+        stab_gain=stab_gain, stab_max=stab_max, mass=mass, bike=bike, any_grip=bool(np.isfinite(grip).any()),
+        any_bike=bool(np.any(bike)),
+    )
+
+
+def merge_commands(n: int, cmds: list[tuple[bool, np.ndarray, VehicleCommand]]) -> tuple[np.ndarray, ...]:
+    """(steer, drive, brake, aux) of ``n`` agents from the presets' commands ``(all, mask,
+    command)``: each command where its mask holds, zeros elsewhere."""
+    if len(cmds) == 1 and cmds[0][0]:  # one controller for everybody (the usual case)
+        cmd = cmds[0][2]
+        return cmd.steer, cmd.drive, cmd.brake, cmd.aux
+    steer, drive, brake, aux = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    for _, use, cmd in cmds:
+        steer = np.where(use, cmd.steer, steer)
+        drive = np.where(use, cmd.drive, drive)
+        brake = np.where(use, cmd.brake, brake)
+        aux = np.where(use, cmd.aux, aux)
+    return steer, drive, brake, aux
+
+
+@dataclass(frozen=True)
+class CatchUp:
+    """What the default preset's catch-up limits read (``limit_commands``)."""
+
+    ref: Reference
+    s_act: np.ndarray
+    """Each bumper's arc length along its path [m]."""
+    tau: float
+    """[s] past the sample."""
+    mask: np.ndarray
+    """Agents under the default controller, bool."""
+    err_lat: np.ndarray
+    """Sideways offset from the path at the last tick [m]."""
+
+
+def limit_commands(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs, p: VehicleParams,
+                   lim: VehicleLimits, rear_steered: bool, catch_up: CatchUp | None) -> tuple[np.ndarray, ...]:
+    """(steer [rad], drive, brake [N*m]) within the vehicles' limits, whatever the controller
+    asked for: the friction circle's steering (not where both axles steer: MuJoCo's tyres and
+    the curve speed cut keep the grip), the driven wheels' grip, and for ``catch_up`` (the
+    default preset, not stopping) no drive faster than the bend ahead allows, none with the
+    steering saturated while faster than the reference, and none at the tyres' limit (fixed
+    rear axle) while faster than the reference and GRIP_SAT_LAT_M off the path: at 1 s steps
+    SUMO turns cars through 45-65 deg within a step; running wide, they fell behind and sped up
+    to catch up (16.5 m/s behind SUMO's 13.9), which widened the turn until they were placed.
+    A leaning two-wheeler's tyres carry less drive and braking. ``obs``: speed [m/s], yaw_rate
+    [rad/s], roll [rad] per agent."""
+    lim_f = steer_limit(obs.speed, p.wheelbase, lim.a_lat, p.max_steer)
+    fixed = lim.max_rear <= 0
+    steer = np.where(fixed, np.clip(steer, -lim_f, lim_f), steer) if rear_steered else np.clip(steer, -lim_f, lim_f)
+    if lim.any_grip:
+        drive = traction_limit(drive, obs.speed, obs.yaw_rate, lim.grip_torque)
+    if catch_up is not None:
+        c = catch_up
+        v = np.maximum(obs.speed, 0.0)
+        kap = np.abs(c.ref.path.at(c.s_act + v * CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
+        v_ref = c.ref.at(c.tau).speed
+        drive = curve_speed_cut(drive, obs.speed, kap, v_ref, lim.a_lat, c.mask)
+        vr = np.where(c.mask, v_ref, np.inf)
+        drive, brake = saturation_speed_cut(drive, brake, steer, p.max_steer, obs.speed, vr, p.m_eff, p.r_wheel)
+        grip_sat = np.abs(steer) >= STEER_SAT_SHARE * lim_f
+        if rear_steered:
+            grip_sat &= fixed
+        drive = np.where(grip_sat & (obs.speed > vr) & (np.abs(c.err_lat) > GRIP_SAT_LAT_M), 0.0, drive)
+    if lim.any_bike:
+        drive = np.where(lim.bike, lean_traction_limit(drive, obs.roll, lim.a_lat, p.max_drive), drive)
+        brake = np.where(lim.bike, lean_traction_limit(brake, obs.roll, lim.a_lat, p.max_brake), brake)
+    return steer, drive, brake
+
+
+def bike_stabiliser(obs, steer: np.ndarray, p: VehicleParams, lim: VehicleLimits, idx: np.ndarray, kp: float,
+                    kd: float) -> np.ndarray:
+    """Stabiliser torque [N*m] of vehicles ``idx`` (``steered_roll_stabiliser``; gains ``kp``
+    [N*m/rad], ``kd`` [N*m*s/rad] scaled per model), leaning up to the steering limit's
+    lateral acceleration; bicycles keep MAX_LEAN_TAN. ``obs``: roll [rad], roll_rate [rad/s],
+    speed [m/s] per agent."""
+    gain = lim.stab_gain[idx]
+    return steered_roll_stabiliser(
+        obs.roll[idx], obs.roll_rate[idx], obs.speed[idx], steer[idx], p.wheelbase[idx], kp * gain, kd * gain,
+        lim.stab_max[idx], np.where(lim.mass[idx] < MOTORCYCLE_MASS_KG, MAX_LEAN_TAN, lim.a_lat[idx] / G),
+    )
+
+
+def pedestrian_control(idx: np.ndarray, obs, at, held, paper: np.ndarray, stop_speed: np.ndarray | None,
+                       mass: np.ndarray, max_force: np.ndarray, paper_cfg: PaperControl,
+                       default_cfg: DefaultControl) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``pedestrian_force`` of pedestrians ``idx`` towards the held sample ``held`` (``paper``,
+    per pedestrian) or the extrapolated reference ``at``, or to a stop where they are at
+    ``stop_speed`` [m/s] (SUMO gone); feed-forward (along-path acceleration, centripetal) for
+    the extrapolated reference only. ``obs``: fx, fy [m], vx, vy [m/s], yaw [rad], yaw_rate
+    [rad/s] per agent. Returns (force x, force y [N], yaw torque [N*m], force norm [N])."""
+    tx = np.where(paper, held.x[idx], at.x[idx])
+    ty = np.where(paper, held.y[idx], at.y[idx])
+    tyaw = np.where(paper, held.tangent[idx], at.tangent[idx])
+    v = np.where(paper, held.speed[idx], at.speed[idx])
+    if stop_speed is not None:
+        v = stop_speed[idx]
+        tx, ty = obs.fx[idx], obs.fy[idx]
+    return pedestrian_force(
+        obs.fx[idx], obs.fy[idx], obs.vx[idx], obs.vy[idx], obs.yaw[idx], obs.yaw_rate[idx], tx, ty, tyaw, v,
+        np.where(paper, 0.0, at.accel[idx]), np.where(paper, 0.0, at.curvature[idx]), mass[idx],
+        np.where(paper, paper_cfg.ped_omega, default_cfg.ped_omega),
+        np.where(paper, paper_cfg.ped_zeta, default_cfg.ped_zeta), max_force[idx],
+    )
 
 
 __all__ = [
@@ -582,4 +751,6 @@ __all__ = [
     "bumper_curvature_limit", "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
     "steer_limit",
     "rear_axle_steer", "saturation_speed_cut", "steered_roll_stabiliser", "traction_limit",
+    "CatchUp", "VehicleLimits", "bike_stabiliser", "limit_commands", "merge_commands", "pedestrian_control",
+    "vehicle_limits",
 ]
