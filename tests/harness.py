@@ -6,6 +6,7 @@ Every wait is bounded; every process started here is killed at teardown.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -53,6 +54,33 @@ def wait_until(cond, timeout_s: float, what: str, poll_s: float = 0.02, procs=()
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
         time.sleep(poll_s)
+
+
+def pids_with(*args: str) -> list[int]:
+    """Processes (other than this one) whose command line has every one of ``args`` as an
+    argument: a run's daemons carry ``--run <id>``."""
+    want = [a.encode() for a in args]
+    pids = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                argv = f.read().split(b"\0")
+        except OSError:
+            continue
+        if all(a in argv for a in want):
+            pids.append(int(pid))
+    return pids
+
+
+def sumo_steps(log_file: Path) -> int:
+    """The last step the SUMO side's status line reports in its log, 0 before the first."""
+    try:
+        found = re.findall(r"\bstep (\d+) t=", log_file.read_text(errors="replace"))
+    except OSError:
+        return 0
+    return int(found[-1]) if found else 0
 
 
 class Daemon:

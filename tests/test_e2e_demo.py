@@ -131,27 +131,11 @@ def test_truncated_recording_still_reports(two_runs):
     assert 0 < s["steps"] < a["steps"]
 
 
-def _processes_mentioning(text: str) -> list[int]:
-    import os
-
-    pids = []
-    for pid in os.listdir("/proc"):
-        if not pid.isdigit() or int(pid) == os.getpid():
-            continue
-        try:
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                if text.encode() in f.read():
-                    pids.append(int(pid))
-        except OSError:
-            pass
-    return pids
-
-
 def test_ctrl_c_stops_every_daemon(tmp_path):
     import signal
     import uuid
 
-    from tests.harness import wait_until
+    from tests.harness import pids_with, sumo_steps, wait_until
 
     run_id = f"ctrlc{uuid.uuid4().hex[:8]}"
     cfg = _config(tmp_path)
@@ -162,34 +146,24 @@ def test_ctrl_c_stops_every_daemon(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT,
     )
     try:
-        wait_until(lambda: len(_processes_mentioning(run_id)) >= 4, 60, "demo + 3 daemons running")
+        wait_until(lambda: len(pids_with(run_id)) >= 4, 60, "demo + 3 daemons running")
         # let it run a little (SUMO's status line says how far): the report must cover what was recorded
-        wait_until(lambda: _sumo_steps(out / "logs" / "sumo.log") >= 10, 60, "SUMO past step 10")
+        wait_until(lambda: sumo_steps(out / "logs" / "sumo.log") >= 10, 60, "SUMO past step 10")
         demo.send_signal(signal.SIGINT)
         demo.wait(60)
         assert demo.returncode == 130
-        wait_until(lambda: not _processes_mentioning(run_id), 10, "no orphan daemon processes")
+        wait_until(lambda: not pids_with(run_id), 10, "no orphan daemon processes")
         summary = json.loads((out / "summary.json").read_text())
         assert summary["steps"] > 5
         assert summary["interrupted"] is True and summary["daemons"]["completed"] is False
     finally:
         if demo.poll() is None:
             demo.kill()
-        for pid in _processes_mentioning(run_id):
+        for pid in pids_with(run_id):
             try:
                 os_kill(pid)
             except OSError:
                 pass
-
-
-def _sumo_steps(log_file) -> int:
-    import re
-
-    try:
-        found = re.findall(r"\bstep (\d+) t=", log_file.read_text(errors="replace"))
-    except OSError:
-        return 0
-    return int(found[-1]) if found else 0
 
 
 def os_kill(pid: int) -> None:

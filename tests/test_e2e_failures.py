@@ -17,8 +17,7 @@ import uuid
 import pytest
 
 from protocol.keys import Keys
-from tests.harness import ROOT, Daemon, Probe, endpoint, wait_until
-from tests.test_e2e_demo import _sumo_steps
+from tests.harness import ROOT, Daemon, Probe, endpoint, pids_with, sumo_steps, wait_until
 from tests.sumo_testnet import make_testnet
 from tests.test_sumo_scenario_options import BAD_ROUTES
 
@@ -83,21 +82,6 @@ def test_sumo_error_mid_run_exits_1_and_peers_see_it_leave(tmp_path):
     assert probe.steps and probe.steps[-1].time == pytest.approx(4.0, abs=0.15)
 
 
-def _pids_with(text: str) -> list[int]:
-    pids = []
-    for pid in os.listdir("/proc"):
-        if not pid.isdigit() or int(pid) == os.getpid():
-            continue
-        try:
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                cmd = f.read().split(b"\0")
-        except OSError:
-            continue
-        if text.encode() in cmd and b"sumo" in cmd:
-            pids.append(int(pid))
-    return pids
-
-
 def test_a_crashed_daemon_is_named_with_its_signal_exit_2(tmp_path):
     run = f"crash{uuid.uuid4().hex[:6]}"
     net = make_testnet(tmp_path / "net")
@@ -108,10 +92,10 @@ def test_a_crashed_daemon_is_named_with_its_signal_exit_2(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
     )
     try:
-        wait_until(lambda: (out / "logs" / "physics-default.log").is_file() and _pids_with(run), 60,
+        wait_until(lambda: (out / "logs" / "physics-default.log").is_file() and pids_with(run, "sumo"), 60,
                    "the SUMO side to start")
-        wait_until(lambda: _sumo_steps(out / "logs" / "sumo.log") >= 10, 60, "SUMO past step 10")
-        for pid in _pids_with(run):  # the SUMO side: `sumoco sumo ... --run <run>`
+        wait_until(lambda: sumo_steps(out / "logs" / "sumo.log") >= 10, 60, "SUMO past step 10")
+        for pid in pids_with(run, "sumo"):  # the SUMO side: `sumoco sumo ... --run <run>`
             os.kill(pid, signal.SIGSEGV)
         _, err = demo.communicate(timeout=60)
     finally:
