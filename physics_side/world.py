@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from physics_side import models as M
-from physics_side.control import G
+from physics_side.control import G, MAX_LEAN_TAN
 from physics_side.kinematics import MAX_KAPPA_D, ackermann, ackermann_4ws, concat_ranges, steady_state_delta
 from physics_side.layout import FREE_NQ, FREE_NV, FREE_POS, FREE_QUAT, FREE_WZ, PED_NQ, Layout, SlotTables
 from physics_side.pools import HEADROOM, SLEEP_NEVER, SlotPools
@@ -36,8 +36,8 @@ from protocol.messages import AgentClass
 
 MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
 # [1] tan of the steepest lean a placed two-wheeler takes (31 deg): the bicycles' stabiliser
-# target cap (``fleet.BIKE_LEAN_TARGET_TAN``, ``control`` ``max_lean_tan``), one value
-PLACE_LEAN_TAN = 0.6
+# target cap, one value
+PLACE_LEAN_TAN = MAX_LEAN_TAN
 CONTACT_N = 1.0  # [N] chassis contact force that counts as touching
 # Collision bits of placed (kinematic, external) bodies (``set_ghost``); the models' own:
 # ground 1, chassis and frames 2, pedestrians 4 (``models``)
