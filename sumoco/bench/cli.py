@@ -9,23 +9,13 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 
 import msgpack
 import numpy as np
 
 from protocol.codec import decode, encode
+from sumoco.bench.timing import median_ms
 from synthetic.traffic import circle_traffic, synthetic_step
-
-
-def median_ms(fn, repeat: int) -> float:
-    """Median wall time of ``fn`` over ``repeat`` calls [ms]."""
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times) * 1e3)
 
 
 def run_codec_bench(sizes=(250, 1000, 2500), repeat: int = 200) -> list[dict]:

@@ -27,7 +27,7 @@ from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig
 from sumo_side.daemon import HotLoopGC
 from sumo_side.simulation import SumoSim
-from sumoco.bench.cli import median_ms
+from sumoco.bench.timing import median_ms
 from sumoco.bench.scenario import fill, grid_scenario
 
 log = logging.getLogger(__name__)
