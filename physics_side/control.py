@@ -30,10 +30,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from physics_side.config import DefaultControl, PaperControl
-from physics_side.reference import Reference, tracking_error
+from physics_side.reference import Reference, ReferencePoint, tracking_error
 from protocol.frames import wrap_pi
+from protocol.messages import AgentMode
 
 G = 9.81  # [m/s^2]
+P_PAPER, P_DEFAULT, P_KINEMATIC = 0, 1, 2  # controller presets: the paper's, ours, placed at SUMO's pose
+PRESET_CODE = {"paper": P_PAPER, "default": P_DEFAULT, "kinematic": P_KINEMATIC}
 A_LAT_SHARE = 0.92  # [1] share of the tyres' grip (mu g) the steering limit allows in lateral acceleration
 GRIP_LATERAL = 1.0  # [1] weight of the turn's lateral acceleration in the drive's friction circle
 CURVE_PREVIEW_S = np.array([0.0, 0.5, 1.0])  # [s] path curvature taken this far ahead at the current speed
@@ -488,6 +491,63 @@ def control_paper(
     return VehicleCommand(steer, drive, brake, u_raw)
 
 
+def _roll_back(obs: VehicleObs, p: VehicleParams, cfg: DefaultControl, v_ref: np.ndarray, e_s: np.ndarray,
+               rolls_back: np.ndarray | None, drive: np.ndarray, brake: np.ndarray) -> tuple:
+    """(who rolls back or None, drive, brake [N*m]) of ``control_default``. SUMO's Euler steps
+    stop a vehicle within one step from any speed (1 s steps: 3.3 m/s to rest in 0.2 m), which
+    no brake can follow: a vehicle that came to rest past its standing reference (``e_s`` [m]
+    < 0, ``v_ref`` [m/s] standing) rolls back to it, wheels straight, instead of standing there
+    for the whole wait (0.8 m for 20 s behind a bus's stop). Only from rest: a vehicle still
+    rolling forwards brakes as usual; one already rolling back goes on until it is within
+    CREEP_DONE_M. ``rolls_back``: who may (None: all)."""
+    back = ((v_ref <= cfg.hold_speed)
+            & (((e_s < -cfg.creep_back_m) & (obs.speed < CREEP_FROM_REST))
+               | ((e_s < -CREEP_DONE_M) & (obs.speed < -ROLLING_BACK_SPEED)))
+            if cfg.creep_back_m > 0 else None)
+    if back is not None and rolls_back is not None:
+        back &= rolls_back
+    if back is not None and back.any():
+        v_back = -np.minimum(cfg.creep_speed, 0.5 * -e_s)
+        t_back = _clip(CREEP_GAIN * (v_back - obs.speed), -CREEP_ACCEL, CREEP_ACCEL) * p.m_eff * p.r_wheel
+        drive = np.where(back, _clip(t_back, -p.max_drive, p.max_drive), drive)
+        brake = np.where(back, 0.0, brake)
+    return back, drive, brake
+
+
+def _default_steer(obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, cfg: DefaultControl,
+                   s_act: np.ndarray, e_lat: np.ndarray, pp) -> np.ndarray:
+    """Road-wheel angle [rad] of ``control_default``'s lateral law (Stanley at the front
+    bumper, or front-axle pure pursuit) for bumpers at ``s_act`` [m] along their paths,
+    ``e_lat`` [m] off them at path point ``pp``; clipped to the steering (vehicles that steer
+    their rear axle keep the whole demand: ``rear_axle_steer`` splits it)."""
+    if cfg.lateral == "stanley":
+        # heading of the path where the bumper will be after the steering lag
+        ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s, tau) if cfg.preview_s else pp
+        # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
+        # leads the body by beta_ss = asin(kappa * d) in a steady turn
+        # ... turned by the drift's angle for SUMO's lateral speed at the car's own speed (at
+        # SUMO's, a car catching up from a stop mid lane change went 0.15 m further sideways)
+        heading_err = wrap_pi(obs.yaw - ahead.heading - ref.drift_angle(tau, np.maximum(obs.speed, 0.0)))
+        steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase,
+                               math.radians(cfg.max_correction_deg))
+        if cfg.k_yaw:
+            r_ref = obs.speed * ahead.curvature
+            steer = steer - cfg.k_yaw * (obs.yaw_rate - r_ref)
+    else:
+        # front-axle pure pursuit: target LAD ahead of the bumper's projection on the path
+        L = lad(obs.speed, cfg.lad_min, cfg.lad_max, cfg.k_lad)
+        tgt = ref.point_at(s_act + L, tau)
+        c, s = np.cos(obs.yaw), np.sin(obs.yaw)
+        ax_x = obs.cx + (p.rear_axle + p.wheelbase) * c
+        ax_y = obs.cy + (p.rear_axle + p.wheelbase) * s
+        alpha = pursuit_alpha(ax_x, ax_y, obs.yaw, tgt.x, tgt.y)
+        # arc from the front axle: steer the front wheels towards the target point
+        steer = alpha
+    lim = p.max_steer if p.max_rear is None else np.where(p.max_rear > 0, REAR_STEERED_DEMAND_MAX, p.max_steer)
+    steer = _clip(steer, -lim, lim)
+    return steer
+
+
 def control_default(
     obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, dt: float, cfg: DefaultControl,
     state: ControlState, stopping: np.ndarray | None = None, stop_decel: float = STOP_DECEL,
@@ -549,49 +609,8 @@ def control_default(
     hold = (v_ref <= cfg.hold_speed) & (a_cmd <= HOLD_ACCEL_MAX)
     brake = np.where(hold, np.maximum(brake, cfg.hold_brake * p.max_brake), brake)
     drive = np.where(hold, 0.0, drive)
-    # SUMO's Euler steps stop a vehicle within one step from any speed (1 s steps: 3.3 m/s
-    # to rest in 0.2 m), which no brake can follow: a vehicle that came to rest past its
-    # standing reference rolls back to it, wheels straight, instead of standing there for
-    # the whole wait (0.8 m for 20 s behind a bus's stop)
-    # (only from rest: a vehicle still rolling forwards brakes as usual; one already rolling
-    # back goes on until it is within CREEP_DONE_M)
-    back = ((v_ref <= cfg.hold_speed)
-            & (((e_s < -cfg.creep_back_m) & (obs.speed < CREEP_FROM_REST)) | ((e_s < -CREEP_DONE_M) & (obs.speed < -ROLLING_BACK_SPEED)))
-            if cfg.creep_back_m > 0 else None)
-    if back is not None and rolls_back is not None:
-        back &= rolls_back
-    if back is not None and back.any():
-        v_back = -np.minimum(cfg.creep_speed, 0.5 * -e_s)
-        t_back = _clip(CREEP_GAIN * (v_back - obs.speed), -CREEP_ACCEL, CREEP_ACCEL) * p.m_eff * p.r_wheel
-        drive = np.where(back, _clip(t_back, -p.max_drive, p.max_drive), drive)
-        brake = np.where(back, 0.0, brake)
-
-    if cfg.lateral == "stanley":
-        # heading of the path where the bumper will be after the steering lag
-        ahead = ref.point_at(s_act + np.maximum(obs.speed, 0.0) * cfg.preview_s, tau) if cfg.preview_s else pp
-        # the vehicle yaw that keeps the bumper moving along the path: the bumper velocity
-        # leads the body by beta_ss = asin(kappa * d) in a steady turn
-        # ... turned by the drift's angle for SUMO's lateral speed at the car's own speed (at
-        # SUMO's, a car catching up from a stop mid lane change went 0.15 m further sideways)
-        heading_err = wrap_pi(obs.yaw - ahead.heading - ref.drift_angle(tau, np.maximum(obs.speed, 0.0)))
-        steer = stanley_bumper(heading_err, e_lat, obs.speed, cfg.k_cross, cfg.v_soft, p.d_bumper, p.wheelbase,
-                               math.radians(cfg.max_correction_deg))
-        if cfg.k_yaw:
-            r_ref = obs.speed * ahead.curvature
-            steer = steer - cfg.k_yaw * (obs.yaw_rate - r_ref)
-    else:
-        # front-axle pure pursuit: target LAD ahead of the bumper's projection on the path
-        L = lad(obs.speed, cfg.lad_min, cfg.lad_max, cfg.k_lad)
-        tgt = ref.point_at(s_act + L, tau)
-        c, s = np.cos(obs.yaw), np.sin(obs.yaw)
-        ax_x = obs.cx + (p.rear_axle + p.wheelbase) * c
-        ax_y = obs.cy + (p.rear_axle + p.wheelbase) * s
-        alpha = pursuit_alpha(ax_x, ax_y, obs.yaw, tgt.x, tgt.y)
-        # arc from the front axle: steer the front wheels towards the target point
-        steer = alpha
-    # (vehicles that steer their rear axle keep the whole demand: ``rear_axle_steer`` splits it)
-    lim = p.max_steer if p.max_rear is None else np.where(p.max_rear > 0, REAR_STEERED_DEMAND_MAX, p.max_steer)
-    steer = _clip(steer, -lim, lim)
+    back, drive, brake = _roll_back(obs, p, cfg, v_ref, e_s, rolls_back, drive, brake)
+    steer = _default_steer(obs, p, ref, tau, cfg, s_act, e_lat, pp)
     if back is not None and back.any():
         steer = np.where(back, 0.0, steer)
     return VehicleCommand(steer, drive, brake, a_cmd)
@@ -673,6 +692,78 @@ class CatchUp:
     """Sideways offset from the path at the last tick [m]."""
 
 
+@dataclass(frozen=True)
+class Groups:
+    """Which agents each part of a control tick handles (``groups``); changes only with the
+    agent set, the modes or the world's slot numbers, so it is built once per SUMO step."""
+
+    kin_idx: np.ndarray
+    """Placed at the reference each tick (kinematic / external)."""
+    use_default: np.ndarray
+    """Vehicles under the default controller (all of them while stopping), bool."""
+    use_paper: np.ndarray
+    any_default: bool
+    all_default: bool
+    any_paper: bool
+    all_paper: bool
+    veh_idx: np.ndarray
+    """Vehicles (commanded through the world's ``command_vehicles``)."""
+    veh_slots: np.ndarray
+    all_veh: bool
+    ped_idx: np.ndarray
+    """Pedestrians under force control."""
+
+
+def groups(ped: np.ndarray, mode: np.ndarray, preset: np.ndarray, stopping: bool, slots: np.ndarray) -> Groups:
+    """``Groups`` of agents (pedestrians ``ped``, ``AgentMode`` ``mode``, preset codes
+    ``preset``, world ``slots``); ``stopping``: every vehicle brakes along its path with the
+    default controller."""
+    veh = ~ped
+    n = len(ped)
+    if stopping:
+        kin = np.zeros(n, bool)
+        use_default, use_paper = veh.copy(), np.zeros(n, bool)
+    else:
+        kin = (mode == AgentMode.KINEMATIC) | (mode == AgentMode.EXTERNAL)
+        use_default = veh & ~kin & (preset == P_DEFAULT)
+        use_paper = veh & ~kin & (preset == P_PAPER)
+    veh_idx = np.flatnonzero(veh)
+    return Groups(
+        kin_idx=np.flatnonzero(kin), use_default=use_default, use_paper=use_paper,
+        any_default=bool(use_default.any()), all_default=bool(use_default.all()), any_paper=bool(use_paper.any()),
+        all_paper=bool(use_paper.all()), veh_idx=veh_idx, veh_slots=slots[veh_idx], all_veh=len(veh_idx) == n,
+        ped_idx=np.flatnonzero(~veh & ~kin),
+    )
+
+
+@dataclass(frozen=True)
+class Commands:
+    """What one control tick writes into the world (arrays over the agents unless noted)."""
+
+    steer: np.ndarray
+    """Bicycle-model road-wheel angle [rad]."""
+    drive: np.ndarray
+    """Drive torque [N*m] (pedestrians: force norm [N])."""
+    brake: np.ndarray
+    """Brake torque [N*m]."""
+    aux: np.ndarray
+    """Controller diagnostics (``VehicleCommand.aux``)."""
+    stab: np.ndarray | None
+    """Bicycle stabiliser torque [N*m] per vehicle (``Groups.veh_idx``), None without bicycles."""
+    ped: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    """Force x, y [N] and yaw torque [N*m] per pedestrian (``Groups.ped_idx``)."""
+    at: ReferencePoint | None
+    """Reference point where kinematic agents and ``carry`` are placed (``Reference.at``), or None."""
+    kin_yaw: np.ndarray | None
+    """Body angle [rad] of kinematic agents (``carry_pose.kinematic_pose``), or None."""
+    carry: np.ndarray | None
+    """Standing agents carried along SUMO's sideways slide (placed), or None."""
+    rear: np.ndarray | None
+    """Rear-axle angle [rad] per agent (vehicles that steer it), None when nobody does."""
+    carry_yaw: np.ndarray | None = None
+    """Body yaw [rad] per agent that ``carry`` keeps (its own at the tick's start)."""
+
+
 def limit_commands(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs, p: VehicleParams,
                    lim: VehicleLimits, rear_steered: bool, catch_up: CatchUp | None) -> tuple[np.ndarray, ...]:
     """(steer [rad], drive, brake [N*m]) within the vehicles' limits, whatever the controller
@@ -706,6 +797,25 @@ def limit_commands(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs,
         drive = np.where(lim.bike, lean_traction_limit(drive, obs.roll, lim.a_lat, p.max_drive), drive)
         brake = np.where(lim.bike, lean_traction_limit(brake, obs.roll, lim.a_lat, p.max_brake), brake)
     return steer, drive, brake
+
+
+def rear_axle_commands(steer: np.ndarray, obs, p: VehicleParams, lim: VehicleLimits, idx: np.ndarray,
+                       sumo_yaw: np.ndarray, sumo_rate: np.ndarray, ahead: float | None) -> np.ndarray:
+    """Rear-axle angles [rad] of all agents, those of ``idx`` turning their bodies towards
+    SUMO's body angle ``sumo_yaw`` [rad] moving at its rate ``sumo_rate`` [rad/s] for
+    ``ahead`` [s] (``rear_axle_steer``; None: stopping, the body's own angle), 0 elsewhere;
+    their front angles in ``steer`` are replaced. ``obs``: yaw [rad], speed [m/s] per agent."""
+    rate = sumo_rate[idx]
+    if ahead is None:
+        yaw_ref, rate = obs.yaw[idx], np.zeros(len(idx))
+    else:
+        yaw_ref = sumo_yaw[idx] + rate * ahead
+    rear = np.zeros(len(steer))
+    steer[idx], rear[idx] = rear_axle_steer(
+        steer[idx], obs.yaw[idx], obs.speed[idx], yaw_ref, rate, p.wheelbase[idx], p.d_bumper[idx],
+        p.max_steer[idx], lim.max_rear[idx], a_lat=lim.a_lat[idx],
+    )
+    return rear
 
 
 def bike_stabiliser(obs, steer: np.ndarray, p: VehicleParams, lim: VehicleLimits, idx: np.ndarray, kp: float,
@@ -748,9 +858,10 @@ __all__ = [
     "ControlState", "VehicleCommand", "VehicleObs", "VehicleParams", "accel_command", "accel_to_torques",
     "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
-    "bumper_curvature_limit", "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit", "pedestrian_force",
+    "bumper_curvature_limit", "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit",
+    "pedestrian_force",
     "steer_limit",
     "rear_axle_steer", "saturation_speed_cut", "steered_roll_stabiliser", "traction_limit",
-    "CatchUp", "VehicleLimits", "bike_stabiliser", "limit_commands", "merge_commands", "pedestrian_control",
-    "vehicle_limits",
+    "CatchUp", "Commands", "Groups", "VehicleLimits", "bike_stabiliser", "groups", "limit_commands", "merge_commands",
+    "pedestrian_control", "rear_axle_commands", "vehicle_limits", "PRESET_CODE", "P_DEFAULT", "P_KINEMATIC", "P_PAPER",
 ]

@@ -24,7 +24,7 @@ from physics_side.reference import Reference
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
 
-log = logging.getLogger("physics_side.fleet")
+log = logging.getLogger("physics_side.fleet")  # (the fleet's: tools quiet its placements by that name)
 
 # Seen on the path ahead: the heading change over INFEASIBLE_WINDOW_M (shorter windows take
 # the corners of coarse lane shapes for curves no car can follow), for windows starting up to
@@ -93,7 +93,8 @@ def grip_shares(kind: np.ndarray, max_rear: np.ndarray, mass: np.ndarray) -> tup
 
 
 def path_tightness(ref: Reference, interpolating: bool, reach: np.ndarray, a_lat: np.ndarray, kind: np.ndarray,
-                   share: np.ndarray, brake: np.ndarray, roll: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   share: np.ndarray, brake: np.ndarray,
+                   roll: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Each vehicle's tightest path ahead as a share of its ``reach`` [1/m], and the largest
     lateral acceleration [m/s^2] its path's 8 m windows ahead ask at its speed (cars at short
     steps: at the least speed SUMO can brake them to at ``brake`` [m/s^2]). The reach's share

@@ -22,6 +22,7 @@ CHORD_FIX_MAX_DEG = 30.0  # [deg] a carried body's chord is turned onto SUMO's a
 KIN_MIN_SPEED = 1.0  # [m/s] curvatures from turn rates and the tyres' grip are taken at least at this speed
 ON_PATH_MAX_RAD = 0.5 * math.pi  # [rad] SUMO's angle this far off its path's start: turned on the spot
 CHORD_MIN_M2 = 1e-6  # [m^2] floor of a chord's squared length where it divides
+POSE_DIMS = 3  # a glide's offset: x [m], y [m], yaw [rad]
 
 
 def turn_rate(before: np.ndarray, now: np.ndarray) -> np.ndarray:
@@ -120,7 +121,7 @@ def start_glide(prev: np.ndarray, was: np.ndarray, began: np.ndarray, obs, held:
     than KIN_GLIDE_MAX_M off, starts on SUMO's pose (a van carried from its spawn glided in
     from the parking spot 70 km away)."""
     n = len(prev)
-    off, age = np.zeros((n, 3)), np.full(n, np.inf)
+    off, age = np.zeros((n, POSE_DIMS)), np.full(n, np.inf)
     if was.any():
         off[was], age[was] = old_off[prev[was]], old_age[prev[was]]
     if began.any():

@@ -29,7 +29,7 @@ from physics_side.policies.footprints import centre, footprint_gap, near_pairs, 
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
 
-log = logging.getLogger("physics_side.fleet")
+log = logging.getLogger("physics_side.fleet")  # (the fleet's: tools quiet its placements by that name)
 
 GHOST_CLEAR_M = 0.3  # [m] a ghost joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's
