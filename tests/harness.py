@@ -172,23 +172,25 @@ class Probe:
             self.session.liveliness().declare_subscriber(f"{keys.base}/**", self._on_alive, history=True),
         ]
 
-    def _on_step(self, s: zenoh.Sample) -> None:
+    def _decoded(self, s: zenoh.Sample):
+        """The sample's message; None (counted in ``bad``) when it does not decode."""
         try:
-            m = decode(s.payload.to_bytes())
+            return decode(s.payload.to_bytes())
         except ProtocolError:
             self.bad += 1
-            return
-        with self.lock:
-            self.steps.append(m)
+            return None
+
+    def _on_step(self, s: zenoh.Sample) -> None:
+        m = self._decoded(s)
+        if m is not None:
+            with self.lock:
+                self.steps.append(m)
 
     def _on_physics(self, s: zenoh.Sample) -> None:
-        try:
-            m = decode(s.payload.to_bytes())
-        except ProtocolError:
-            self.bad += 1
-            return
-        with self.lock:
-            self.physics.setdefault(Keys.instance_of(str(s.key_expr)), []).append(m)
+        m = self._decoded(s)
+        if m is not None:
+            with self.lock:
+                self.physics.setdefault(Keys.instance_of(str(s.key_expr)), []).append(m)
 
     def _on_alive(self, s: zenoh.Sample) -> None:
         with self.lock:
