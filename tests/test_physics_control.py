@@ -418,3 +418,149 @@ def test_a_leaning_two_wheeler_gets_only_the_drive_its_tyres_carry_beside_the_le
     assert out[1] == pytest.approx(500.0 * math.sqrt(1.0 - 0.95 ** 2))
     assert out[2] == pytest.approx(500.0 * math.sqrt(0.75))
     assert out[3] == pytest.approx(-80.0)
+
+
+# --------------------------------------------------------------------------- vehicle limits, composed
+
+
+def _limits(n: int, a_lat: float = 8.0, bike=None, max_rear=None, grip=np.inf, mass: float = 1300.0):
+    """``VehicleLimits`` of ``n`` agents alike."""
+    bike = np.zeros(n, bool) if bike is None else np.asarray(bike, bool)
+    grip = np.full(n, grip)
+    return C.VehicleLimits(a_lat=np.full(n, a_lat), grip_torque=grip,
+                           max_rear=np.zeros(n) if max_rear is None else np.asarray(max_rear, float),
+                           stab_gain=np.ones(n), stab_max=np.full(n, 200.0), mass=np.full(n, mass), bike=bike,
+                           any_grip=bool(np.isfinite(grip).any()), any_bike=bool(bike.any()))
+
+
+def _params(n: int, wheelbase: float = 2.7, max_steer_deg: float = 35.0):
+    one = np.ones(n)
+    return C.VehicleParams(wheelbase * one, 3.6 * one, -1.3 * one, 2.3 * one, 1400.0 * one, 0.3 * one,
+                           np.radians(max_steer_deg) * one, 2500.0 * one, 5000.0 * one)
+
+
+def test_vehicle_limits_cap_a_riders_lean_and_find_the_grip_limited_drives():
+    mu = np.full(3, 1.0)
+    mass = np.array([1300.0, 90.0, 2 * C.MOTORCYCLE_MASS_KG])
+    bike = np.array([False, True, True])
+    lim = C.vehicle_limits(mu, mass, bike, np.array([np.inf, np.inf, 3000.0]), np.full(3, 0.3), np.zeros(3),
+                           np.ones(3), np.full(3, 200.0))
+    tyres = C.A_LAT_SHARE * C.G
+    assert lim.a_lat == pytest.approx([tyres, C.G * math.tan(math.radians(C.BIKE_MAX_LEAN_DEG)),
+                                       min(tyres, C.G * math.tan(math.radians(C.MOTORCYCLE_MAX_LEAN_DEG)))])
+    assert lim.any_grip and lim.any_bike
+    assert list(np.isfinite(lim.grip_torque)) == [False, False, True]
+
+
+def test_merge_commands_keeps_one_controllers_arrays_and_merges_two_by_mask():
+    n = 3
+    a = C.VehicleCommand(np.full(n, 0.1), np.full(n, 10.0), np.zeros(n), np.zeros(n))
+    b = C.VehicleCommand(np.full(n, -0.2), np.zeros(n), np.full(n, 50.0), np.ones(n))
+    steer, drive, brake, aux = C.merge_commands(n, [(True, np.ones(n, bool), a)])
+    assert steer is a.steer and drive is a.drive
+    use_a = np.array([True, False, False])
+    steer, drive, brake, aux = C.merge_commands(n, [(False, use_a, a), (False, np.array([False, True, False]), b)])
+    assert list(steer) == [0.1, -0.2, 0.0] and list(brake) == [0.0, 50.0, 0.0] and list(aux) == [0.0, 1.0, 0.0]
+
+
+def test_groups_split_the_agents_by_what_a_tick_does_with_them():
+    from protocol.messages import AgentMode
+
+    ped = np.array([False, False, False, True, False])
+    mode = np.array([AgentMode.PHYSICAL, AgentMode.PHYSICAL, AgentMode.KINEMATIC, AgentMode.PHYSICAL,
+                     AgentMode.EXTERNAL], np.uint8)
+    preset = np.array([C.P_DEFAULT, C.P_PAPER, C.P_DEFAULT, C.P_DEFAULT, C.P_DEFAULT], np.int8)
+    g = C.groups(ped, mode, preset, False, np.arange(10, 15))
+    assert list(g.kin_idx) == [2, 4] and list(g.ped_idx) == [3] and list(g.veh_idx) == [0, 1, 2, 4]
+    assert list(g.use_default) == [True, False, False, False, False] and list(g.use_paper) == [False, True, False,
+                                                                                                 False, False]
+    assert list(g.veh_slots) == [10, 11, 12, 14] and not g.all_veh and g.any_paper and not g.all_default
+    g = C.groups(ped, mode, preset, True, np.arange(5))  # stopping: every vehicle brakes with ours
+    assert len(g.kin_idx) == 0 and list(g.use_default) == [True, True, True, False, True] and not g.any_paper
+
+
+def test_limit_commands_clip_the_steering_to_the_friction_circle_and_cut_drive_in_grip():
+    """At 10 m/s on 8 m/s^2 of grip a 2.7 m car steers at most atan(2.7 * 8 / 100); a car that
+    steers its rear axle keeps its demand; the grip-limited drive loses what the turn uses."""
+    from types import SimpleNamespace
+
+    n = 2
+    obs = SimpleNamespace(speed=np.full(n, 10.0), yaw_rate=np.array([0.0, 0.8]), roll=np.zeros(n))
+    steer, drive, brake = C.limit_commands(np.full(n, 0.5), np.full(n, 1000.0), np.zeros(n), obs, _params(n),
+                                           _limits(n, grip=600.0), False, None)
+    assert steer == pytest.approx(np.full(n, math.atan(2.7 * 8.0 / 100.0)))
+    use = min(10.0 * 0.8 / C.G, C.MAX_GRIP_USE) * C.GRIP_LATERAL
+    assert drive == pytest.approx([600.0, 600.0 * math.sqrt(1.0 - use * use)]) and not brake.any()
+    steer, _, _ = C.limit_commands(np.full(n, 0.5), np.zeros(n), np.zeros(n), obs, _params(n),
+                                   _limits(n, max_rear=[0.0, 0.2]), True, None)
+    assert steer[0] == pytest.approx(math.atan(0.216)) and steer[1] == 0.5
+
+
+def test_limit_commands_catch_up_gets_no_drive_into_a_bend_it_cannot_take():
+    """A car at 12 m/s, its reference at 10 m/s, a 20 m bend ahead (8 m/s^2 allows 12.6 m/s):
+    drive kept; the same at 14 m/s: no drive. Off the mask (the paper's car): kept."""
+    from types import SimpleNamespace
+
+    from physics_side.reference import Reference
+
+    s = np.arange(0.0, 80.0, 0.5)
+    pts = np.c_[20.0 * np.sin(s / 20.0), 20.0 * (1.0 - np.cos(s / 20.0))]
+    ref = Reference(0.0, [0.0, 0.0], [0.0, 0.0], [90.0, 90.0], [10.0, 10.0], [0.0, 0.0], [5.0, 5.0], [0.0, 0.0],
+                    np.array([0, len(pts), 2 * len(pts)]), np.r_[pts, pts])
+    for v, mask, kept in ((12.0, True, True), (14.0, True, False), (14.0, False, True)):
+        obs = SimpleNamespace(speed=np.full(2, v), yaw_rate=np.zeros(2), roll=np.zeros(2))
+        catch_up = C.CatchUp(ref, np.zeros(2), 0.0, np.full(2, mask), np.zeros(2))
+        _, drive, _ = C.limit_commands(np.zeros(2), np.full(2, 100.0), np.zeros(2), obs, _params(2), _limits(2),
+                                       False, catch_up)
+        assert (drive[0] == 100.0) == kept, (v, mask)
+
+
+def test_the_bicycles_stabiliser_leans_at_most_max_lean_tan_and_motorcycles_to_their_grip():
+    from types import SimpleNamespace
+
+    n = 2
+    obs = SimpleNamespace(roll=np.zeros(n), roll_rate=np.zeros(n), speed=np.full(n, 8.0))
+    lim = _limits(n, a_lat=9.0, bike=[True, True])
+    lim = C.VehicleLimits(**{**lim.__dict__, "mass": np.array([90.0, 2 * C.MOTORCYCLE_MASS_KG])})
+    steer = np.full(n, 0.3)
+    p = _params(n, wheelbase=1.1)
+    out = C.bike_stabiliser(obs, steer, p, lim, np.arange(n), 40.0, 5.0)
+    want = [C.steered_roll_stabiliser(obs.roll[i:i + 1], obs.roll_rate[i:i + 1], obs.speed[i:i + 1], steer[i:i + 1],
+                                      p.wheelbase[i:i + 1], 40.0, 5.0, lim.stab_max[i:i + 1], cap)[0]
+            for i, cap in ((0, C.MAX_LEAN_TAN), (1, 9.0 / C.G))]
+    assert out == pytest.approx(want) and abs(out[1]) > abs(out[0])
+
+
+def test_pedestrian_control_targets_the_held_sample_the_reference_or_a_stop():
+    from types import SimpleNamespace
+
+    n = 3
+    z = np.zeros(n)
+    obs = SimpleNamespace(fx=np.array([0.0, 0.0, 5.0]), fy=z, vx=z, vy=z, yaw=z, yaw_rate=z)
+    held = SimpleNamespace(x=np.full(n, 1.0), y=z, tangent=z, speed=np.full(n, 1.0))
+    at = SimpleNamespace(x=np.full(n, 2.0), y=z, tangent=z, speed=np.full(n, 1.0), accel=z, curvature=z)
+    from physics_side.config import DefaultControl, PaperControl
+
+    idx = np.arange(n)
+    fx, fy, tz, norm = C.pedestrian_control(idx, obs, at, held, np.array([True, False, False]), None, np.full(n, 70.0),
+                                            np.full(n, 1e4), PaperControl(), DefaultControl())
+    assert 0.0 < fx[0] < fx[1]  # 1 m to the held sample, 2 m to the reference
+    fx, _, _, _ = C.pedestrian_control(idx, obs, at, held, np.zeros(n, bool), np.zeros(n), np.full(n, 70.0),
+                                       np.full(n, 1e4), PaperControl(), DefaultControl())
+    assert fx == pytest.approx(np.zeros(n))  # stopping where they are: no force
+
+
+def test_rear_axle_commands_steer_only_the_agents_given():
+    from types import SimpleNamespace
+
+    n = 3
+    obs = SimpleNamespace(yaw=np.array([0.0, 0.0, 0.1]), speed=np.full(n, 5.0))
+    steer = np.full(n, 0.2)
+    rear = C.rear_axle_commands(steer, obs, _params(n), _limits(n, max_rear=[0.0, 0.1, 0.1]), np.array([1, 2]),
+                                np.array([0.0, 0.3, 0.1]), np.zeros(n), None)
+    assert rear[0] == 0.0 and steer[0] == 0.2  # not given: untouched
+    # stopping (no time ahead): the body holds its own angle
+    want_f, want_r = C.rear_axle_steer(np.full(2, 0.2), obs.yaw[1:], obs.speed[1:], obs.yaw[1:], np.zeros(2),
+                                       np.full(2, 2.7), np.full(2, 3.6), np.radians(np.full(2, 35.0)), np.full(2, 0.1),
+                                       a_lat=np.full(2, 8.0))
+    assert rear[1:] == pytest.approx(want_r) and steer[1:] == pytest.approx(want_f)

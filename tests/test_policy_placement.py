@@ -72,3 +72,43 @@ def test_divergence_and_flip_are_placed_and_counted():
     f.apply_step(with_cols(circle_traffic(2, 3), y=circle_traffic(2, 3).agents.y + np.array([7.0, 0.0])))
     assert f.counters["placements_flip"] == 1
     assert abs(np.degrees(w.observe(slot).roll[0])) < 1.0
+
+
+class _World:
+    """Records ``place`` calls (slots, yaw, steady_turn)."""
+
+    def __init__(self):
+        self.calls = []
+
+    def place(self, slots, x, y, yaw, speed, curvature, steady_turn=True, count=True):
+        self.calls.append((list(slots), list(np.round(yaw, 6)), steady_turn, count))
+
+
+def test_act_places_each_claimed_agent_once_as_it_should_stand_and_counts_by_cause(caplog):
+    """0 spawned moving, 1 diverged standing (on SUMO's angle), 2 a slide's start (as it
+    stands: its own yaw), 3 flipped, a rear-steered bus (on SUMO's chord), 4 untouched."""
+    import logging
+
+    from physics_side.policies.placement import act
+    from physics_side.reference import ReferencePoint
+
+    n = 5
+    held = ReferencePoint(x=np.zeros(n), y=np.zeros(n), yaw=np.full(n, 0.1), speed=np.array([5.0, 0.0, 0.0, 5.0, 5.0]),
+                          accel=np.zeros(n), curvature=np.zeros(n), s=np.zeros(n), tangent=np.full(n, 0.2))
+    s = SimpleNamespace(n=n, held=held, obs=SimpleNamespace(yaw=np.full(n, 0.3)), ids=[f"a{i}" for i in range(n)],
+                        mode=np.full(n, AgentMode.PHYSICAL, np.uint8))
+    v = Verdict.empty(s)
+    v.cause[:] = [Cause.SPAWN, Cause.DIVERGENCE, Cause.JUMP, Cause.FLIP, Cause.NONE]
+    v.sliding = np.array([False, False, True, False, False])
+    w = _World()
+    with caplog.at_level(logging.WARNING, logger="physics_side.fleet"):
+        placed = act(w, np.arange(10, 15), s, v, np.array([0.0, 0.0, 0.0, 0.2, 0.0]), step=7)
+    assert list(placed) == [True, True, True, True, False]
+    assert sorted(w.calls) == sorted([
+        ([12], [0.3], False, True),  # the slide's start, as it stands
+        ([11], [0.1], False, True),  # standing: SUMO's angle, wheels straight
+        ([13], [0.1], False, True),  # steers its rear axle: SUMO's chord
+        ([10], [0.2], True, True),  # moving: the steady turn along the tangent
+    ])
+    assert v.counts == {"placements_spawn": 1, "placements_jump": 1, "placements_divergence": 1, "placements_flip": 1}
+    assert any("step 7: placed 1 diverged ['a1'], 1 flipped ['a3']" in r.getMessage() for r in caplog.records)

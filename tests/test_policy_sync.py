@@ -382,3 +382,39 @@ def test_a_slow_vehicle_sumo_moves_sideways_within_a_long_step_is_carried_along(
     assert f.counters["placements_jump"] == 1 and f.counters["placements_divergence"] == 0, f.counters
     assert abs(snap.y[0] - 103.2) < 0.1 and abs(snap.roll[0]) < 3.0, (snap.y, snap.roll)
     assert worst < 0.2, worst
+
+
+def test_pool_keys_round_trip_to_the_millimetre_and_families_name_a_class_once(caplog):
+    import logging
+
+    from physics_side.policies.sync import families, pool_keys, unpack_pool_keys
+
+    key = pool_keys(np.array([1, 5]), np.array([3, 65535]), np.array([4.9996, 12.0]), np.array([1.8, 2.55]))
+    cls, vtype, length, width = unpack_pool_keys(key)
+    assert list(cls) == [1, 5] and list(vtype) == [3, 65535]
+    assert list(length) == [5.0, 12.0] and list(width) == [1.8, 2.55]
+    assert len(np.unique(pool_keys(np.ones(2), np.zeros(2), np.array([5.0, 5.0004]), np.full(2, 1.8)))) == 1
+    warned: set[str] = set()
+    vtypes = [VType("car", "passenger"), VType("lorry", "truck")]
+    with caplog.at_level(logging.INFO, logger="physics_side.fleet"):
+        for _ in range(2):
+            fam = families(np.array([int(AgentClass.PASSENGER), int(AgentClass.OTHER)]), np.array([0, 1]),
+                           np.array([5.0, 12.0]), vtypes, warned)
+    assert "truck" in fam[1] and warned == {"truck"}
+    assert sum("truck" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_samples_keep_each_agents_previous_sample_and_its_turn_rate():
+    from physics_side.policies.sync import Samples
+
+    cfg = PhysicsConfig()
+    samples = Samples()
+    m0 = line_step(0, [100.0, 50.0], [10.0, 10.0])
+    first = samples.advance(m0, np.arange(2), ["veh0", "veh1"], np.full(2, -1), None, cfg, False, np.zeros(0, np.int8))
+    assert not first.yaw_rate.any() and samples.newest.t_k == 0.0 and not first.slow.any()
+    m1 = with_cols(line_step(1, [101.0, 51.0], [10.0, 10.0]), angle=np.array([90.0, 80.0], np.float32))
+    kind = np.zeros(2, np.int8)
+    second = samples.advance(m1, np.arange(2), ["veh0", "veh1"], np.array([0, 1]), samples.newest, cfg, False, kind)
+    assert second.yaw_rate == pytest.approx([0.0, math.radians(10.0) / 0.1])
+    assert samples.yaw_rate is second.yaw_rate and samples.newest.t_k == pytest.approx(0.1)
+    assert not samples.kin_rate.any()  # (no earlier rate that agrees: no turn carried on)
