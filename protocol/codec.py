@@ -6,14 +6,16 @@ with ``v`` = [major, minor] and ``kind``. Per-agent fields are *columns*: one ms
 ``frombuffer`` per field and a C#/C++/TypeScript client gets typed arrays just as cheaply.
 
 Decoding validates structure, types, sizes and finiteness and raises ``ProtocolError``
-naming the field and the expectation; no other exception escapes ``decode``.
+naming the field, the value and the expectation; no other exception escapes ``decode``.
+The expectations live in tables: ``*_COLUMNS`` with ``FLOAT_BOUNDS`` and ``INT_BOUNDS`` for
+the agent columns, ``*_FIELDS`` for the scalar fields of each message.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any, NamedTuple, Union
 
 import msgpack
 import numpy as np
@@ -96,6 +98,14 @@ class DecodeLimits:
             kw = {"raw": False, "strict_map_key": True, "use_list": True, **self._limits_kw()}
             object.__setattr__(self, "_kw", kw)  # a cache, not a field (eq and hash ignore it)
         return kw
+
+    def _reader(self) -> "_Reader":
+        """The field readers of these limits (with the unpack options), built once."""
+        r = self.__dict__.get("_r")
+        if r is None:
+            r = _Reader(self)
+            object.__setattr__(self, "_r", r)  # a cache, not a field
+        return r
 
     def _limits_kw(self) -> dict[str, int]:
         rows = max(self.max_agents, self.max_static_rows)
@@ -185,8 +195,60 @@ FLOAT_BOUNDS: dict[str, tuple[float, float]] = {
     "d_lon": (-COORD_LIMIT, COORD_LIMIT), "d_lat": (-COORD_LIMIT, COORD_LIMIT),
 }
 
-_N_CLASSES = len(AgentClass)
-_N_MODES = len(AgentMode)
+#: Value bounds per integer column whose range does not depend on the message (the vType
+#: index and the lane indexes of tls links do; their decoders check those).
+INT_BOUNDS: dict[str, tuple[int, int]] = {
+    "cls": (0, len(AgentClass) - 1), "mode": (0, len(AgentMode) - 1), "lane": (-1, 2**31 - 1), "contact": (0, 1),
+}
+
+#: The bounds of a float column without an entry in FLOAT_BOUNDS: any finite value.
+_FINITE = (-float(np.finfo(np.float64).max), float(np.finfo(np.float64).max))
+_MISSING: Any = object()  # a field's value when it is absent
+
+#: Scalar field kinds: the msgpack types each accepts.
+_INT, _NUM, _STR, _BOOL = (int,), (float, int), (str,), (bool,)
+
+
+class Field(NamedTuple):
+    """A scalar field of a message and what a receiver accepts (SPEC.md 3)."""
+
+    key: str
+    types: tuple[type, ...]
+    """``_INT`` (bools refused), ``_NUM`` (an integer or a float, decoded as float), ``_STR``, ``_BOOL``."""
+    lo: float = 0
+    """Smallest value (of a string: its length)."""
+    hi: float | None = None
+    """Largest value (None for a string: ``DecodeLimits.max_str`` characters)."""
+    default: Any = _MISSING
+    """The value when the field is absent (``_MISSING``: it must be there)."""
+
+
+_I64_MAX = 2**63 - 1
+#: The scalar fields of each message (the agent tables are the ``*_COLUMNS`` above).
+STEP_FIELDS = (
+    Field("run", _STR), Field("step", _INT, 0, _I64_MAX), Field("t", _NUM, *_FINITE),
+    Field("dt", _NUM, 1e-6, 3600.0), Field("sv", _INT, 0, _I64_MAX, 0), Field("final", _BOOL, False, True, False),
+)
+EGO_FIELDS = (
+    Field("id", _STR), Field("x", _NUM, -COORD_LIMIT, COORD_LIMIT), Field("y", _NUM, -COORD_LIMIT, COORD_LIMIT),
+    Field("angle", _NUM, -720.0, 720.0), Field("speed", _NUM, -200.0, 200.0), Field("t", _NUM, *_FINITE, 0.0),
+    Field("vtype", _STR, 0, None, ""),
+)
+CAMERA_FIELDS = (
+    Field("id", _STR), Field("x", _NUM, -COORD_LIMIT, COORD_LIMIT), Field("y", _NUM, -COORD_LIMIT, COORD_LIMIT),
+    Field("t", _NUM, *_FINITE, 0.0),
+)
+PHYSICS_FIELDS = (
+    Field("run", _STR), Field("tick", _INT, 0, _I64_MAX), Field("t", _NUM, *_FINITE),
+    Field("sumo_step", _INT, -1, _I64_MAX),
+)
+FEEDBACK_FIELDS = (Field("run", _STR), Field("step", _INT, 0, _I64_MAX), Field("t", _NUM, *_FINITE))
+ACK_FIELDS = (
+    Field("run", _STR), Field("step", _INT, 0, _I64_MAX), Field("tick", _INT, 0, _I64_MAX),
+    Field("fb", _BOOL, False, True, False),
+)
+STATIC_FIELDS = (Field("run", _STR), Field("dt", _NUM, 1e-6, 3600.0), Field("sv", _INT, 0, _I64_MAX, 0))
+_PROJECTION = (Field("proj", _STR),)
 
 
 # --------------------------------------------------------------------------- encoding
@@ -225,139 +287,218 @@ def _anchored_path(offsets: np.ndarray, xy: np.ndarray, x: np.ndarray, y: np.nda
 
 def encode(msg: Message) -> bytes:
     """Encode any protocol message to msgpack bytes."""
-    if isinstance(msg, StepMessage):
-        a = msg.agents
-        x = np.asarray(a.x, np.float64)
-        y = np.asarray(a.y, np.float64)
-        agents = {"n": a.n, "id": list(a.ids)}
-        for name, dt in STEP_AGENT_COLUMNS:
-            if name == "la_dx":
-                agents[name] = _bin(np.subtract(a.la_x, x, dtype=np.float64), dt)
-            elif name == "la_dy":
-                agents[name] = _bin(np.subtract(a.la_y, y, dtype=np.float64), dt)
-            else:
-                agents[name] = _bin(getattr(a, name), dt)
-        if len(a.path_offsets):
-            agents["path"] = _anchored_path(a.path_offsets, a.path_xy, x, y)
-        tls = {
-            "id": list(msg.tls.ids),
-            "state": list(msg.tls.state),
-            "phase": np.asarray(msg.tls.phase, np.int64).tolist(),  # Python ints and floats, one call each
-            "next": np.asarray(msg.tls.next_switch, np.float64).tolist(),
-        }
-        if msg.tls.program is not None:
-            tls["program"] = list(msg.tls.program)
-        d = _head("step") | {
-            "run": msg.run,
-            "step": int(msg.step),
-            "t": float(msg.time),
-            "dt": float(msg.step_length),
-            "sv": int(msg.static_version),
-            "agents": agents,
-            "tls": tls,
-        }
-        if msg.vtypes is not None:
-            d["vtypes"] = [[v.id, v.vclass] for v in msg.vtypes]
-        if msg.final:  # optional (older readers ignore it); absent means false
-            d["final"] = True
-    elif isinstance(msg, EgoPose):
-        d = _head("ego") | {
-            "id": msg.id, "x": float(msg.x), "y": float(msg.y), "angle": float(msg.angle),
-            "speed": float(msg.speed), "t": float(msg.time), "vtype": msg.vtype,
-        }
-    elif isinstance(msg, CameraPose):
-        d = _head("camera") | {"id": msg.id, "x": float(msg.x), "y": float(msg.y), "t": float(msg.time)}
-    elif isinstance(msg, PhysicsState):
-        a = msg.agents
-        d = _head("physics") | {
-            "run": msg.run,
-            "tick": int(msg.tick),
-            "t": float(msg.time),
-            "sumo_step": int(msg.sumo_step),
-            "agents": {"n": a.n, "id": list(a.ids), **_columns(a, PHYSICS_AGENT_COLUMNS)},
-            "counters": {str(k): int(v) for k, v in msg.counters.items()},
-        }
-    elif isinstance(msg, PhysicsFeedback):
-        d = _head("feedback") | {
-            "run": msg.run, "step": int(msg.step), "t": float(msg.time),
-            "agents": {"n": msg.n, "id": list(msg.ids), **_columns(msg, FEEDBACK_COLUMNS)},
-        }
-    elif isinstance(msg, StepAck):
-        d = _head("ack") | {"run": msg.run, "step": int(msg.step), "tick": int(msg.tick)}
-        if msg.feedback:  # optional (1.3): absent means False
-            d["fb"] = True
-    elif isinstance(msg, SumoStatus):
-        d = _head("status") | {"counters": {str(k): v if isinstance(v, int) else float(v)
-                                            for k, v in msg.counters.items()}}
-    elif isinstance(msg, StaticData):
-        ln = msg.lanes
-        d = _head("static") | {
-            "run": msg.run,
-            "sv": int(msg.version),
-            "dt": float(msg.step_length),
-            "net": {
-                "offset": [float(v) for v in msg.net_offset],
-                "proj": msg.projection,
-                "bounds": [float(v) for v in msg.bounds],
-            },
-            "lanes": {
-                "n": len(ln.ids),
-                "id": list(ln.ids),
-                "edge": list(ln.edge),
-                "width": _bin(ln.width, "<f4"),
-                "length": _bin(ln.length, "<f4"),
-                "allow": [list(a) for a in ln.allow],
-                "shape": _polyline(ln.shape_offsets, ln.shape_xy),
-            },
-            "junctions": {
-                "n": len(msg.junctions.ids),
-                "id": list(msg.junctions.ids),
-                "shape": _polyline(msg.junctions.shape_offsets, msg.junctions.shape_xy),
-            },
-            "vtypes": {
-                "n": len(msg.vtypes),
-                "id": [v.id for v in msg.vtypes],
-                "vclass": [v.vclass for v in msg.vtypes],
-                "length": _bin(msg.vtype_length, "<f4"),
-                "width": _bin(msg.vtype_width, "<f4"),
-            },
-            "tls": list(msg.tls_ids),
-            "tls_links": {"n": len(msg.tls_links.tls), **_columns(msg.tls_links, TLS_LINK_COLUMNS)},
-        }
-    else:
-        raise TypeError(f"not a protocol message: {type(msg).__name__}")
-    return msgpack.packb(d, use_bin_type=True)
+    enc = _ENCODERS.get(type(msg))
+    if enc is None:  # a subclass of a message type
+        enc = next((f for cls, f in _ENCODERS.items() if isinstance(msg, cls)), None)
+        if enc is None:
+            raise TypeError(f"not a protocol message: {type(msg).__name__}")
+    return msgpack.packb(enc(msg), use_bin_type=True)
+
+
+def _encode_step(msg: StepMessage) -> dict[str, Any]:
+    a = msg.agents
+    x = np.asarray(a.x, np.float64)
+    y = np.asarray(a.y, np.float64)
+    agents = {"n": a.n, "id": list(a.ids)}
+    for name, dt in STEP_AGENT_COLUMNS:
+        if name == "la_dx":
+            agents[name] = _bin(np.subtract(a.la_x, x, dtype=np.float64), dt)
+        elif name == "la_dy":
+            agents[name] = _bin(np.subtract(a.la_y, y, dtype=np.float64), dt)
+        else:
+            agents[name] = _bin(getattr(a, name), dt)
+    if len(a.path_offsets):
+        agents["path"] = _anchored_path(a.path_offsets, a.path_xy, x, y)
+    tls = {
+        "id": list(msg.tls.ids),
+        "state": list(msg.tls.state),
+        "phase": np.asarray(msg.tls.phase, np.int64).tolist(),  # Python ints and floats, one call each
+        "next": np.asarray(msg.tls.next_switch, np.float64).tolist(),
+    }
+    if msg.tls.program is not None:
+        tls["program"] = list(msg.tls.program)
+    d = _head("step") | {
+        "run": msg.run,
+        "step": int(msg.step),
+        "t": float(msg.time),
+        "dt": float(msg.step_length),
+        "sv": int(msg.static_version),
+        "agents": agents,
+        "tls": tls,
+    }
+    if msg.vtypes is not None:
+        d["vtypes"] = [[v.id, v.vclass] for v in msg.vtypes]
+    if msg.final:  # optional (older readers ignore it); absent means false
+        d["final"] = True
+    return d
+
+
+def _encode_ego(msg: EgoPose) -> dict[str, Any]:
+    return _head("ego") | {
+        "id": msg.id, "x": float(msg.x), "y": float(msg.y), "angle": float(msg.angle),
+        "speed": float(msg.speed), "t": float(msg.time), "vtype": msg.vtype,
+    }
+
+
+def _encode_camera(msg: CameraPose) -> dict[str, Any]:
+    return _head("camera") | {"id": msg.id, "x": float(msg.x), "y": float(msg.y), "t": float(msg.time)}
+
+
+def _encode_physics(msg: PhysicsState) -> dict[str, Any]:
+    a = msg.agents
+    return _head("physics") | {
+        "run": msg.run,
+        "tick": int(msg.tick),
+        "t": float(msg.time),
+        "sumo_step": int(msg.sumo_step),
+        "agents": {"n": a.n, "id": list(a.ids), **_columns(a, PHYSICS_AGENT_COLUMNS)},
+        "counters": {str(k): int(v) for k, v in msg.counters.items()},
+    }
+
+
+def _encode_feedback(msg: PhysicsFeedback) -> dict[str, Any]:
+    return _head("feedback") | {
+        "run": msg.run, "step": int(msg.step), "t": float(msg.time),
+        "agents": {"n": msg.n, "id": list(msg.ids), **_columns(msg, FEEDBACK_COLUMNS)},
+    }
+
+
+def _encode_ack(msg: StepAck) -> dict[str, Any]:
+    d = _head("ack") | {"run": msg.run, "step": int(msg.step), "tick": int(msg.tick)}
+    if msg.feedback:  # optional (1.3): absent means False
+        d["fb"] = True
+    return d
+
+
+def _encode_status(msg: SumoStatus) -> dict[str, Any]:
+    return _head("status") | {"counters": {str(k): v if isinstance(v, int) else float(v)
+                                           for k, v in msg.counters.items()}}
+
+
+def _encode_static(msg: StaticData) -> dict[str, Any]:
+    ln = msg.lanes
+    return _head("static") | {
+        "run": msg.run,
+        "sv": int(msg.version),
+        "dt": float(msg.step_length),
+        "net": {
+            "offset": [float(v) for v in msg.net_offset],
+            "proj": msg.projection,
+            "bounds": [float(v) for v in msg.bounds],
+        },
+        "lanes": {
+            "n": len(ln.ids),
+            "id": list(ln.ids),
+            "edge": list(ln.edge),
+            "width": _bin(ln.width, "<f4"),
+            "length": _bin(ln.length, "<f4"),
+            "allow": [list(a) for a in ln.allow],
+            "shape": _polyline(ln.shape_offsets, ln.shape_xy),
+        },
+        "junctions": {
+            "n": len(msg.junctions.ids),
+            "id": list(msg.junctions.ids),
+            "shape": _polyline(msg.junctions.shape_offsets, msg.junctions.shape_xy),
+        },
+        "vtypes": {
+            "n": len(msg.vtypes),
+            "id": [v.id for v in msg.vtypes],
+            "vclass": [v.vclass for v in msg.vtypes],
+            "length": _bin(msg.vtype_length, "<f4"),
+            "width": _bin(msg.vtype_width, "<f4"),
+        },
+        "tls": list(msg.tls_ids),
+        "tls_links": {"n": len(msg.tls_links.tls), **_columns(msg.tls_links, TLS_LINK_COLUMNS)},
+    }
+
+
+_ENCODERS: dict[type, Any] = {
+    StepMessage: _encode_step,
+    EgoPose: _encode_ego,
+    CameraPose: _encode_camera,
+    PhysicsState: _encode_physics,
+    PhysicsFeedback: _encode_feedback,
+    StepAck: _encode_ack,
+    SumoStatus: _encode_status,
+    StaticData: _encode_static,
+}
 
 
 # --------------------------------------------------------------------------- decoding
 
 
-def _get(d: dict, key: str, where: str) -> Any:
-    try:
-        return d[key]
-    except KeyError:
-        raise ProtocolError("missing field", f"{where}{key}") from None
+def _bad(d: dict, key: str, where: str, expected: str) -> ProtocolError:
+    """The error of a field that failed its check: missing, or its value against ``expected``."""
+    if key not in d:
+        return ProtocolError("missing field", where + key)
+    return ProtocolError(f"expected {expected}, got {_show(d[key])}", where + key)
 
 
-def _int(d: dict, key: str, where: str, lo: int = -(2**63), hi: int = 2**63 - 1) -> int:
-    v = _get(d, key, where)
-    if not isinstance(v, int) or isinstance(v, bool):
-        raise ProtocolError(f"expected an integer, got {type(v).__name__}", where + key)
-    if not lo <= v <= hi:
-        raise ProtocolError(f"expected {lo}..{hi}, got {v}", where + key)
+def _show(v: Any) -> str:
+    """``v`` for an error message, short (a hostile value may be megabytes)."""
+    if isinstance(v, (bytes, str, list, dict)) and len(v) > 40:
+        return f"{type(v).__name__} of length {len(v)}"
+    s = repr(v)
+    return s if len(s) <= 60 else f"{s[:57]}..."
+
+
+# Every check is one condition on the way through; its message is built only when it fails.
+# ``type(v) is int`` also refuses bools, which msgpack keeps apart from integers.
+
+
+def _fields(d: dict, spec: tuple[Field, ...], where: str, max_str: int) -> list:
+    """The values of ``spec``'s fields in ``d`` (numbers as float), each checked against its entry."""
+    out = []
+    for key, types, lo, hi, default in spec:
+        v = d.get(key, default)
+        t = type(v)
+        if t not in types or not lo <= (len(v) if t is str else v) <= (max_str if hi is None else hi):
+            raise _bad(d, key, where, _expected(types, lo, hi, max_str))  # NaN and inf fail the comparison
+        out.append(float(v) if t is int and types is _NUM else v)
+    return out
+
+
+def _expected(types: tuple[type, ...], lo: float, hi: float | None, max_str: int) -> str:
+    if types is _STR:
+        return f"a string of at most {max_str} characters"
+    if types is _BOOL:
+        return "true or false"
+    if types is _INT:
+        return f"an integer in {lo}..{hi}"
+    return "a finite number" + ("" if (lo, hi) == _FINITE else f" in {lo:g}..{hi:g}")
+
+
+def _map(d: dict, key: str, where: str) -> dict:
+    v = d.get(key, _MISSING)
+    if type(v) is not dict:
+        raise _bad(d, key, where, "a map")
     return v
 
 
-def _float(d: dict, key: str, where: str, lo: float = -math.inf, hi: float = math.inf) -> float:
-    v = _get(d, key, where)
-    if not isinstance(v, (int, float)) or isinstance(v, bool):
-        raise ProtocolError(f"expected a number, got {type(v).__name__}", where + key)
-    v = float(v)
-    if not math.isfinite(v):
-        raise ProtocolError(f"expected a finite number, got {v}", where + key)
-    if not lo <= v <= hi:
-        raise ProtocolError(f"expected {lo}..{hi}, got {v}", where + key)
+def _list(d: dict, key: str, where: str, n: int | None = None) -> list:
+    v = d.get(key, _MISSING)
+    if type(v) is not list or (n is not None and len(v) != n):
+        raise _bad(d, key, where, _an_array(n))
     return v
+
+
+def _an_array(n: int | None) -> str:
+    return "an array" if n is None else f"an array of {n} elements"
+
+
+def _numbers_ok(v: list, integer: bool, lo: float, hi: float) -> bool:
+    """Every item an integer (or, unless ``integer``, a finite number) in lo..hi: C-level
+    passes, no Python per item (a city has thousands of traffic lights)."""
+    types = set(map(type, v))
+    return (types <= ({int} if integer else {int, float}) and (float not in types or all(map(math.isfinite, v)))
+            and (not v or (lo <= min(v) and max(v) <= hi)))
+
+
+def _numbers(v: list, integer: bool, lo: float, hi: float, field: str) -> None:
+    if not _numbers_ok(v, integer, lo, hi):
+        i = next(i for i, x in enumerate(v) if not _numbers_ok([x], integer, lo, hi))
+        kind = f"integers in {lo}..{hi}" if integer else f"finite numbers in {lo:g}..{hi:g}"
+        raise ProtocolError(f"expected {kind}, got {_show(v[i])} at [{i}]", field)
 
 
 class _Reader:
@@ -365,26 +506,26 @@ class _Reader:
 
     def __init__(self, lim: DecodeLimits) -> None:
         self.lim = lim
-
-    def str(self, d: dict, key: str, where: str) -> str:
-        v = _get(d, key, where)
-        if not isinstance(v, str):
-            raise ProtocolError(f"expected a string, got {type(v).__name__}", where + key)
-        if len(v) > self.lim.max_str:
-            raise ProtocolError(f"expected at most {self.lim.max_str} characters, got {len(v)}", where + key)
-        return v
+        self.unpack_kw = lim._unpack_kw()
+        self._counts: dict[int, tuple[Field]] = {}
 
     def strs(self, d: dict, key: str, where: str, n: int | None = None, unique: bool = False) -> list[str]:
-        v = _list(d, key, where, n)
+        v = d.get(key, _MISSING)
+        if type(v) is not list or (n is not None and len(v) != n):  # as _list: a call fewer per list
+            raise _bad(d, key, where, _an_array(n))
+        if not v:
+            return v
         m = self.lim.max_str
         # C-level passes instead of a Python loop per id: join fails on any non-string,
         # and a joined length within the limit bounds every single length.
         try:
             total = len("".join(v))
         except TypeError:
-            raise ProtocolError(f"expected strings of at most {m} characters", where + key) from None
+            bad = next(s for s in v if not isinstance(s, str))
+            raise ProtocolError(f"expected strings of at most {m} characters, got {_show(bad)}", where + key) from None
         if total > m and max(map(len, v)) > m:
-            raise ProtocolError(f"expected strings of at most {m} characters", where + key)
+            bad = next(s for s in v if len(s) > m)
+            raise ProtocolError(f"expected strings of at most {m} characters, got one of {len(bad)}", where + key)
         if unique and len(set(v)) != len(v):
             seen: set[str] = set()
             dup = next(s for s in v if s in seen or seen.add(s))  # type: ignore[func-returns-value]
@@ -392,146 +533,185 @@ class _Reader:
         return v
 
     def count(self, d: dict, where: str, limit: int) -> int:
-        return _int(d, "n", where, 0, limit)
+        """A table's row count ``n``, at most ``limit``."""
+        spec = self._counts.get(limit)
+        if spec is None:
+            spec = self._counts[limit] = (Field("n", _INT, 0, limit),)
+        return _fields(d, spec, where, 0)[0]
 
     def polyline(self, d: dict, key: str, n: int, where: str) -> tuple[np.ndarray, np.ndarray]:
         """Static polyline: prefers float64 ``xy64`` (1.2), else float32 ``xy`` (1.1)."""
         p = _map(d, key, where)
         w = f"{where}{key}."
         off = _col(p, "off", "<u4", n + 1, w)
-        wide = "xy64" in p
-        name, dt, size = ("xy64", "<f8", 16) if wide else ("xy", "<f4", 8)
-        b = _get(p, name, w)
-        if not isinstance(b, bytes) or len(b) % size:
-            raise ProtocolError(f"expected bin of {dt} (x, y) pairs", w + name)
-        m = len(b) // size
-        self._points(m, w + name)
-        xy = _col(p, name, dt, 2 * m, w, (-COORD_LIMIT, COORD_LIMIT)).reshape(m, 2)
-        _check_offsets(off, n, m, w)
+        name, dt = ("xy64", "<f8") if "xy64" in p else ("xy", "<f4")
+        xy = self.points(p, name, dt, (-COORD_LIMIT, COORD_LIMIT), w)
+        _check_offsets(off, n, len(xy), w)
         return off, xy.astype(np.float64)
 
-    def path(self, a: dict, n: int, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Path ahead: float32 offsets ``dxy`` from each agent's (x, y) (1.2) or absolute ``xy`` (1.1)."""
+    def path(self, a: dict, n: int, anchors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Path ahead: float32 offsets ``dxy`` from each agent's position (1.2; ``anchors``,
+        float64 (n, 2)) or absolute float32 ``xy`` (1.1)."""
         p = _map(a, "path", "agents.")
         w = "agents.path."
         off = _col(p, "off", "<u4", n + 1, w)
         rel = "dxy" in p
-        name = "dxy" if rel else "xy"
-        b = _get(p, name, w)
-        if not isinstance(b, bytes) or len(b) % 8:
-            raise ProtocolError("expected bin of float32 (x, y) pairs", w + name)
-        m = len(b) // 8
-        self._points(m, w + name)
-        bound = (-OFFSET_LIMIT, OFFSET_LIMIT) if rel else (-COORD_LIMIT, COORD_LIMIT)
-        xy = _col(p, name, "<f4", 2 * m, w, bound).reshape(m, 2)
-        _check_offsets(off, n, m, w)
-        if rel and m:
+        if rel:
+            xy = self.points(p, "dxy", "<f4", (-OFFSET_LIMIT, OFFSET_LIMIT), w)
+        else:
+            xy = self.points(p, "xy", "<f4", (-COORD_LIMIT, COORD_LIMIT), w)
+        counts = _check_offsets(off, n, len(xy), w)
+        if rel and len(xy):
             # one pass: float32 offsets + each agent's float64 (x, y) repeated per vertex
-            return off, np.add(xy, np.repeat(np.column_stack((x, y)), np.diff(off.astype(np.int64)), axis=0))
+            return off, np.add(xy, anchors.repeat(counts, axis=0))
         return off, xy.astype(np.float64)
 
-    def _points(self, m: int, field: str) -> None:
+    def points(self, p: dict, name: str, dtype: str, bounds: tuple[float, float], w: str) -> np.ndarray:
+        """The (x, y) pairs of ``dtype`` in ``p[name]``: at most ``max_points``, finite and
+        within ``bounds``; shape (m, 2)."""
+        b = p.get(name, _MISSING)
+        size = 2 * _ITEMSIZE[dtype]
+        if type(b) is not bytes or len(b) % size:
+            raise _bad(p, name, w, f"bin of {dtype} (x, y) pairs")
+        m = len(b) // size
         if m > self.lim.max_points:
-            raise ProtocolError(f"expected at most {self.lim.max_points} points, got {m}", field)
+            raise ProtocolError(f"expected at most {self.lim.max_points} points, got {m}", w + name)
+        return _col(p, name, dtype, 2 * m, w, bounds).reshape(m, 2)
 
 
-def _check_offsets(off: np.ndarray, n: int, m: int, w: str) -> None:
-    if off[0] != 0 or off[-1] != m or (n and np.any(np.diff(off.astype(np.int64)) < 0)):
-        raise ProtocolError(f"expected offsets rising from 0 to {m}", w + "off")
+def _check_offsets(off: np.ndarray, n: int, m: int, w: str) -> np.ndarray:
+    """Vertices per row (``n + 1`` offsets rising from 0 to ``m``) [int64]."""
+    wide = off.astype(np.int64)
+    counts = wide[1:] - wide[:-1]
+    if wide[0] != 0 or wide[-1] != m or (n and np.minimum.reduce(counts) < 0):
+        i = 0 if wide[0] != 0 else int(np.argmax(counts < 0)) + 1 if n and counts.min() < 0 else n
+        raise ProtocolError(f"expected offsets rising from 0 to {m}, got {int(off[i])} at [{i}]", w + "off")
+    return counts
 
 
-def _map(d: dict, key: str, where: str) -> dict:
-    v = _get(d, key, where)
-    if not isinstance(v, dict):
-        raise ProtocolError(f"expected a map, got {type(v).__name__}", where + key)
-    return v
+# --------------------------------------------------------------------------- columns
 
 
-def _list(d: dict, key: str, where: str, n: int | None = None) -> list:
-    v = _get(d, key, where)
-    if not isinstance(v, list):
-        raise ProtocolError(f"expected an array, got {type(v).__name__}", where + key)
-    if n is not None and len(v) != n:
-        raise ProtocolError(f"expected {n} elements, got {len(v)}", where + key)
-    return v
+class _Layout:
+    """A column table (``*_COLUMNS``) prepared for ``_columns_in``: the columns in dtype
+    groups (in the table's order of first appearance), each float column's bounds
+    (``bounds`` for all, else FLOAT_BOUNDS), each integer column's INT_BOUNDS."""
 
-
-def _col(d: dict, key: str, dtype: str, n: int, where: str,
-         bounds: tuple[float, float] | None = None) -> np.ndarray:
-    b = _get(d, key, where)
-    if not isinstance(b, bytes):
-        raise ProtocolError(f"expected bin of {n} x {dtype}, got {type(b).__name__}", where + key)
-    size = np.dtype(dtype).itemsize
-    if len(b) != n * size:
-        raise ProtocolError(
-            f"expected {n} x {dtype} = {n * size} bytes, got {len(b)}", where + key
-        )
-    a = np.frombuffer(b, dtype=dtype)
-    if a.dtype.kind == "f" and n:
-        lo, hi = bounds if bounds is not None else FLOAT_BOUNDS.get(key, (-math.inf, math.inf))
-        amin, amax = float(a.min()), float(a.max())  # NaN propagates into both
-        if not (math.isfinite(amin) and math.isfinite(amax)):
-            raise ProtocolError("expected finite values, got NaN or inf", where + key)
-        if amin < lo or amax > hi:
-            bad = amin if amin < lo else amax
-            raise ProtocolError(f"expected values in {lo:g}..{hi:g}, got {bad:g}", where + key)
-    return a
-
-
-_GROUPS: dict[tuple, list[tuple[str, list[str], list[tuple[float, float]]]]] = {}
-
-
-def _groups(spec: tuple[tuple[str, str], ...]) -> list[tuple[str, list[str], list[tuple[float, float]]]]:
-    """``spec``'s columns grouped by dtype, with each float column's bounds (cached)."""
-    g = _GROUPS.get(spec)
-    if g is None:
+    def __init__(self, spec: tuple[tuple[str, str], ...], bounds: tuple[float, float] | None = None) -> None:
         by: dict[str, list[str]] = {}
         for name, dt in spec:
             by.setdefault(dt, []).append(name)
-        g = [(dt, names, [FLOAT_BOUNDS.get(k, (-math.inf, math.inf)) for k in names]) for dt, names in by.items()]
-        _GROUPS[spec] = g
-    return g
+        self.names = [k for names in by.values() for k in names]
+        self.dtypes = [dt for dt, names in by.items() for _ in names]
+        self.sizes = [np.dtype(dt).itemsize for dt in self.dtypes]
+        self.ints = [i for i, dt in enumerate(self.dtypes) if np.dtype(dt).kind != "f"]
+        self.int_names = [self.names[i] for i in self.ints]
+        self.int_dtypes = [self.dtypes[i] for i in self.ints]
+        #: per float dtype: (dtype, slice of ``names``, names, each column's (lo, hi), the one
+        #: (lo, hi) of all of them when they share it)
+        self.floats = []
+        start = 0
+        for dt, names in by.items():
+            if np.dtype(dt).kind == "f":
+                fb = [bounds or FLOAT_BOUNDS.get(k, _FINITE) for k in names]
+                self.floats.append((dt, slice(start, start + len(names)), names, fb,
+                                    fb[0] if len(set(fb)) == 1 else None))
+            start += len(names)
+        #: per integer column in INT_BOUNDS: (its place in ``names``, name, lo, hi, and for a u8
+        #: column the bytes lo..hi, else None)
+        self.ranges = [(i, k, *INT_BOUNDS[k], bytes(range(INT_BOUNDS[k][0], INT_BOUNDS[k][1] + 1))
+                        if self.dtypes[i] == "<u1" else None)
+                       for i, k in zip(self.ints, self.int_names) if k in INT_BOUNDS]
 
 
-def _columns_in(d: dict, spec, n: int, where: str) -> dict[str, np.ndarray]:
-    """The columns of ``spec``, validated as ``_col`` does, with one array and one
-    min/max pass per dtype instead of per column (a step has 14 columns): every numpy
-    call counts, as a step's decode runs with cold caches between steps."""
-    out: dict[str, np.ndarray] = {}
-    for dt, names, bounds in _groups(spec):
-        size = np.dtype(dt).itemsize
-        bins = []
-        for name in names:
-            b = _get(d, name, where)
-            if not isinstance(b, bytes):
-                raise ProtocolError(f"expected bin of {n} x {dt}, got {type(b).__name__}", where + name)
-            if len(b) != n * size:
-                raise ProtocolError(f"expected {n} x {dt} = {n * size} bytes, got {len(b)}", where + name)
-            bins.append(b)
-        block = np.frombuffer(bins[0] if len(bins) == 1 else b"".join(bins), dt).reshape(len(names), n)
-        if n and block.dtype.kind == "f":
-            # NaN propagates into min and max, and fails every comparison below
-            for i, (a, b, (lo, hi)) in enumerate(zip(block.min(axis=1).tolist(), block.max(axis=1).tolist(), bounds)):
-                if not (lo <= a and b <= hi and math.isfinite(a) and math.isfinite(b)):
-                    _col(d, names[i], dt, n, where)  # raises with the column's message
+_BYTES = {bytes}
+
+
+def _columns_in(d: dict, layout: _Layout, n: int, where: str, blocks: dict | None = None) -> dict[str, np.ndarray]:
+    """The columns of ``layout``: each a bin of ``n`` values, float ones finite and within
+    their bounds, integer ones within INT_BOUNDS. C-level passes over the columns, one
+    array and one min/max pass per float dtype instead of per column (a step has 14): every
+    call counts, as a step's decode runs with cold caches between steps. ``blocks``
+    receives each float dtype's (columns, n) array, rows in the table's order."""
+    bins = list(map(d.get, layout.names))
+    want = list(map(n.__mul__, layout.sizes))  # bytes per column
+    if set(map(type, bins)) != _BYTES or list(map(len, bins)) != want:
+        i = next(i for i, (b, m) in enumerate(zip(bins, want)) if type(b) is not bytes or len(b) != m)
+        raise _bad(d, layout.names[i], where, _a_bin(n, layout.dtypes[i]))
+    out = dict(zip(layout.int_names, map(np.frombuffer, [bins[i] for i in layout.ints], layout.int_dtypes)))
+    for dt, part, names, bounds, common in layout.floats:
+        cols = bins[part]
+        block = np.frombuffer(cols[0] if len(cols) == 1 else b"".join(cols), dt).reshape(len(names), n)
+        if n:
+            _check_floats(block, names, bounds, common, where)
+        if blocks is not None:
+            blocks[dt] = block
         out.update(zip(names, block))  # row views, no copies
+    if n:
+        for i, name, lo, hi, allowed in layout.ranges:
+            if allowed is None:
+                _check_range(out[name], lo, hi, where + name)
+            elif bins[i].translate(None, allowed):  # a byte left over is a value out of range
+                raise ProtocolError(f"expected values in {lo}..{hi}, got {bins[i].translate(None, allowed)[0]}",
+                                    where + name)
     return out
 
 
+def _check_floats(block: np.ndarray, names: list[str], bounds: list[tuple[float, float]],
+                  common: tuple[float, float] | None, where: str) -> None:
+    """Each row of ``block`` finite and within its column's (lo, hi). Columns that share
+    their bounds take one min and one max over all of them (cheaper than per row)."""
+    if common is not None:
+        lo, hi = common
+        if lo <= float(np.minimum.reduce(block, axis=None)) and float(np.maximum.reduce(block, axis=None)) <= hi:
+            return  # NaN propagates into min and max, and fails both
+    lows, highs = np.minimum.reduce(block, axis=1).tolist(), np.maximum.reduce(block, axis=1).tolist()
+    for name, a, b, (lo, hi) in zip(names, lows, highs, bounds):
+        if not (lo <= a and b <= hi):
+            bad = a if not lo <= a else b
+            raise ProtocolError(f"expected finite values in {lo:g}..{hi:g}, got {bad:g}", where + name)
+
+
 def _check_range(a: np.ndarray, lo: int, hi: int, field: str) -> None:
+    """Every value of the integer array ``a`` in lo..hi."""
     if not len(a):
         return
     # a bound the dtype already guarantees needs no pass over the data (u8 >= 0, i4 <= 2^31-1)
     bits = 8 * a.dtype.itemsize
     signed = a.dtype.kind == "i"
     if lo > (-(1 << (bits - 1)) if signed else 0):
-        m = int(a.min())
+        m = int(np.minimum.reduce(a))
         if m < lo:
             raise ProtocolError(f"expected values in {lo}..{hi}, got {m}", field)
     if hi < ((1 << (bits - 1)) - 1 if signed else (1 << bits) - 1):
-        m = int(a.max())
+        m = int(np.maximum.reduce(a))
         if m > hi:
             raise ProtocolError(f"expected values in {lo}..{hi}, got {m}", field)
+
+
+def _col(d: dict, key: str, dtype: str, n: int, where: str, bounds: tuple[float, float] | None = None) -> np.ndarray:
+    """One column, checked as ``_columns_in`` checks each: a bin of ``n`` x ``dtype``, float
+    values finite and within ``bounds`` (else FLOAT_BOUNDS)."""
+    b = d.get(key, _MISSING)
+    if type(b) is not bytes or len(b) != n * _ITEMSIZE[dtype]:
+        raise _bad(d, key, where, _a_bin(n, dtype))
+    a = np.frombuffer(b, dtype)
+    if n and dtype[1] == "f":
+        bound = bounds or FLOAT_BOUNDS.get(key, _FINITE)
+        _check_floats(a.reshape(1, n), [key], [bound], bound, where)
+    return a
+
+
+def _a_bin(n: int, dtype: str) -> str:
+    return f"bin of {n} x {dtype} = {n * _ITEMSIZE[dtype]} bytes"
+
+
+_ITEMSIZE = {dt: np.dtype(dt).itemsize for dt in ("<u1", "<u2", "<i4", "<u4", "<f4", "<f8")}
+_STEP_AGENTS = _Layout(STEP_AGENT_COLUMNS)
+_STEP_AGENTS_1_1 = _Layout(STEP_AGENT_COLUMNS_1_1)
+_PHYSICS_AGENTS = _Layout(PHYSICS_AGENT_COLUMNS)
+_FEEDBACK_AGENTS = _Layout(FEEDBACK_COLUMNS)
+_TLS_LINKS = _Layout(TLS_LINK_COLUMNS)
 
 
 def decode(data: bytes | bytearray | memoryview, limits: DecodeLimits = DEFAULT_LIMITS) -> Message:
@@ -543,21 +723,15 @@ def decode(data: bytes | bytearray | memoryview, limits: DecodeLimits = DEFAULT_
         raise ProtocolError(f"expected bytes, got {type(data).__name__}")
     if len(data) > limits.max_bytes:
         raise ProtocolError(f"message of {len(data)} bytes exceeds {limits.max_bytes}")
+    r = limits._reader()
     try:
-        d = msgpack.unpackb(data, **limits._unpack_kw())
+        d = msgpack.unpackb(data, **r.unpack_kw)
     except Exception as e:  # msgpack raises a zoo of types for corrupt input
         raise ProtocolError(f"not a msgpack document ({type(e).__name__}: {e})") from None
     if not isinstance(d, dict):
         raise ProtocolError(f"expected a map at top level, got {type(d).__name__}")
-    if d.get("kind") == "step":
-        try:
-            msg = _fast_step(d, limits)
-        except Exception:  # anything unexpected: the full decoder below names the field
-            msg = None
-        if msg is not None:
-            return msg
     try:
-        return _decode_map(d, _Reader(limits))
+        return _decode_map(d, r)
     except ProtocolError:
         raise
     except (ValueError, TypeError, KeyError, IndexError, OverflowError, RecursionError) as e:
@@ -565,12 +739,9 @@ def decode(data: bytes | bytearray | memoryview, limits: DecodeLimits = DEFAULT_
 
 
 def _check_version(d: dict) -> None:
-    v = _get(d, "v", "")
-    if (
-        not isinstance(v, list) or len(v) != 2
-        or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)
-    ):
-        raise ProtocolError("expected [major, minor] integers", "v")
+    v = d.get("v", _MISSING)
+    if type(v) is not list or len(v) != 2 or type(v[0]) is not int or type(v[1]) is not int:
+        raise _bad(d, "v", "", "[major, minor] integers")
     if v[0] != SCHEMA_VERSION[0]:
         raise ProtocolError(
             f"peer speaks protocol {v[0]}.{v[1]}, this build speaks "
@@ -581,10 +752,10 @@ def _check_version(d: dict) -> None:
 
 def _decode_map(d: dict, r: _Reader) -> Message:
     _check_version(d)
-    kind = r.str(d, "kind", "")
-    dec = _DECODERS.get(kind)
+    kind = d.get("kind", _MISSING)
+    dec = _DECODERS.get(kind) if type(kind) is str else None
     if dec is None:
-        raise ProtocolError(f"expected one of {sorted(_DECODERS)}, got {kind!r}", "kind")
+        raise _bad(d, "kind", "", f"one of {sorted(_DECODERS)}")
     return dec(d, r)
 
 
@@ -595,245 +766,97 @@ def _vtype_pairs(d: dict, r: _Reader) -> list[VType] | None:
     if len(vt_raw) > MAX_VTYPES:
         raise ProtocolError(f"expected at most {MAX_VTYPES} vehicle types, got {len(vt_raw)}", "vtypes")
     m = r.lim.max_str
-    out = []
     for i, pair in enumerate(vt_raw):
-        if (
-            not isinstance(pair, list) or len(pair) != 2
-            or not all(isinstance(s, str) and len(s) <= m for s in pair)
-        ):
-            raise ProtocolError("expected [vtype id, vclass] string pairs", f"vtypes[{i}]")
-        out.append(VType(pair[0], pair[1]))
-    return out
+        if (type(pair) is not list or len(pair) != 2 or type(pair[0]) is not str or type(pair[1]) is not str
+                or len(pair[0]) > m or len(pair[1]) > m):
+            raise ProtocolError(f"expected [vtype id, vclass] string pairs of at most {m} characters, "
+                                f"got {_show(pair)}", f"vtypes[{i}]")
+    return [VType(i, c) for i, c in vt_raw]
+
+
+#: Look-ahead offsets la_dx, la_dy: adjacent rows of the step's float32 block, added to the
+#: float64 block of x, y in one pass.
+_F4_STEP = tuple(name for name, dt in STEP_AGENT_COLUMNS if dt == "<f4")
+_LA_ROWS = slice(_F4_STEP.index("la_dx"), _F4_STEP.index("la_dy") + 1)
+assert _LA_ROWS.stop - _LA_ROWS.start == 2, "la_dx and la_dy must be adjacent float32 columns"
+assert tuple(name for name, dt in STEP_AGENT_COLUMNS if dt == "<f8") == ("x", "y"), "x, y: the float64 block"
 
 
 def _decode_step(d: dict, r: _Reader) -> StepMessage:
     vtypes = _vtype_pairs(d, r)
-    a = _map(d, "agents", "")
+    agents = _step_agents(_map(d, "agents", ""), r, vtypes)
+    tls = _decode_tls(_map(d, "tls", ""), r)
+    run, step, t, dt, sv, final = _fields(d, STEP_FIELDS, "", r.lim.max_str)
+    return StepMessage(run=run, step=step, time=t, step_length=dt, agents=agents, tls=tls, vtypes=vtypes,
+                       static_version=sv, final=final)
+
+
+def _step_agents(a: dict, r: _Reader, vtypes: list[VType] | None) -> AgentBatch:
     n = r.count(a, "agents.", r.lim.max_agents)
-    spec = STEP_AGENT_COLUMNS if "la_dx" in a else STEP_AGENT_COLUMNS_1_1
-    cols = _columns_in(a, spec, n, "agents.")
-    x = cols["x"]
-    y = cols["y"]
-    if "la_dx" in cols:  # 1.2: offsets from the agent's position
-        cols["la_x"] = x + cols.pop("la_dx")
-        cols["la_y"] = y + cols.pop("la_dy")
+    rel = "la_dx" in a  # 1.2: look-ahead points as float32 offsets from the agent's position
+    blocks: dict[str, np.ndarray] = {}
+    cols = _columns_in(a, _STEP_AGENTS if rel else _STEP_AGENTS_1_1, n, "agents.", blocks)
+    xy = blocks["<f8"]  # rows x, y
+    if rel:
+        del cols["la_dx"], cols["la_dy"]
+        la = np.add(xy, blocks["<f4"][_LA_ROWS])  # float64, one pass
+        cols["la_x"] = la[0]
+        cols["la_y"] = la[1]
     else:
         cols["la_x"] = cols["la_x"].astype(np.float64)
         cols["la_y"] = cols["la_y"].astype(np.float64)
-    _check_range(cols["cls"], 0, _N_CLASSES - 1, "agents.cls")
-    if vtypes is not None:
-        if n and not vtypes:
-            raise ProtocolError("expected a vtype table when agents are present", "vtypes")
-        _check_range(cols["vtype"], 0, max(len(vtypes) - 1, 0), "agents.vtype")
-    _check_range(cols["lane"], -1, 2**31 - 1, "agents.lane")
+    if vtypes is not None and n:  # (no agents: any table fits)
+        if not vtypes:
+            raise ProtocolError("expected a vtype table when agents are present, got an empty one", "vtypes")
+        _check_range(cols["vtype"], 0, len(vtypes) - 1, "agents.vtype")
     if "path" in a:
-        off, xy = r.path(a, n, x, y)
+        off, pxy = r.path(a, n, xy.T)
     else:
-        off, xy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float64)
-    agents = AgentBatch(
-        ids=r.strs(a, "id", "agents.", n, unique=True), path_offsets=off, path_xy=xy, **cols
-    )
-    t = _map(d, "tls", "")
+        off, pxy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float64)
+    return AgentBatch(ids=r.strs(a, "id", "agents.", n, unique=True), path_offsets=off, path_xy=pxy, **cols)
+
+
+def _decode_tls(t: dict, r: _Reader) -> TrafficLights:
     ids = r.strs(t, "id", "tls.", None, unique=True)
     k = len(ids)
     phase = _list(t, "phase", "tls.", k)
     nxt = _list(t, "next", "tls.", k)
-    if not all(isinstance(p, int) and not isinstance(p, bool) and 0 <= p < 2**31 for p in phase):
-        raise ProtocolError("expected integers 0..2^31-1", "tls.phase")
-    if not all(isinstance(s, (int, float)) and not isinstance(s, bool) and -1e9 <= s <= 1e9 for s in nxt):
-        raise ProtocolError("expected finite numbers in -1e9..1e9 (float32 after decoding)", "tls.next")
-    tls = TrafficLights(
+    if k:
+        _numbers(phase, True, 0, 2**31 - 1, "tls.phase")
+        _numbers(nxt, False, -1e9, 1e9, "tls.next")  # float32 after decoding
+    return TrafficLights(
         ids=ids,
         state=r.strs(t, "state", "tls.", k),
         phase=np.asarray(phase, np.int32) if k else np.zeros(0, np.int32),
         next_switch=np.asarray(nxt, np.float32) if k else np.zeros(0, np.float32),
         program=r.strs(t, "program", "tls.", k) if "program" in t else None,
     )
-    final = d.get("final", False)
-    if not isinstance(final, bool):
-        raise ProtocolError(f"expected true or false, got {type(final).__name__}", "final")
-    return StepMessage(
-        run=r.str(d, "run", ""),
-        step=_int(d, "step", "", 0),
-        time=_float(d, "t", ""),
-        step_length=_float(d, "dt", "", 1e-6, 3600.0),
-        agents=agents,
-        tls=tls,
-        vtypes=vtypes,
-        static_version=_int(d, "sv", "", 0) if "sv" in d else 0,
-        final=final,
-    )
-
-
-_F4_STEP = tuple(name for name, dt in STEP_AGENT_COLUMNS if dt == "<f4")
-_F4_LO = [FLOAT_BOUNDS[k][0] for k in _F4_STEP]
-_F4_HI = [FLOAT_BOUNDS[k][1] for k in _F4_STEP]
-_LA_ROWS = (_F4_STEP.index("la_dx"), _F4_STEP.index("la_dy") + 1)
-assert _LA_ROWS[1] - _LA_ROWS[0] == 2, "la_dx and la_dy must be adjacent float32 columns"
-assert _F4_STEP == ("angle", "speed", "accel", "la_dx", "la_dy", "length", "width"), "update _fast_step"
-_VALID_CLS = bytes(range(_N_CLASSES))
-
-
-def _fast_step(d: dict, lim: DecodeLimits) -> StepMessage | None:
-    """A protocol 1.2 step with every check of ``_decode_step``
-    done in bulk: few numpy calls, no per-field helpers. A step decodes right after the
-    receiver wakes, with cold caches, where each distinct call costs tens of microseconds.
-
-    Returns None for anything it does not accept (any other shape, any invalid value):
-    ``_decode_step`` then decodes it, or raises the error naming the field. It accepts
-    exactly what ``_decode_step`` accepts and returns an equal message."""
-    v = d["v"]
-    if (type(v) is not list or len(v) != 2 or type(v[0]) is not int or type(v[1]) is not int
-            or v[0] != SCHEMA_VERSION[0]):
-        return None
-    vtypes = None
-    if "vtypes" in d:
-        vt = d["vtypes"]
-        if type(vt) is not list or len(vt) > MAX_VTYPES:
-            return None
-        m = lim.max_str
-        for pair in vt:
-            if (type(pair) is not list or len(pair) != 2 or type(pair[0]) is not str or type(pair[1]) is not str
-                    or len(pair[0]) > m or len(pair[1]) > m):
-                return None
-        vtypes = [VType(i, c) for i, c in vt]
-    a = d["agents"]
-    n = a["n"]
-    if type(a) is not dict or type(n) is not int or not 0 <= n <= lim.max_agents or "la_dx" not in a:
-        return None
-    f8 = (a["x"], a["y"])
-    f4 = [a[k] for k in _F4_STEP]
-    cls, vtype, signals, lane, flags = a["cls"], a["vtype"], a["signals"], a["lane"], a["flags"]
-    n2, n4, n8 = 2 * n, 4 * n, 8 * n
-    for b in f8:
-        if type(b) is not bytes or len(b) != n8:
-            return None
-    for b in f4:
-        if type(b) is not bytes or len(b) != n4:
-            return None
-    if (type(cls) is not bytes or len(cls) != n or type(flags) is not bytes or len(flags) != n
-            or type(vtype) is not bytes or len(vtype) != n2 or type(signals) is not bytes
-            or len(signals) != n2 or type(lane) is not bytes or len(lane) != n4):
-        return None
-    xy = np.frombuffer(f8[0] + f8[1], "<f8").reshape(2, n)
-    b4 = np.frombuffer(b"".join(f4), "<f4").reshape(len(f4), n)
-    if n:
-        lo, hi = float(xy.min()), float(xy.max())  # NaN fails every comparison
-        if not (-COORD_LIMIT <= lo and hi <= COORD_LIMIT):
-            return None
-        for mn, mx, lo, hi in zip(b4.min(axis=1).tolist(), b4.max(axis=1).tolist(), _F4_LO, _F4_HI):
-            if not (lo <= mn and mx <= hi):
-                return None
-        if cls.translate(None, _VALID_CLS):  # a byte left over is a class out of range
-            return None
-    lane_a = np.frombuffer(lane, "<i4")
-    vtype_a = np.frombuffer(vtype, "<u2")
-    if n and (int(lane_a.min()) < -1 or (vtypes is not None and (not vtypes or int(vtype_a.max()) >= len(vtypes)))):
-        return None
-    x, y = xy
-    la = np.add(xy, b4[_LA_ROWS[0]:_LA_ROWS[1]])  # float64 look-ahead points, one pass
-    if "path" in a:  # as _Reader.path (1.2: float32 offsets from each agent's position)
-        p = a["path"]
-        offb, db = p["off"], p["dxy"]
-        if type(p) is not dict or type(offb) is not bytes or type(db) is not bytes or len(offb) != 4 * (n + 1) \
-                or len(db) % 8 or len(db) // 8 > lim.max_points:
-            return None
-        pm = len(db) // 8
-        off = np.frombuffer(offb, "<u4")
-        counts = np.diff(off.astype(np.int64))
-        if off[0] != 0 or off[-1] != pm or (n and int(counts.min()) < 0):
-            return None
-        dxy = np.frombuffer(db, "<f4").reshape(pm, 2)
-        if pm:
-            lo, hi = float(dxy.min()), float(dxy.max())
-            if not (-OFFSET_LIMIT <= lo and hi <= OFFSET_LIMIT):
-                return None
-            pxy = np.add(dxy, np.repeat(xy.T, counts, axis=0))  # float64: offsets + anchors, one pass
-        else:
-            pxy = dxy.astype(np.float64)
-    else:
-        off, pxy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float64)
-    ids = a["id"]
-    m = lim.max_str
-    if type(ids) is not list or len(ids) != n or (len("".join(ids)) > m and max(map(len, ids)) > m) \
-            or len(set(ids)) != n:
-        return None
-    t = d["tls"]
-    tids, state, phase, nxt = t["id"], t["state"], t["phase"], t["next"]
-    program = t["program"] if "program" in t else None
-    k = len(tids)
-    if (type(t) is not dict or type(tids) is not list or type(state) is not list or type(phase) is not list
-            or type(nxt) is not list or len(state) != k or len(phase) != k or len(nxt) != k
-            or ("program" in t and (type(program) is not list or len(program) != k))):
-        return None
-    if k:
-        for strs in (tids, state) if program is None else (tids, state, program):
-            if len("".join(strs)) > m and max(map(len, strs)) > m:
-                return None
-        if len(set(tids)) != k:
-            return None
-        if not all(type(p) is int and 0 <= p < 2**31 for p in phase):
-            return None
-        if not all((type(s) is float or type(s) is int) and -1e9 <= s <= 1e9 for s in nxt):
-            return None
-        tls = TrafficLights(tids, state, np.asarray(phase, np.int32), np.asarray(nxt, np.float32), program)
-    else:
-        tls = TrafficLights(tids, state, np.zeros(0, np.int32), np.zeros(0, np.float32), program)
-    final = d.get("final", False)
-    run, step, tm, dt, sv = d["run"], d["step"], d["t"], d["dt"], d.get("sv", 0)
-    if (type(final) is not bool or type(run) is not str or len(run) > m or type(step) is not int
-            or not 0 <= step < 2**63 or type(sv) is not int or not 0 <= sv < 2**63
-            or type(tm) not in (float, int) or type(dt) not in (float, int)):
-        return None
-    tm, dt = float(tm), float(dt)
-    if not (math.isfinite(tm) and 1e-6 <= dt <= 3600.0):
-        return None
-    agents = AgentBatch(
-        ids=ids, cls=np.frombuffer(cls, "<u1"), vtype=vtype_a, x=x, y=y,
-        angle=b4[0], speed=b4[1], accel=b4[2], signals=np.frombuffer(signals, "<u2"),
-        la_x=la[0], la_y=la[1], length=b4[5], width=b4[6], lane=lane_a, flags=np.frombuffer(flags, "<u1"),
-        path_offsets=off, path_xy=pxy,
-    )
-    return StepMessage(run=run, step=step, time=tm, step_length=dt, agents=agents, tls=tls, vtypes=vtypes,
-                       static_version=sv, final=final)
 
 
 def _decode_ego(d: dict, r: _Reader) -> EgoPose:
-    return EgoPose(
-        id=r.str(d, "id", ""),
-        x=_float(d, "x", "", -COORD_LIMIT, COORD_LIMIT),
-        y=_float(d, "y", "", -COORD_LIMIT, COORD_LIMIT),
-        angle=_float(d, "angle", "", -720.0, 720.0),
-        speed=_float(d, "speed", "", -200.0, 200.0),
-        time=_float(d, "t", "") if "t" in d else 0.0,
-        vtype=r.str(d, "vtype", "") if "vtype" in d else "",
-    )
+    ego_id, x, y, angle, speed, t, vtype = _fields(d, EGO_FIELDS, "", r.lim.max_str)
+    return EgoPose(id=ego_id, x=x, y=y, angle=angle, speed=speed, time=t, vtype=vtype)
 
 
 def _decode_camera(d: dict, r: _Reader) -> CameraPose:
-    return CameraPose(
-        id=r.str(d, "id", ""),
-        x=_float(d, "x", "", -COORD_LIMIT, COORD_LIMIT),
-        y=_float(d, "y", "", -COORD_LIMIT, COORD_LIMIT),
-        time=_float(d, "t", "") if "t" in d else 0.0,
-    )
+    cam_id, x, y, t = _fields(d, CAMERA_FIELDS, "", r.lim.max_str)
+    return CameraPose(id=cam_id, x=x, y=y, time=t)
 
 
 def _decode_physics(d: dict, r: _Reader) -> PhysicsState:
     a = _map(d, "agents", "")
     n = r.count(a, "agents.", r.lim.max_agents)
-    cols = _columns_in(a, PHYSICS_AGENT_COLUMNS, n, "agents.")
-    _check_range(cols["cls"], 0, _N_CLASSES - 1, "agents.cls")
-    _check_range(cols["mode"], 0, _N_MODES - 1, "agents.mode")
+    cols = _columns_in(a, _PHYSICS_AGENTS, n, "agents.")
     c = _map(d, "counters", "")
     for k, v in c.items():
         if not isinstance(v, int) or isinstance(v, bool):
             raise ProtocolError("expected an integer", f"counters.{k}")
+    run, tick, t, sumo_step = _fields(d, PHYSICS_FIELDS, "", r.lim.max_str)
     return PhysicsState(
-        run=r.str(d, "run", ""),
-        tick=_int(d, "tick", "", 0),
-        time=_float(d, "t", ""),
-        sumo_step=_int(d, "sumo_step", "", -1),
+        run=run,
+        tick=tick,
+        time=t,
+        sumo_step=sumo_step,
         agents=PhysicsAgents(ids=r.strs(a, "id", "agents.", n, unique=True), **cols),
         counters=dict(c),
     )
@@ -842,22 +865,20 @@ def _decode_physics(d: dict, r: _Reader) -> PhysicsState:
 def _decode_feedback(d: dict, r: _Reader) -> PhysicsFeedback:
     a = _map(d, "agents", "")
     n = r.count(a, "agents.", r.lim.max_agents)
-    cols = _columns_in(a, FEEDBACK_COLUMNS, n, "agents.")
-    _check_range(cols["contact"], 0, 1, "agents.contact")
+    cols = _columns_in(a, _FEEDBACK_AGENTS, n, "agents.")
+    run, step, t = _fields(d, FEEDBACK_FIELDS, "", r.lim.max_str)
     return PhysicsFeedback(
-        run=r.str(d, "run", ""),
-        step=_int(d, "step", "", 0),
-        time=_float(d, "t", ""),
+        run=run,
+        step=step,
+        time=t,
         ids=r.strs(a, "id", "agents.", n, unique=True),
         **cols,
     )
 
 
 def _decode_ack(d: dict, r: _Reader) -> StepAck:
-    fb = d.get("fb", False)
-    if not isinstance(fb, bool):
-        raise ProtocolError(f"expected true or false, got {fb!r}", "fb")
-    return StepAck(run=r.str(d, "run", ""), step=_int(d, "step", "", 0), tick=_int(d, "tick", "", 0), feedback=fb)
+    run, step, tick, fb = _fields(d, ACK_FIELDS, "", r.lim.max_str)
+    return StepAck(run=run, step=step, tick=tick, feedback=fb)
 
 
 def _decode_status(d: dict, r: _Reader) -> SumoStatus:
@@ -903,7 +924,7 @@ def _decode_static(d: dict, r: _Reader) -> StaticData:
     if "tls_links" in d:  # optional: added in 1.1
         tl = _map(d, "tls_links", "")
         nt = r.count(tl, "tls_links.", rows)
-        cols = _columns_in(tl, TLS_LINK_COLUMNS, nt, "tls_links.")
+        cols = _columns_in(tl, _TLS_LINKS, nt, "tls_links.")
         _check_range(cols["tls"], 0, max(len(tls_ids) - 1, 0), "tls_links.tls")
         for k in ("from_lane", "to_lane", "via_lane"):
             _check_range(cols[k], -1, max(nl - 1, -1), f"tls_links.{k}")
@@ -912,11 +933,12 @@ def _decode_static(d: dict, r: _Reader) -> StaticData:
     nv = r.count(vt, "vtypes.", MAX_VTYPES)
     vids = r.strs(vt, "id", "vtypes.", nv)
     vcls = r.strs(vt, "vclass", "vtypes.", nv)
+    run, dt, sv = _fields(d, STATIC_FIELDS, "", r.lim.max_str)
     return StaticData(
-        run=r.str(d, "run", ""),
-        step_length=_float(d, "dt", "", 1e-6, 3600.0),
+        run=run,
+        step_length=dt,
         net_offset=(float(off[0]), float(off[1])),
-        projection=r.str(net, "proj", "net."),
+        projection=_fields(net, _PROJECTION, "net.", r.lim.max_str)[0],
         bounds=tuple(float(b) for b in bounds),  # type: ignore[arg-type]
         lanes=lanes,
         junctions=JunctionTable(r.strs(jn, "id", "junctions.", nj, unique=True), j_off, j_xy),
@@ -925,7 +947,7 @@ def _decode_static(d: dict, r: _Reader) -> StaticData:
         vtype_width=_col(vt, "width", "<f4", nv, "vtypes.", (0.0, 1_000.0)),
         tls_ids=tls_ids,
         tls_links=tls_links,
-        version=_int(d, "sv", "", 0) if "sv" in d else 0,
+        version=sv,
     )
 
 

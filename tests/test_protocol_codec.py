@@ -16,7 +16,7 @@ from protocol import (
 )
 from protocol.codec import STEP_AGENT_COLUMNS
 from protocol.golden_vectors import valid_messages
-from protocol.messages import SumoStatus
+from protocol.messages import PhysicsFeedback, SumoStatus
 from synthetic.traffic import synthetic_step
 
 
@@ -225,7 +225,8 @@ def test_mutated_valid_messages_only_raise_protocol_error(name, data):
         out = decode(_pack(d))
     except ProtocolError:
         return
-    assert isinstance(out, (StepMessage, EgoPose, CameraPose, PhysicsState, StepAck, StaticData, SumoStatus))
+    assert isinstance(out, (StepMessage, EgoPose, CameraPose, PhysicsState, PhysicsFeedback, StepAck, StaticData,
+                            SumoStatus))
 
 
 @settings(max_examples=200, deadline=None)
