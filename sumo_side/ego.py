@@ -120,6 +120,11 @@ class EgoManager:
     def drift_mean_m(self) -> float:
         return self._drift_sum / self._drift_n if self._drift_n else 0.0
 
+    @property
+    def drift_samples(self) -> int:
+        """Steps in which an ego's position in SUMO was compared with its requested pose."""
+        return self._drift_n
+
     def active_ids(self) -> list[str]:
         return [e.id for e in self.egos.values() if e.in_sumo]
 

@@ -344,6 +344,11 @@ class PathPlanner:
             self._seq_of_lanes[lanes] = sid
         return sid
 
+    def lanes_of(self, seq_id: int) -> tuple[int, ...]:
+        """The lanes of a stored sequence (``sequence_for``'s inverse; a lookup for checks and
+        tools, not for the per-step path)."""
+        return next(lanes for lanes, sid in self._seq_of_lanes.items() if sid == seq_id)
+
     # ------------------------------------------------------------------ per step
 
     def update_sequences(

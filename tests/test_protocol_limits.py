@@ -99,15 +99,25 @@ def test_duplicate_ids_rejected_in_physics_and_static():
 
 
 class _NoFile:
-    """A recorder without a file: the live recorder's writer needs only these."""
+    """A recorder without a file: the live recorder's writer needs only these; it keeps the
+    schema of each record written."""
 
     context = None
 
+    def __init__(self) -> None:
+        self.written: list[tuple[bytes, str | None]] = []
+
     def write(self, topic, payload, stamp_ns=None, schema=None) -> None:
-        pass
+        self.written.append((payload, schema))
 
     def flush(self) -> None:
         pass
+
+
+def _sample(key: str, payload: bytes):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: payload))
 
 
 def test_recorder_peeks_and_compacts_within_the_run_limits():
@@ -128,15 +138,18 @@ def test_recorder_peeks_and_compacts_within_the_run_limits():
         t0 = time.perf_counter()
         assert _peek(b"\x82\xa1t" + header + b"\x00" * 8, "t", lim) is None
         assert time.perf_counter() - t0 < 0.5
-    live = LiveRecorder(None, Keys("sumoco", "lim"), _NoFile(), limits=lim,
-                        config=RecordConfig(scene=False, physics_hz=0.0))
+    out = _NoFile()
+    live = LiveRecorder(None, Keys("sumoco", "lim"), out, limits=lim, config=RecordConfig(scene=False, physics_hz=0.0))
+    over = encode(synthetic_step(60, step=8))  # more agents than the run is configured for
     try:
-        assert live._compact(live.keys.step, step, None)[1] == "sumoco.rec.step"
-        over = encode(synthetic_step(60, step=8))  # more agents than the run is configured for
-        assert live._compact(live.keys.step, over, None) == (over, None)  # kept as it came
-        assert live.compact_errors == 1
+        live.on_sample(_sample(live.keys.step, step))
+        live.on_sample(_sample(live.keys.step, over))
+        assert live.drain(5)
     finally:
         live.stop(5)
+    assert out.written[0][1] == "sumoco.rec.step"  # compacted
+    assert out.written[1] == (over, None)  # kept as it came
+    assert live.stats()["compact_errors"] == 1
 
 
 def test_scene_decodes_steps_with_the_run_limits_and_static_data_with_the_default_ones():
@@ -174,18 +187,41 @@ def test_viewer_map_reply_decoded_within_limits():
     glb = b"glTF" + b"\x00" * 60
     good = msgpack.packb({"v": [1, 2], "kind": "map", "sha256": hashlib.sha256(glb).hexdigest(), "glb": glb})
     hostile = msgpack.packb({"v": [1, 2], "kind": "map", "pad": [None] * 3_000_000})  # > 2,000,000 rows
-    replies: list[bytes] = []
+    keys = Keys("sumoco", "lim")
+    static = encode(valid_messages()["static"])
 
     class Session:
-        def get(self, key, timeout):
-            return [SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda d=d: d)))
-                    for d in replies]
+        """Serves the static data and ``maps`` as the SUMO side's map replies."""
 
-    feed = ZenohFeed(Session(), Keys("sumoco", "lim"), LatestStore(), ViewerConfig())
-    replies[:] = [hostile]
-    assert feed._query_map() is None  # refused while msgpack parses, no exception
-    replies[:] = [hostile, good]
-    assert feed._query_map() == (glb, hashlib.sha256(glb).hexdigest())
+        def __init__(self, maps: list[bytes]) -> None:
+            self.maps = maps
+
+        def get(self, key, timeout):
+            data = [static] if key == keys.static else self.maps if key.startswith(keys.sumo_map) else []
+            return [SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda d=d: d)))
+                    for d in data]
+
+        def declare_subscriber(self, *args, **kwargs):
+            return SimpleNamespace(undeclare=lambda: None)
+
+        def liveliness(self):
+            return self
+
+    def map_of(maps: list[bytes]) -> tuple[bytes | None, str]:
+        """The map a feed holds once the SUMO side answered with ``maps``."""
+        store = LatestStore()
+        feed = ZenohFeed(Session(maps), keys, store, ViewerConfig()).start()
+        try:
+            deadline = time.monotonic() + 20
+            while store.map_glb is None and time.monotonic() < deadline:
+                time.sleep(0.02)
+        finally:
+            feed.stop()
+        return store.map_glb, store.map_source
+
+    glb_here, source = map_of([hostile])  # refused while msgpack parses, no exception: built here
+    assert glb_here is not None and source == "static"
+    assert map_of([hostile, good]) == (glb, "sumo")
 
 
 def test_peek_reads_top_level_numbers_from_the_head_or_the_whole_message():

@@ -79,7 +79,7 @@ def test_ego_follows_moving_poses_counts_drift_and_jumps(sim):
         assert not flags[i] & AgentFlag.JUMPED or k == 0
         x += 1.0
         clock.t += 0.1
-    n_drift = ego._drift_n
+    n_drift = ego.drift_samples
     assert n_drift == 40 and ego.drift_max_m < 1e-6 and ego.counters["ego_drift_events"] == 0
     # a 30 m jump of the pose: flagged JUMPED
     ego.offer(EgoPose("ego", x + 30.0, LANE_Y, 90.0, 10.0))

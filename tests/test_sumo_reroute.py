@@ -73,10 +73,6 @@ def _run(cfg: Path, extra: tuple[str, ...] = (), hook=None) -> dict:
     return found
 
 
-def _lanes_of(planner, seq_id: int) -> tuple[int, ...]:
-    return next(lanes for lanes, sid in planner._seq_of_lanes.items() if sid == seq_id)
-
-
 def test_change_target_rebuilds_the_path_ahead_on_that_step(net):
     changed_at = {}
 
@@ -97,7 +93,7 @@ def test_change_target_rebuilds_the_path_ahead_on_that_step(net):
     i = snap.ids.index("v0")
     # The path ahead of the step the route changed already goes on into B1B2, not B1C1.
     planner = found["planner"]
-    edges = {planner.graph.edges[ln] for ln in _lanes_of(planner, int(look.seq[i]))}
+    edges = {planner.graph.edges[ln] for ln in planner.lanes_of(int(look.seq[i]))}
     assert "B1B2" in edges and "B1C1" not in edges, edges
 
 
