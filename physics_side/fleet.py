@@ -5,9 +5,9 @@ laws are ``control``'s, the rules that reconcile SUMO's motion with physics are
 ``policies``', the references ``reference``'s; none of them calls back here:
 
 - ``apply_step(msg)``: sync (the agent set: spawn, park, retype; each agent's previous
-  sample; the reference) -> detect (the policies of ``policies.POLICIES`` in table order:
-  carry, roll back, jump, slide, flip, divergence) -> act (carries, placements, ghosts,
-  each counted).
+  sample; the reference) -> detect (the rules of ``policies.POLICIES`` in table order:
+  spawn, manoeuvre and contact carries, roll back, jump, slide, flip, divergence) -> act
+  (carries, placements, ghosts, each counted).
 - ``tick()``: observe (the world's state) -> control (controllers and vehicle limits for
   every agent at once, pure numpy) -> actuate (commands, kinematic placements) -> step
   (``substeps`` MuJoCo steps) -> tracking errors and contacts.
@@ -21,7 +21,6 @@ reference: the front bumper of the SUMO trajectory extrapolated to the physics t
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
@@ -34,7 +33,7 @@ from physics_side import policies
 from physics_side.config import PhysicsSettings, Rates
 from physics_side.control import P_DEFAULT, P_KINEMATIC, P_PAPER, PRESET_CODE
 from physics_side.faults import Faults
-from physics_side.policies import carry_pose, contacts, placement, sync
+from physics_side.policies import carry_pose, placement, sync
 from physics_side.policies.base import Cause, Step, Verdict
 from physics_side.policies.footprints import centre
 from physics_side.policies.state import PolicyState
@@ -42,8 +41,6 @@ from physics_side.reference import Reference, ReferencePoint, tracking_error
 from physics_side.world import PhysicsWorld
 from protocol.frames import yaw_to_sumo_angle
 from protocol.messages import AgentBatch, AgentClass, AgentFlag, AgentMode, PhysicsAgents, PhysicsFeedback, StepMessage
-
-log = logging.getLogger(__name__)
 
 _TYPE_NAME = {
     AgentClass.PASSENGER: "passenger", AgentClass.TAXI: "taxi", AgentClass.BUS: "bus",
@@ -323,7 +320,6 @@ class Fleet:
         self.mode = v.mode
         place = placement.act(self.world, self.slots, s, v, self.limits.max_rear, step)
         self.state.integ[place] = 0.0
-        s.e_lon[place] = 0.0
         st.jumped, st.diverged, st.flipped = (int(v.placed(c).sum()) for c in placement.COUNTED)
         for name, k in v.counts.items():
             self.counters[name] += k
@@ -340,7 +336,7 @@ class Fleet:
                                                             s.kind == M.KIND_PED, s.index, s.ids, self.counters))
         # along-path position of each bumper on the new path (``obs`` predates the placements:
         # placed agents sit exactly at s = 0)
-        held, e_lon = s.held, s.e_lon
+        held, e_lon = s.held, np.where(place, 0.0, s.e_lon)  # (placed agents are on their reference)
         self.s_act = (np.where(place, held.s, s.ref.project_far(s.obs.fx, s.obs.fy, held.s + e_lon, tau=self.tau)[0])
                       if s.n else e_lon.copy())
         self.drive, self.brake, self.aux = np.zeros(s.n), np.zeros(s.n), np.zeros(s.n)

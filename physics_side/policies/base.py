@@ -9,6 +9,7 @@ on SUMO's poses), or allowed to roll back. The fleet then acts on the verdict.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
@@ -16,6 +17,9 @@ from typing import Any
 import numpy as np
 
 from protocol.messages import AgentMode
+
+log = logging.getLogger("physics_side.fleet")  # the policies log as the fleet: tools quiet its placements by name
+LOG_IDS = 10  # agents named in one log line
 
 
 class Cause(IntEnum):
@@ -199,4 +203,4 @@ class Verdict:
         self.counts[name] = self.counts.get(name, 0) + int(k)
 
 
-__all__ = ["Cause", "Previous", "Step", "Verdict", "realign", "realign_mask"]
+__all__ = ["LOG_IDS", "Cause", "Previous", "Step", "Verdict", "log", "realign", "realign_mask"]

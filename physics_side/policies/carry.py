@@ -12,19 +12,16 @@ holds. Also here: who may roll back to a standing reference it came to rest past
 
 from __future__ import annotations
 
-import logging
 import math
 
 import numpy as np
 
 from physics_side import control, models
-from physics_side.policies.base import Step, Verdict
+from physics_side.policies.base import LOG_IDS, Step, Verdict, log
 from physics_side.policies.footprints import footprints_overlap
 from physics_side.reference import Reference
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
-
-log = logging.getLogger("physics_side.fleet")  # (the fleet's: tools quiet its placements by that name)
 
 # Seen on the path ahead: the heading change over INFEASIBLE_WINDOW_M (shorter windows take
 # the corners of coarse lane shapes for curves no car can follow), for windows starting up to
@@ -77,7 +74,6 @@ SHARE_FLOOR = 1e-9  # [1] floor of a grip share where it divides (0: not checked
 LEAN_READ_MAX_RAD = 1.0  # [rad] a roll read for the lean's swing is taken at most this far
 RIDER_BACK_CLEAR_M = 0.3  # [m] a two-wheeler's way back must be this clear of every body (``rolls_back``)
 MS_PER_S = 1e3  # [ms/s]
-LOG_IDS = 10  # agents named in one log line
 
 
 def grip_shares(kind: np.ndarray, max_rear: np.ndarray, mass: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

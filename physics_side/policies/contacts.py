@@ -19,17 +19,13 @@ Pedestrian pairs are never checked (their bodies do not touch each other).
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 
 from physics_side import models
-from physics_side.policies.base import Step, Verdict
+from physics_side.policies.base import Step, Verdict, log
 from physics_side.policies.footprints import centre, footprint_gap, near_pairs, overlaps_any
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
-
-log = logging.getLogger("physics_side.fleet")  # (the fleet's: tools quiet its placements by that name)
 
 GHOST_CLEAR_M = 0.3  # [m] a ghost joins once its body is this far from every other body
 JUMP_EXCUSE_S = 2.0  # [s] a collision this soon after SUMO teleported / jumped the agent is SUMO's

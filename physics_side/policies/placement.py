@@ -9,19 +9,15 @@ bodies on a reference point (every placement, and kinematic bodies each tick).
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import replace
 
 import numpy as np
 
-from physics_side.policies.base import Cause, Step, Verdict
+from physics_side.policies.base import LOG_IDS, Cause, Step, Verdict, log
 from physics_side.policies.sync import CARRY_SPEED
 from physics_side.reference import ReferencePoint
 
-log = logging.getLogger("physics_side.fleet")  # (the fleet's: tools quiet its placements by that name)
-
-LOG_IDS = 10  # agents named in one log line
 COUNTED = (Cause.JUMP, Cause.DIVERGENCE, Cause.FLIP)  # the causes ``StepStats`` counts (jumped, diverged, flipped)
 
 

@@ -18,18 +18,14 @@ from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import NamedTuple
 
-import logging
-
 import numpy as np
 
 from physics_side import models
-from physics_side.policies.base import Cause, Step, Verdict, realign
+from physics_side.policies.base import Cause, Step, Verdict, log, realign
 from physics_side.policies.carry_pose import turn_rate
 from physics_side.reference import Reference, tracking_error
 from protocol.frames import sumo_angle_to_yaw, wrap_pi
 from protocol.messages import AgentClass, AgentFlag, StepMessage
-
-log = logging.getLogger("physics_side.fleet")  # (the fleet's: tools quiet its placements by that name)
 
 STALE_MIN_S = 1.0  # [s] a previous sample this recent is usable whatever the step length ...
 STALE_STEPS = 2.5  # [steps] ... and one this many step lengths old
