@@ -15,6 +15,7 @@ from typing import Any, Literal
 
 from protocol.errors import ConfigError
 from runtime.config import from_dict, section
+from runtime.zones import REGION_FIELDS
 
 PRESETS = ("paper", "default", "kinematic")
 MIN_STEP_S = 0.001  # [s] shortest SUMO step length the physics side follows
@@ -26,7 +27,6 @@ RATIO_TOLERANCE = 1e-6  # [1] relative: a clock ratio this close to a whole numb
 SUGGESTED_SUBSTEPS = 8  # [1] a timestep error suggests the control period over 1..this substeps ...
 MIN_SUGGESTED_TIMESTEP_S = 1e-4  # [s] ... that are at least this long
 TICK_ROUNDING = 1e-9  # [ticks] half a tick rounds up in spite of float error in the times
-LOD_REGION_FIELDS = 3  # a detail region: centre x, centre y, radius [m]
 TYPES = ("passenger", "taxi", "bus", "bicycle", "pedestrian", "other")
 
 
@@ -107,7 +107,7 @@ class PhysicsConfig:
         if self.lod_radius_m < 0:
             raise ConfigError(f"physics.lod_radius_m: expected >= 0, got {self.lod_radius_m}")
         for i, r in enumerate(self.lod_regions):
-            if len(r) != LOD_REGION_FIELDS or r[2] <= 0:
+            if len(r) != REGION_FIELDS or r[2] <= 0:
                 raise ConfigError(f"physics.lod_regions[{i}]: expected [x, y, radius] with radius > 0 [m], got {list(r)}")
         for k, v in self.expect.items():
             if k not in TYPES[:-1]:

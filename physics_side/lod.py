@@ -7,80 +7,24 @@ them on their interpolated SUMO pose (mode KINEMATIC in the state: no slot, no
 controller, no MuJoCo step). An agent switches back to full physics only once it is
 ``HYSTERESIS`` of the radius inside, so an agent driving along the boundary does not
 flap between modes; entering full physics is a spawn in the steady-turn state of its
-path at its reference pose, so it starts without a transient.
+path at its reference pose, so it starts without a transient. The zones themselves
+(``DetailZones``) are in ``runtime.zones``: the SUMO side reads the same ones for
+``[coupling] authority = "zones"``, and a physics-authoritative vehicle always runs full
+physics here.
 """
 
 from __future__ import annotations
 
 import operator
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
-from physics_side.config import LOD_REGION_FIELDS
 from physics_side.reference import Reference
 from physics_side.shard import subset
 from protocol.frames import yaw_to_sumo_angle
 from protocol.messages import AgentBatch, AgentFlag, AgentMode, PhysicsAgents, StepMessage
-
-HYSTERESIS = 0.9  # full physics within 0.9 r, kinematic beyond r, unchanged between
-ZONE_CHUNK = 256  # [zones] per pass of the distance test: temporaries of n agents x this at most
-MIN_RADIUS_M = 1e-9  # [m] a zone radius divides as at least this
-
-
-@dataclass(frozen=True)
-class DetailZones:
-    """Where agents run full physics (see module docstring)."""
-
-    radius: float
-    """Around each interest point [m]; 0 = every agent runs full physics."""
-    regions: np.ndarray
-    """(k, 3) fixed regions: centre x, centre y, radius [m]."""
-
-    @classmethod
-    def from_config(cls, radius_m: float, regions) -> "DetailZones | None":
-        """``None`` when LOD is off (radius 0 and no regions)."""
-        reg = np.asarray(regions, np.float64).reshape(-1, LOD_REGION_FIELDS)
-        if radius_m <= 0 and len(reg) == 0:
-            return None
-        return cls(float(radius_m), reg)
-
-    def full(
-        self, x: np.ndarray, y: np.ndarray, ego: np.ndarray, was_full: np.ndarray | None = None,
-        points: np.ndarray | None = None,
-    ) -> np.ndarray:
-        """Which agents at (x, y) [m] run full physics (bool, length n).
-
-        ``ego``: interest agents (always full, and centres of the radius); ``was_full``:
-        the previous decision per agent (hysteresis; None = no history); ``points``:
-        (m, 2) extra interest points [m].
-        """
-        rel = self.rel(x, y, ego, points)
-        inner, outer = rel < HYSTERESIS**2, rel < 1.0
-        full = inner if was_full is None else np.where(was_full, outer, inner)
-        return full | np.asarray(ego, bool)
-
-    def rel(self, x: np.ndarray, y: np.ndarray, ego: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
-        """Squared distance to the nearest zone centre in units of its radius (< 1: inside;
-        inf without zones), per agent."""
-        x = np.asarray(x, np.float64)
-        y = np.asarray(y, np.float64)
-        n = len(x)
-        ego = np.asarray(ego, bool)
-        centres = np.column_stack([x[ego], y[ego]])
-        if points is not None and len(points):
-            centres = np.concatenate([centres, np.asarray(points, np.float64).reshape(-1, 2)])
-        cx = np.concatenate([centres[:, 0], self.regions[:, 0]])
-        cy = np.concatenate([centres[:, 1], self.regions[:, 1]])
-        r = np.concatenate([np.full(len(centres), self.radius), self.regions[:, 2]])
-        rel = np.full(n, np.inf)
-        if n == 0 or len(r) == 0:
-            return rel
-        for k in range(0, len(r), ZONE_CHUNK):
-            z = slice(k, k + ZONE_CHUNK)
-            d2 = (x[:, None] - cx[None, z]) ** 2 + (y[:, None] - cy[None, z]) ** 2
-            rel = np.minimum(rel, (d2 / np.maximum(r[None, z], MIN_RADIUS_M) ** 2).min(axis=1))
-        return rel
+from runtime.zones import HYSTERESIS, DetailZones
 
 
 class FarAgents:
@@ -160,7 +104,8 @@ class DetailSplit:
         if len(band):
             kept = self._not_full
             full[band] = ~np.fromiter(map(kept.__contains__, _take(a.ids, band)), bool, len(band))
-        full |= ego
+        # a physics-authoritative vehicle is driven by physics wherever it is (SUMO follows it)
+        full |= ego | ((flags & AgentFlag.PHYSICS_AUTHORITY) != 0)
         riding = (flags & AgentFlag.INSIDE_VEHICLE) != 0
         far = np.flatnonzero(~full & ~riding)
         self._not_full = set(_take(a.ids, np.flatnonzero(~full)))

@@ -25,6 +25,7 @@ from typing import Any, Literal, TypeVar
 
 from protocol.codec import DecodeLimits
 from protocol.errors import ConfigError
+from runtime.zones import REGION_FIELDS
 
 T = TypeVar("T")
 
@@ -231,7 +232,9 @@ class CouplingConfig:
     physics-authoritative. The SUMO side decides per vehicle and flags it on the wire.
     """
 
-    authority: Literal["sumo", "physics"] = "sumo"  # owner of every vehicle not selected below
+    # owner of every vehicle not selected below; "zones": physics inside the level-of-detail
+    # zones (``zone_radius_m`` around each ego, ``zone_regions``), SUMO outside
+    authority: Literal["sumo", "physics", "zones"] = "sumo"
     classes: tuple[str, ...] = ()  # vClasses that are physics-authoritative (with authority = "sumo")
     types: tuple[str, ...] = ()  # vType ids that are physics-authoritative
     ids: tuple[str, ...] = ()  # vehicle id patterns (fnmatch: "truck*") that are physics-authoritative
@@ -240,6 +243,10 @@ class CouplingConfig:
     # what SUMO does when physics-authoritative vehicles touch (a crash in physics): "stay" (SUMO
     # warns, both stay where physics has them), "remove" them, or SUMO's own "teleport"
     collision: Literal["stay", "remove", "teleport"] = "stay"
+    # The zones of ``authority = "zones"``: by default ``[physics] lod_radius_m`` and
+    # ``lod_regions`` (``load_common`` copies them), so physics owns exactly what it simulates
+    zone_radius_m: float = 0.0  # [m] around every ego vehicle
+    zone_regions: tuple[tuple[float, ...], ...] = ()  # [[x, y, r], ...] [m] fixed regions
 
     def validate(self) -> None:
         bad = sorted(set(self.classes) - VEHICLE_CLASSES)
@@ -250,6 +257,14 @@ class CouplingConfig:
             raise ConfigError(f"coupling.instance: expected a physics instance name, got {self.instance!r}")
         if not 0 <= self.feedback_steps <= 10:
             raise ConfigError(f"coupling.feedback_steps: expected 0..10, got {self.feedback_steps}")
+        if self.zone_radius_m < 0:
+            raise ConfigError(f"coupling.zone_radius_m: expected >= 0 [m], got {self.zone_radius_m}")
+        for i, r in enumerate(self.zone_regions):
+            if len(r) != REGION_FIELDS or r[2] <= 0:
+                raise ConfigError(f"coupling.zone_regions[{i}]: expected [x, y, radius] with radius > 0 [m], got {list(r)}")
+        if self.authority == "zones" and self.zone_radius_m <= 0 and not self.zone_regions:
+            raise ConfigError('coupling.authority = "zones": expected level-of-detail zones, got none '
+                              "(set [physics] lod_radius_m > 0 or lod_regions)")
 
     def sumo_args(self, extra_args: tuple[str, ...]) -> tuple[str, ...]:
         """SUMO options two-way coupling needs (a crash is physics' fact: SUMO keeps the cars,
@@ -271,7 +286,7 @@ class CouplingConfig:
     @property
     def two_way(self) -> bool:
         """True when any vehicle may be physics-authoritative."""
-        return self.authority == "physics" or bool(self.classes or self.types or self.ids)
+        return self.authority != "sumo" or bool(self.classes or self.types or self.ids)
 
 
 @dataclass(frozen=True)
@@ -288,9 +303,23 @@ def load_common(path: str | Path) -> tuple[CommonConfig, dict[str, Any], Path]:
     common = CommonConfig(
         run=section(data, "run", RunConfig, base, str(path)),
         zenoh=section(data, "zenoh", ZenohConfig, base, str(path)),
-        coupling=section(data, "coupling", CouplingConfig, base, str(path)),
+        coupling=_coupling_with_zones(data, base, str(path)),
     )
     return common, data, base
+
+
+def _coupling_with_zones(data: dict[str, Any], base: Path, where: str) -> CouplingConfig:
+    """``[coupling]`` with the level-of-detail zones of ``[physics]`` unless it sets its own
+    (one definition of "where physics runs in full", read by both sides)."""
+    raw = data.get("coupling") or {}
+    phys = data.get("physics") or {}
+    if isinstance(raw, dict) and isinstance(phys, dict):
+        raw = dict(raw)
+        if "zone_radius_m" not in raw and "lod_radius_m" in phys:
+            raw["zone_radius_m"] = phys["lod_radius_m"]
+        if "zone_regions" not in raw and "lod_regions" in phys:
+            raw["zone_regions"] = phys["lod_regions"]
+    return section({**data, "coupling": raw}, "coupling", CouplingConfig, base, where)
 
 
 def apply_cli(common: CommonConfig, args: Any) -> CommonConfig:
@@ -314,4 +343,5 @@ def apply_cli(common: CommonConfig, args: Any) -> CommonConfig:
     coupling = common.coupling
     if getattr(args, "authority", None):
         coupling = replace(coupling, authority=args.authority)
+        coupling.validate()  # --authority zones without zones is an error, not a run without them
     return CommonConfig(run=run, zenoh=zen, coupling=coupling)

@@ -41,6 +41,7 @@ from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import AgentFlag, PhysicsFeedback
 from runtime.config import CouplingConfig
+from runtime.zones import DetailZones
 from runtime.queues import LatestPerKey
 
 log = logging.getLogger("sumo_side.coupling")
@@ -74,13 +75,18 @@ class FeedbackStats:
 
 
 class Authority:
-    """Which vehicles are physics-authoritative: decided once per vehicle, kept by row."""
+    """Which vehicles are physics-authoritative: by vType, class and id decided once per
+    vehicle and kept by row; by zone (``authority = "zones"``) decided every step, with the
+    level of detail's hysteresis, from the vehicle's SUMO position."""
 
     def __init__(self, cfg: CouplingConfig) -> None:
         self.cfg = cfg
         self._by_vtype = np.zeros(0, bool)
         self._vtypes_version = -1
-        self._prev = np.zeros(0, bool)
+        self._prev = np.zeros(0, bool)  # per row of the previous snapshot: selected by type/class/id
+        self._zones = (DetailZones.from_config(cfg.zone_radius_m, cfg.zone_regions)
+                       if cfg.authority == "zones" else None)
+        self._in_zone = np.zeros(0, bool)  # per row of the previous snapshot: inside a zone
 
     def _vtype_rule(self, vtypes) -> np.ndarray:
         """Per vType index: physics-authoritative by ``authority``, ``classes`` or ``types``."""
@@ -115,12 +121,29 @@ class Authority:
                 new = np.flatnonzero(~known)
                 if len(new):
                     auth[new] |= self._by_id(snap.ids, new)
-            if ego_flags is not None:
-                auth &= (ego_flags[:nv] & AgentFlag.EGO) == 0
-            keep[:nv] = auth
-        self._prev = keep
+            self._prev = np.zeros(n, bool)
+            self._prev[:nv] = auth
+            ego = np.zeros(nv, bool) if ego_flags is None else (ego_flags[:nv] & AgentFlag.EGO) != 0
+            if self._zones is not None:
+                auth = auth | self._zone_rule(snap, ego)
+            keep[:nv] = auth & ~ego
+        else:
+            self._prev = keep
         out[keep] = AgentFlag.PHYSICS_AUTHORITY
         return out
+
+    def _zone_rule(self, snap, ego: np.ndarray) -> np.ndarray:
+        """Vehicles inside a level-of-detail zone this step (hysteresis on the previous one)."""
+        nv = len(ego)
+        prev = snap.prev_index
+        was = None
+        if prev is not None and len(self._in_zone):
+            p = prev[:nv]
+            was = np.where(p >= 0, self._in_zone[np.clip(p, 0, len(self._in_zone) - 1)], False)
+        inside = self._zones.full(snap.x[:nv], snap.y[:nv], ego, was)
+        self._in_zone = np.zeros(snap.n, bool)
+        self._in_zone[:nv] = inside
+        return inside
 
 
 class FeedbackWriter:

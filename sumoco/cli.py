@@ -63,9 +63,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 
 def _add_authority(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--authority", choices=["sumo", "physics"],
-                   help="who owns every vehicle's motion: sumo (physics shadows SUMO) or physics (two-way: "
-                        "SUMO follows the physical states); overrides [coupling].authority")
+    p.add_argument("--authority", choices=["sumo", "physics", "zones"],
+                   help="who owns every vehicle's motion: sumo (physics shadows SUMO), physics (two-way: "
+                        "SUMO follows the physical states) or zones (physics inside the level-of-detail "
+                        "zones, SUMO outside); overrides [coupling].authority")
 
 
 def _add_scenario(p: argparse.ArgumentParser) -> None:

@@ -11,7 +11,7 @@ from physics_side.config import PhysicsConfig, PhysicsSettings
 from physics_side.daemon import build_fleet
 from physics_side.lod import HYSTERESIS, DetailSplit, DetailZones
 from protocol.errors import ConfigError
-from protocol.messages import AgentMode
+from protocol.messages import AgentFlag, AgentMode
 from synthetic.traffic import circle_traffic
 
 
@@ -34,6 +34,19 @@ def test_lod_config_is_checked():
         PhysicsConfig(lod_regions=((1.0, 2.0),)).validate()
     with pytest.raises(ConfigError, match="lod_radius_m"):
         PhysicsConfig(lod_radius_m=-1.0).validate()
+
+
+def test_physics_authoritative_agents_always_run_full_physics():
+    """A vehicle SUMO follows (flag PHYSICS_AUTHORITY) is driven by physics wherever it is:
+    the level of detail never places it (SUMO's zones and the viewer cameras may differ)."""
+    split = DetailSplit(DetailZones.from_config(0.0, [[0.0, 0.0, 1.0]]))
+    msg = circle_traffic(6, 0)
+    flags = np.asarray(msg.agents.flags).copy()
+    flags[[1, 4]] |= np.uint8(AgentFlag.PHYSICS_AUTHORITY)
+    msg = replace(msg, agents=replace(msg.agents, flags=flags))
+    near = split.apply(msg)
+    assert set(near.agents.ids) == {msg.agents.ids[1], msg.agents.ids[4]}
+    assert split.far.n == 4
 
 
 def test_far_agents_never_reach_the_fleet_and_follow_their_sumo_trajectory():

@@ -12,7 +12,7 @@ import pytest
 
 from protocol.errors import ConfigError
 from protocol.messages import AgentFlag, PhysicsFeedback, VType
-from runtime.config import CouplingConfig, from_dict
+from runtime.config import CouplingConfig, from_dict, load_common
 from sumo_side.config import SumoConfig
 from sumo_side.coupling import Authority, FeedbackWriter, GapHistogram
 from sumo_side.simulation import SumoSim
@@ -22,10 +22,12 @@ STRAIGHT = ROOT / "configs" / "scenarios" / "straight" / "straight.sumocfg"
 PHYS = int(AgentFlag.PHYSICS_AUTHORITY)
 
 
-def _snap(ids, vtype, n_vehicles, prev_index=None):
+def _snap(ids, vtype, n_vehicles, prev_index=None, x=None, y=None):
     n = len(ids)
     return SimpleNamespace(n=n, n_vehicles=n_vehicles, ids=ids, vtype=np.asarray(vtype, np.int64),
-                           flags=np.zeros(n, np.uint8), prev_index=prev_index)
+                           flags=np.zeros(n, np.uint8), prev_index=prev_index,
+                           x=np.zeros(n) if x is None else np.asarray(x, float),
+                           y=np.zeros(n) if y is None else np.asarray(y, float))
 
 
 VTYPES = SimpleNamespace(version=1, types=[VType("car", "passenger"), VType("lorry", "truck"),
@@ -55,6 +57,34 @@ def test_authority_by_id_is_decided_at_departure_and_kept_by_row():
     assert second.tolist() == [PHYS, 0]
 
 
+def test_authority_by_zone_follows_the_level_of_detail_with_hysteresis():
+    """``authority = "zones"``: physics owns the vehicles within 50 m of an ego or inside a
+    fixed region, decided every step; between 0.9 r and r a vehicle keeps its owner."""
+    a = Authority(CouplingConfig(authority="zones", zone_radius_m=50.0, zone_regions=((1000.0, 0.0, 20.0),)))
+    ego = np.array([AgentFlag.EGO, 0, 0, 0, 0, 0], np.uint8)
+    ids = ["ego", "near", "band", "far", "region", "p0"]
+    first = a.flags(_snap(ids, [0] * 6, 5, x=[0, 30, 47, 80, 1010, 1], y=[0] * 6), VTYPES, ego)
+    # the ego stays SUMO's (its pose comes from outside); 47 m is in the band: a new vehicle
+    # there starts outside; persons are never physics-authoritative
+    assert first.tolist() == [0, PHYS, 0, 0, PHYS, 0]
+    prev = np.arange(6)
+    # "near" drives into the band (kept), "far" to 44 m (inside 0.9 r: taken), the region's car leaves
+    second = a.flags(_snap(ids, [0] * 6, 5, prev_index=prev, x=[0, 48, 47, 44, 1030, 1], y=[0] * 6), VTYPES, ego)
+    assert second.tolist() == [0, PHYS, 0, PHYS, 0, 0]
+    third = a.flags(_snap(ids, [0] * 6, 5, prev_index=prev, x=[0, 51, 47, 44, 1030, 1], y=[0] * 6), VTYPES, ego)
+    assert third.tolist() == [0, 0, 0, PHYS, 0, 0]  # beyond r: SUMO's again
+
+
+def test_zones_default_to_the_physics_level_of_detail(tmp_path):
+    cfg = tmp_path / "run.toml"
+    cfg.write_text('[coupling]\nauthority = "zones"\n[physics]\nlod_radius_m = 80.0\nlod_regions = [[1.0, 2.0, 30.0]]\n')
+    c = load_common(cfg)[0].coupling
+    assert c.two_way and c.zone_radius_m == 80.0 and c.zone_regions == ((1.0, 2.0, 30.0),)
+    cfg.write_text('[coupling]\nauthority = "zones"\n')
+    with pytest.raises(ConfigError, match=r'authority = "zones": expected level-of-detail zones'):
+        load_common(cfg)
+
+
 def test_gap_histogram_quantiles_and_exact_max():
     h = GapHistogram()
     h.add(np.array([0.01, 0.02, 0.03, 0.5]))
@@ -67,7 +97,7 @@ def test_gap_histogram_quantiles_and_exact_max():
 def test_coupling_config_names_what_is_wrong():
     with pytest.raises(ConfigError, match=r"coupling.classes: unknown vClass 'lorry'"):
         from_dict(CouplingConfig, {"classes": ["lorry"]}, "coupling")
-    with pytest.raises(ConfigError, match=r"coupling.authority: expected one of \['sumo', 'physics'\]"):
+    with pytest.raises(ConfigError, match=r"coupling.authority: expected one of \['sumo', 'physics', 'zones'\]"):
         from_dict(CouplingConfig, {"authority": "mujoco"}, "coupling")
     assert from_dict(CouplingConfig, {"authority": "physics"}, "coupling").two_way
     assert not CouplingConfig().two_way
