@@ -562,6 +562,7 @@ class SumoDaemon:
             "vtypes_dropped": self.sim.vtypes.dropped,
             "vtypes_overflow": self.sim.vtypes.overflow,
             "tls_program_switches": self.sim.tls.switches,
+            **self.sim.trips(),
             **(self.coupling.stats() if self.coupling.active else {}),
         }
 

@@ -328,6 +328,9 @@ class SumoSim:
             args += ["--seed", str(self.seed)]
         if cfg.begin_s is not None:
             args += ["--begin", repr(float(cfg.begin_s))]
+        # every vehicle gets SUMO's tripinfo device, so ``trips()`` reads its aggregate
+        # (travel time, time loss) at the end without an output file
+        args += ["--duration-log.statistics", "true"]
         if self.output_dir is not None:
             # SUMO resolves output names against the config's folder and puts the prefix in
             # front of each name's last component, so a relative prefix moves every output
@@ -449,6 +452,35 @@ class SumoSim:
             except Exception as e:  # closing twice or after SUMO ended on its own
                 log.debug("closing SUMO: %s", e)
             self.api = None
+
+    def trips(self) -> dict:
+        """SUMO's own account of the vehicles so far: trips ended (``trips_arrived``) with their
+        mean travel time, time loss, waiting time and route length from the tripinfo device,
+        vehicles inserted and still running, and ``vanished``: inserted vehicles that neither
+        arrived nor are still running (removed by a collision or teleport rule, or lost)."""
+        if self.api is None:
+            return {}
+        sim = self.api.simulation
+
+        def num(key: str) -> float:
+            try:
+                return float(sim.getParameter("", key))
+            except Exception:  # an older SUMO without the key
+                return float("nan")
+
+        inserted, running = num("stats.vehicles.inserted"), num("stats.vehicles.running")
+        arrived = self.counters["arrived"]
+        out = {
+            "trips_arrived": arrived,
+            "vehicles_inserted": int(inserted) if inserted == inserted else None,
+            "vehicles_running_end": int(running) if running == running else None,
+            "vanished": int(inserted - arrived - running) if inserted == inserted and running == running else None,
+        }
+        for name, key in (("travel_time_mean_s", "duration"), ("time_loss_mean_s", "timeLoss"),
+                          ("waiting_time_mean_s", "waitingTime"), ("route_length_mean_m", "routeLength")):
+            v = num(f"device.tripinfo.{key}")
+            out[name] = round(v, 3) if v == v and arrived else None
+        return out
 
     @property
     def step_length(self) -> float:

@@ -111,6 +111,9 @@ def _demo_parser(sub) -> None:
     _add_scenario(p)
     p.add_argument("--out", help="output folder (default: runs/demo, or runs/<scenario name> with --sumocfg)")
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
+    p.add_argument("--compare-authority", dest="compare_authority", action="store_true",
+                   help="run the scenario twice, SUMO- and physics-authoritative (OUT/sumo-authority, "
+                        "OUT/physics-authority), and compare them in OUT/modes.md")
 
 
 def _bench_parser(sub) -> None:
@@ -156,6 +159,13 @@ def _report_parser(sub) -> None:
     p.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
     p.add_argument("--out", help="output folder (default: the recording's folder)")
     p.add_argument("--no-sweep", action="store_true", help="skip the LAD_min replay figure")
+    _add_logging(p)
+
+
+def _compare_parser(sub) -> None:
+    p = sub.add_parser("compare", help="shadow against two-way coupling: modes.md from finished runs")
+    p.add_argument("runs", nargs="+", help="run folders with summary.json (sumoco demo outputs)")
+    p.add_argument("--out", help="output folder (default: the first run's parent)")
     _add_logging(p)
 
 
@@ -250,6 +260,7 @@ def _router_parser(sub) -> None:
 
 #: One parser builder per subcommand, in the order ``sumoco --help`` lists them.
 _PARSERS = (_sumo_parser, _physics_parser, _demo_parser, _bench_parser, _record_parser, _report_parser,
+            _compare_parser,
             _replay_parser, _gateway_parser, _foxglove_parser, _view_parser, _map_parser, _certs_parser,
             _router_parser)
 
@@ -309,6 +320,7 @@ _COMMANDS = {
     "bench": "sumoco.bench.cli:cli_main",
     "record": "sumoco.recording.record:record_cli",
     "report": "sumoco.analysis.report:cli_main",
+    "compare": "sumoco.analysis.modes:cli_main",
     "replay": "sumoco.recording.replay:cli_main",
     "gateway": "sumoco.viewing.gateway:cli_main",
     "foxglove": "sumoco.viewing.foxglove_live:cli_main",

@@ -73,6 +73,9 @@ def test_a_stall_in_physics_makes_sumo_traffic_queue_and_drive_on(tmp_path):
     assert steps[-1].final and stats["teleports"] == 0
     assert stats["feedback_late"] == 0 and stats["feedback_steps_applied"] >= len(steps) - 2
     assert stats["feedback_clamped"] == 0
+    # SUMO's own account: every vehicle it inserted arrived or still runs (none lost to the write-back)
+    assert stats["vanished"] == 0 and stats["vehicles_inserted"] >= 5, stats
+    assert stats["trips_arrived"] + stats["vehicles_running_end"] == stats["vehicles_inserted"], stats
     gaps, lead_speed, moving_again = [], [], None
     for m in steps:
         i = _row(m, "lead")
@@ -106,6 +109,7 @@ def test_a_crash_in_physics_leaves_both_cars_stopped_in_sumo_where_physics_has_t
     them, neither removed nor teleported, and the cars behind queue."""
     steps, states, stats = _run(tmp_path, "physics", duration_s=30.0, faults='brake_failure = ["f.0@14.5-40"]')
     assert stats["teleports"] == 0 and stats["feedback_late"] == 0, stats
+    assert stats["vanished"] == 0, stats  # collision.action "warn": both crashed cars stay in SUMO
     last_state = max(states, key=lambda st: st.time)
     assert last_state.counters.get("collisions", 0) >= 1, last_state.counters  # they did collide in physics
     m = steps[-1]

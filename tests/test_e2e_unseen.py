@@ -187,3 +187,45 @@ def test_mixed_classes_no_phantom_collisions(mixed_scenario, tmp_path):
     assert err["at_samples"]["overall"]["p95"] <= MIXED_P95_LIMIT_M, err
     # motorcycles, mopeds, trucks and trailers travel as OTHER on the wire
     assert err["per_type"]["other"]["p95"] <= MIXED_P95_LIMIT_M, err
+
+
+TWO_WAY_SIM_S = 40.0  # [s] simulated: the U-turns (16.5 s, 18 s) and most trips happen in it
+TWO_WAY_SHARE_MIN = 0.99  # [1] physical share of the physics-authoritative vehicles' time
+TWO_WAY_GAP_P95_LIMIT_M = 0.5  # [m] intent gap at 0.05 s steps
+
+
+def test_two_way_on_an_unseen_network_loses_no_vehicle(mixed_scenario, tmp_path):
+    """``sumoco demo --compare-authority`` on the mixed left-hand network: both modes finish
+    with every daemon at 0; in two-way mode physics drives (not carries) the vehicles' time,
+    SUMO's intent and the physical pose stay close, and no vehicle SUMO inserted is lost."""
+    cfg = tmp_path / "run.toml"
+    cfg.write_text("""
+[run]
+id = "unseen2way"
+timing = "lockstep"
+lockstep_timeout_s = 30.0
+[physics]
+preset = "default"
+[demo]
+presets = ["default"]
+lad_sweep = false
+""")
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--sumocfg",
+                        str(mixed_scenario), "--out", str(out), "--duration", str(TWO_WAY_SIM_S), "--quiet",
+                        "--compare-authority"], capture_output=True, text=True, timeout=400, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = {row["authority"]: row for row in json.loads((out / "modes.json").read_text())}
+    assert set(rows) == {"sumo", "physics"}
+    for row in rows.values():
+        assert row["exit_codes"] == {"sumo": 0, "physics-default": 0}, row
+        assert row["vanished"] == 0 and row["vehicles_inserted"] >= 15, row
+    two = rows["physics"]
+    s = json.loads((out / "physics-authority" / "summary.json").read_text())
+    p, side = s["presets"]["default"], s["sumo_side"]
+    assert p["rejected"] == 0 and side["rejected"] == 0, (p["rejected"], side["rejected"])
+    assert two["physical_share"] >= TWO_WAY_SHARE_MIN, p["physical_share_by_type"]
+    assert two["intent_gap_p95_m"] <= TWO_WAY_GAP_P95_LIMIT_M, side
+    assert side["feedback_late"] == 0 and side["teleports"] == 0, side
+    # the shadow run keeps carrying what SUMO asks beyond the vehicles (the contrast)
+    assert rows["sumo"]["physical_share"] < two["physical_share"], rows

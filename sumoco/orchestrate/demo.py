@@ -269,9 +269,7 @@ class _DemoRun:
         """The flags every daemon of the run gets."""
         run = self.common.run
         args = ["--config", str(self.config_path), "--run", run.id, "--timing", run.timing,
-                "--duration", repr(float(run.duration_s))]
-        if self.common.coupling.authority != "sumo":
-            args += ["--authority", self.common.coupling.authority]
+                "--duration", repr(float(run.duration_s)), "--authority", self.common.coupling.authority]
         if self.quiet:
             args.append("--quiet")
         return args
@@ -367,6 +365,7 @@ class _DemoRun:
             "ended_by": "interrupted" if interrupted else ended_by or (str(failure) if failure else "the run's end"),
         }
         summary["interrupted"] = interrupted
+        summary["authority"] = self.common.coupling.authority
         summary["sumo_side"] = _sumo_side_stats(self.out / "sumo")
         (self.out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
         return summary
@@ -451,6 +450,8 @@ def cli_main(args) -> int:
     if begin is not None and begin < 0:
         raise ConfigError(f"--begin: expected >= 0 s, got {begin}")
     out = Path(args.out) if getattr(args, "out", None) else default_out(sumocfg)
+    if getattr(args, "compare_authority", False):
+        return _compare_authority(config, out, common, demo, sumocfg, bool(args.quiet), begin, record)
     try:
         summary = run_demo(config, out, common, demo, sumocfg=sumocfg, quiet=bool(args.quiet), begin=begin,
                            record=record)
@@ -463,3 +464,32 @@ def cli_main(args) -> int:
         print(f"  {inst:8s} error mean {e['mean']} m, p95 {e['p95']} m, max {e['max']} m, "
               f"collisions {p['collisions']}, placements {p['placements']}", file=sys.stderr)
     return 130 if summary.get("interrupted") else 0
+
+
+#: ``--compare-authority``: the scenario once in each mode, in these sub-folders of ``--out``
+AUTHORITY_MODES = ("sumo", "physics")
+
+
+def _compare_authority(config: Path, out: Path, common: CommonConfig, demo: DemoConfig, sumocfg, quiet: bool,
+                       begin, record) -> int:
+    """The same scenario shadowed (SUMO-authoritative) and two-way (physics-authoritative),
+    then ``modes.md`` comparing them."""
+    from sumoco.analysis.modes import write_modes
+
+    dirs = []
+    for mode in AUTHORITY_MODES:
+        sub = out / f"{mode}-authority"
+        mode_common = replace(common, coupling=replace(common.coupling, authority=mode))
+        try:
+            run_demo(config, sub, mode_common, demo, sumocfg=sumocfg, quiet=quiet, begin=begin, record=record)
+        except DaemonFailed as e:
+            print(f"sumoco demo ({mode} authority): {e}", file=sys.stderr)
+            return int(e.exit_code)
+        dirs.append(sub)
+    rows = write_modes(dirs, out)
+    print(f"comparison: {out / 'modes.md'}", file=sys.stderr)
+    for r in rows:
+        print(f"  {r['authority']:8s} physical share {r['physical_share']}, tracking p95 {r['error_p95_m']} m, "
+              f"trips {r['trips_arrived']}, travel time {r['travel_time_mean_s']} s, vanished {r['vanished']}",
+              file=sys.stderr)
+    return 0
