@@ -151,3 +151,67 @@ def test_a_vehicle_held_by_physics_makes_sumo_traffic_queue_and_dissolve():
         assert writer.stats.moved > 0 and writer.stats.stopped > 0 and writer.stats.clamped == 0
     finally:
         sim.close()
+
+
+class _RecordingVehicleApi:
+    """libsumo's ``vehicle`` calls the write-back makes, recorded."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple] = []
+
+    def moveTo(self, vid, lane, pos):  # noqa: N802 (libsumo's name)
+        self.calls.append(("moveTo", vid, lane, round(pos, 3)))
+
+    def setPreviousSpeed(self, vid, speed):  # noqa: N802
+        self.calls.append(("speed", vid, round(speed, 3)))
+
+
+def _coupling(feedback_steps: int):
+    from protocol.codec import DecodeLimits
+    from protocol.keys import Keys
+    from sumo_side.coupling import SumoCoupling
+
+    api = SimpleNamespace(vehicle=_RecordingVehicleApi())
+    graph = SimpleNamespace(ids=["e_0"], lengths=np.array([100.0]), pos_factor=np.array([1.0]),
+                            internal=np.array([False]))
+    sim = SimpleNamespace(api=api, graph=graph)
+    keys = Keys("sumoco", "rt")
+    c = SumoCoupling(CouplingConfig(authority="physics", feedback_steps=feedback_steps), sim, keys,
+                     DecodeLimits(), lambda what, e: pytest.fail(f"{what}: {e}"))
+    return c, api.vehicle, keys
+
+
+def _feedback(step: int, d_lon: float) -> bytes:
+    from protocol.codec import encode
+
+    f32 = lambda v: np.array([v], np.float32)  # noqa: E731
+    return encode(PhysicsFeedback(run="rt", step=step, time=step * 0.1, ids=["car"], x=np.array([10.0]),
+                                  y=np.array([0.0]), heading=f32(90.0), speed=f32(5.0), d_lon=f32(d_lon),
+                                  d_lat=f32(0.0), contact=np.zeros(1, np.uint8)))
+
+
+def test_realtime_writes_back_feedback_at_most_feedback_steps_old_and_counts_the_rest():
+    """SPEC 3.8 "Timing": in realtime SUMO writes back the newest state at most
+    ``feedback_steps`` old; a step without one keeps SUMO's own motion and counts as late."""
+    c, api, keys = _coupling(feedback_steps=1)
+    snap = _snap(["car"], [0], 1, x=[10.0], y=[0.0])
+    snap.lane, snap.lane_pos = np.array([0]), np.array([50.0])
+    for step in range(4):
+        c.flags(snap, VTYPES, None)
+        c.remember(step, snap)
+    subscribed = []
+    c.declare(SimpleNamespace(declare_subscriber=lambda key_expr, cb: subscribed.append(cb)))
+    key = f"{keys.base}/physics/default/feedback"
+
+    def deliver(payload: bytes) -> None:  # as Zenoh's thread does
+        subscribed[0](SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: payload)))
+
+    deliver(_feedback(2, 1.5))
+    c.write_back(4)  # the state of step 2 before step 4: one step old, written
+    assert api.calls == [("moveTo", "car", "e_0", 51.5), ("speed", "car", 5.0)]
+    c.write_back(5)  # nothing new: SUMO keeps its own motion, one late step
+    deliver(_feedback(2, 3.0))
+    c.write_back(6)  # the state of step 2 before step 6: too old, not written, late again
+    assert len(api.calls) == 2
+    st = c.stats()
+    assert st["feedback_steps_applied"] == 1 and st["feedback_late"] == 2, st

@@ -115,9 +115,11 @@ def cli_main(args) -> int:
     if args.what == "codec":
         rows = run_codec_bench(repeat=20 if quick else 200)
     elif args.what == "sumo":
+        from sumoco.bench.coupling import run_coupling_bench
         from sumoco.bench.sumo import run_sumo_bench
 
-        rows = run_sumo_bench(quick=quick)
+        # with the two-way write-back's cost (feedback_ms against SUMO's own step) beside it
+        rows = run_sumo_bench(quick=quick) + run_coupling_bench(quick=quick)
     elif args.what == "physics":
         from sumoco.bench.physics import run_physics_bench
 
