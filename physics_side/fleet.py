@@ -21,6 +21,7 @@ reference: the front bumper of the SUMO trajectory extrapolated to the physics t
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
@@ -48,6 +49,9 @@ _TYPE_NAME = {
 }
 _BICYCLE_ROLL_STIFFNESS = M.default_spec(AgentClass.BICYCLE).roll_stiffness  # [N*m/rad] the stabiliser gains' reference
 TIME_EPS_S = 1e-9  # [s] step lengths closer than this to interpolate_above_s are not above it
+#: phases of ``Fleet.phase_s``: per SUMO step (sync, the policies' detect, act on the verdict)
+#: and per control tick (observe, control, actuate, MuJoCo's step with its call, measure)
+FLEET_PHASES = ("sync", "policies", "act", "observe", "control", "actuate", "mujoco", "measure")
 
 
 @dataclass
@@ -96,6 +100,9 @@ class Fleet:
         self.sumo_step = -1
         self.step_length = rates.ticks_per_step * rates.control_dt  # [s] of the newest SUMO step
         self.tick_count = 0
+        # [s] wall time per phase of the Python part (cumulative; ``bench physics`` rows):
+        # what the fleet adds to MuJoCo's own step, where it goes
+        self.phase_s = dict.fromkeys(FLEET_PHASES, 0.0)
         self.stopping = False
         # two-way coupling: True in the one instance SUMO follows (the daemon sets it); there
         # agents flagged PHYSICS_AUTHORITY are never carried: physics drives them, SUMO follows
@@ -193,11 +200,19 @@ class Fleet:
         jitter): placements and errors use the reference then."""
         self._cache = self._last_obs = None
         st = StepStats()
+        ph, clock = self.phase_s, time.perf_counter
+        t0 = clock()
         s = self._sync(msg, resync, tau, st)
+        t1 = clock()
         v = Verdict.empty(s)
         for policy in policies.DETECT:
             policy.detect(s, v)
+        t2 = clock()
         self._act(s, v, st, msg.step)
+        t3 = clock()
+        ph["sync"] += t1 - t0
+        ph["policies"] += t2 - t1
+        ph["act"] += t3 - t2
         self.sumo_step = msg.step
         self.counters["steps"] += 1
         if resync:
@@ -423,8 +438,11 @@ class Fleet:
             w.step()
             self.tick_count += 1
             return
+        ph, clock = self.phase_s, time.perf_counter
+        t0 = clock()
         obs, proj = self._observe()
         tau = min(self.tau, self.max_extrapolation)
+        t1 = clock()
         u = self._control(obs, proj, tau)
         if self._stalled is not None:  # faults: a stalled vehicle brakes fully, no drive
             u.drive[self._stalled] = 0.0
@@ -432,13 +450,21 @@ class Fleet:
         if self._unbraked is not None:  # faults: no drive, no brakes: it coasts
             u.drive[self._unbraked] = 0.0
             u.brake[self._unbraked] = 0.0
+        t2 = clock()
         self._actuate(u, obs)
+        t3 = clock()
         w.step()
+        t4 = clock()
         self.tick_count += 1
         self.tau += self.dt
         if self.stopping:
             self.stop_t += self.dt
         self._measure(obs, u)
+        ph["observe"] += t1 - t0
+        ph["control"] += t2 - t1
+        ph["actuate"] += t3 - t2
+        ph["mujoco"] += t4 - t3
+        ph["measure"] += clock() - t4
 
     def _observe(self):
         """This tick's start state: (observation, bumper projection or None); after the model
@@ -591,4 +617,4 @@ class Fleet:
         }
 
 
-__all__ = ["DebugState", "Fleet", "StepStats", "P_DEFAULT", "P_KINEMATIC", "P_PAPER"]
+__all__ = ["DebugState", "FLEET_PHASES", "Fleet", "StepStats", "P_DEFAULT", "P_KINEMATIC", "P_PAPER"]

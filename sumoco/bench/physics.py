@@ -10,12 +10,16 @@ loopback Zenoh session. A row:
 - ``agents``; ``tick_ms``: mean wall time of a control tick including the per-step work
   amortised over the step's ticks; ``tick_p95_ms``;
 - ``mujoco_ms``: the MuJoCo substeps of a tick; ``overhead_ms`` = tick_ms - mujoco_ms;
-- ``rtf``: 20 ms / tick_ms (real-time factor of the control loop); ``shards``, ``threads``.
+- ``rtf``: 20 ms / tick_ms (real-time factor of the control loop); ``shards``, ``threads``;
+- ``phases_ms``: the overhead by phase per tick (``Fleet.phase_s``: sync, policies, act per
+  step, spread over its ticks; observe, control, actuate, measure per tick; the daemon's
+  decode and publish), and ``load_avg_1min`` of the host.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import replace
 
@@ -23,6 +27,7 @@ import numpy as np
 
 from physics_side.config import PhysicsSettings, check_rates
 from physics_side.daemon import build_fleet
+from physics_side.fleet import FLEET_PHASES
 from protocol.codec import decode_as, encode
 from protocol.messages import PhysicsState, StepMessage
 from synthetic.traffic import circle_traffic
@@ -59,21 +64,30 @@ def bench_one(n: int, seconds: float = 2.0, warmup_s: float = 0.4, settings: Phy
     tick_times: list[float] = []
     mj_times: list[float] = []
     step_cost = 0.0
+    extra = {"decode": 0.0, "publish": 0.0}  # [s] the daemon's own phases around the fleet's
+    phases0 = None
     try:
         for k in range(steps):
+            if k == warm:
+                phases0 = dict(fleet.phase_s)
+                extra = dict.fromkeys(extra, 0.0)
             data = encode(circle_traffic(n, k, cfg.sumo_step_s))
             t0 = time.perf_counter()
             msg = decode_as(data, StepMessage)
+            td = time.perf_counter()
             fleet.apply_step(msg)
             step_cost = time.perf_counter() - t0
+            extra["decode"] += td - t0
             for j in range(rates.ticks_per_step):
                 t1 = time.perf_counter()
                 m0 = fleet.world.mujoco_s
                 fleet.tick()
                 if fleet.tick_count % cfg.state_every == 0:
+                    tp = time.perf_counter()
                     state = PhysicsState("bench", fleet.tick_count, msg.time + (j + 1) * rates.control_dt, msg.step,
                                          fleet.snapshot(), dict(fleet.world.counters))
                     pub.put(encode(state))
+                    extra["publish"] += time.perf_counter() - tp
                 dt = time.perf_counter() - t1
                 if k >= warm:
                     # the step's decode + sync is spread over its ticks
@@ -88,6 +102,9 @@ def bench_one(n: int, seconds: float = 2.0, warmup_s: float = 0.4, settings: Phy
     tick_ms = float(tick.mean())
     mujoco_ms = float(mj.mean())
     w = fleet.world
+    n_ticks = max(len(tick_times), 1)
+    phases = {p: (fleet.phase_s[p] - (phases0 or {}).get(p, 0.0)) for p in FLEET_PHASES if p != "mujoco"}
+    phases.update(extra)
     return {
         "agents": n,
         "tick_ms": round(tick_ms, 3),
@@ -95,6 +112,9 @@ def bench_one(n: int, seconds: float = 2.0, warmup_s: float = 0.4, settings: Phy
         "mujoco_ms": round(mujoco_ms, 3),
         "overhead_ms": round(tick_ms - mujoco_ms, 3),
         "overhead_share": round((tick_ms - mujoco_ms) / tick_ms, 3),
+        # where the overhead goes, per tick [ms] (per-step phases spread over the step's ticks)
+        "phases_ms": {p: round(v * 1e3 / n_ticks, 3) for p, v in phases.items()},
+        "load_avg_1min": round(os.getloadavg()[0], 2),
         "rtf": round(rates.control_dt * 1e3 / tick_ms, 2),
         "shards": w.shards,
         "threads": w.threads,

@@ -153,7 +153,9 @@ def _cosim_fleet(snap, lod: bool):
         expect = FULL_AGENTS * 1.3
     phys = PhysicsConfig(shards=2, threads=2, initial_slots={}, expect={"passenger": int(expect)}, preset="default")
     rates = check_rates(phys.sumo_step_s, phys.control_hz, phys.timestep_s)
-    return build_fleet(PhysicsSettings(physics=phys)), rates, split
+    fleet = build_fleet(PhysicsSettings(physics=phys))
+    fleet.world.measure_cpu = True  # the rows split CPU time into MuJoCo's and the rest
+    return fleet, rates, split
 
 
 def _cosim_steps(sim, bridge, fleet, rates, split, k: int, steps: int) -> dict[str, list]:
