@@ -192,3 +192,20 @@ def test_rosbag2_export_reads_back_with_rosbags_and_rclpy(tmp_path):
                 assert sum(mk.ns == "agents" for mk in msg.markers) == steps[t_ns].agents.n
                 assert len(pure.markers) == len(msg.markers)
     assert seen == {k: v for k, v in result["topics"].items()}
+
+
+def test_rviz_config_names_the_bridge_topics_with_matching_qos():
+    import yaml
+
+    from sumoco.ros2.node import qos_profiles
+
+    rviz = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "ros2" / "sumoco.rviz").read_text())
+    views = rviz["Visualization Manager"]
+    assert views["Global Options"]["Fixed Frame"] == "map"
+    topics = {d["Topic"]["Value"]: d["Topic"] for d in views["Displays"] if "Topic" in d}
+    q = qos_profiles()
+    want = {"/sumoco/map": q["latched"], "/sumoco/agents": q["stream"], "/sumoco/poses": q["stream"]}
+    assert set(topics) == set(want)
+    for name, prof in want.items():  # RViz's names of the same policies
+        assert topics[name]["Reliability Policy"].replace(" ", "_").upper() == prof.reliability.name
+        assert topics[name]["Durability Policy"].replace(" ", "_").upper() == prof.durability.name
