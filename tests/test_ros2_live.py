@@ -100,20 +100,21 @@ sumocfg = "{PAPER_CFG}"
 preset = "default"
 """)
     keys, domain = Keys("sumoco", "rosrun"), _domain()
-    sumo_ep, phys_ep, node_ep = endpoint(), endpoint(), endpoint()
+    sumo_ep, phys_ep, node_ep, probe_ep = endpoint(), endpoint(), endpoint(), endpoint()
     logs = tmp_path / "logs"
     listener = Peer(tmp_path, "listen", domain)
-    node = Daemon("ros2", ["ros2", "--config", str(cfg), "--listen", node_ep, "--connect", sumo_ep, "--source", "sumo",
+    node = Daemon("ros2", ["ros2", "--config", str(cfg), "--listen", node_ep, "--source", "sumo",
                            "--odometry", "ref", "--domain-id", str(domain)], logs)
-    daemons, probe = [node], None
+    daemons, probe = [node], Probe(keys, [], listen=probe_ep)
     try:
         wait_until(lambda: _ready_line(node), 30, "the ROS 2 bridge ready", procs=[node])
         ready = wait_until(lambda: (r := listener.lines("ready")) and r[0], 40, "the listener to discover the bridge",
                            procs=[listener, node])
         assert ready["publishers"] >= 1
-        # the run starts only now: every message of it is there to be compared
-        sumo = Daemon("sumo", ["sumo", "--config", str(cfg), "--listen", sumo_ep], logs)
-        probe = Probe(keys, [sumo_ep])
+        # the run starts only now and links to the bridge and the probe at once: every step of it
+        # reaches both
+        sumo = Daemon("sumo", ["sumo", "--config", str(cfg), "--listen", sumo_ep, "--connect", node_ep,
+                               "--connect", probe_ep], logs)
         phys = Daemon("physics", ["physics", "--config", str(cfg), "--listen", phys_ep, "--connect", sumo_ep,
                                   "--quiet"], logs)
         daemons += [sumo, phys]
@@ -123,8 +124,7 @@ preset = "default"
         wait_until(lambda: any(c["stamp"] == round(final_t * 1e9) for c in listener.lines("clock")), 10,
                    "the run's last /clock", procs=[node])
     finally:
-        if probe is not None:
-            probe.close()
+        probe.close()
         for d in daemons:
             d.terminate(15)
         code = listener.stop()
@@ -133,7 +133,7 @@ preset = "default"
 
     steps = {round(m.time * 1e9): m for m in probe.steps}
     poses, agents = listener.lines("poses"), listener.lines("agents")
-    assert len(poses) >= 50 and len(agents) >= 50, (len(poses), len(agents), len(steps))
+    assert len(steps) == 150 and len(poses) >= 100 and len(agents) >= 100, (len(poses), len(agents), len(steps))
     worst_xy = worst_yaw = 0.0
     for msg in poses:
         assert msg["frame"] == "map"
