@@ -6,7 +6,8 @@ One TOML file configures a whole run; each part reads its own table:
 - ``[sumo]``: ``sumo_side.config.SumoConfig``;
 - ``[physics]`` and ``[control.*]``: ``physics_side.config``;
 - ``[coupling]``: who owns each vehicle's motion (``CouplingConfig``, read by both sides);
-- ``[demo]``: ``sumoco.orchestrate.demo``.
+- ``[demo]``: ``sumoco.orchestrate.demo``;
+- ``[ros2]``: ``sumoco.ros2.config.Ros2Config``.
 
 An unknown key or a value of the wrong type is a ``ConfigError`` that names the file,
 the dotted key and what was expected; a missing key takes the dataclass default.
@@ -30,7 +31,7 @@ from runtime.zones import REGION_FIELDS
 T = TypeVar("T")
 
 #: Top-level tables a config file may have.
-KNOWN_TABLES = ("run", "zenoh", "coupling", "sumo", "physics", "control", "demo", "viewer", "record", "bench")
+KNOWN_TABLES = ("run", "zenoh", "coupling", "sumo", "physics", "control", "demo", "viewer", "record", "bench", "ros2")
 
 
 @dataclass(frozen=True)

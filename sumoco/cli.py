@@ -19,7 +19,9 @@ from runtime.errors import ExitCode, MissingExtraError
 
 #: Optional parts: the top-level module a command needs -> the extra that installs it.
 _EXTRAS = {"libsumo": "sumo", "sumo": "sumo", "mujoco": "physics", "matplotlib": "report", "foxglove": "foxglove",
-           "cryptography": "secure"}
+           "cryptography": "secure", "rclpy": "ros2", "rosbags": "ros2", "rosgraph_msgs": "ros2",
+           "visualization_msgs": "ros2", "geometry_msgs": "ros2", "nav_msgs": "ros2", "std_msgs": "ros2",
+           "builtin_interfaces": "ros2"}
 
 
 def _env_list(name: str) -> list[str] | None:
@@ -220,6 +222,41 @@ def _view_parser(sub) -> None:
                    help="with --foxglove: scene updates per key at most [Hz of simulated time], 0 = all (default 10)")
 
 
+def _ros2_parser(sub) -> None:
+    p = sub.add_parser("ros2", help="the run on ROS 2 topics (RViz), egos driven from ROS 2 (needs the ros2 extra)")
+    _add_zenoh(p)
+    p.add_argument("--source", choices=["physics", "sumo"],
+                   help="where poses come from: a physics instance (default) or SUMO's samples ([ros2].source)")
+    p.add_argument("--instance", help="physics instance whose states to use (default: the first that publishes)")
+    p.add_argument("--rate", dest="rate_hz", type=float,
+                   help="agents, poses and odometry at most this often [Hz of simulated time], 0 = all (default 10)")
+    p.add_argument("--odometry", action="append", default=None, metavar="ID",
+                   help="also publish agent ID as nav_msgs/Odometry on <prefix>/odom/<ID> (repeatable)")
+    p.add_argument("--ego", action="append", default=None, metavar="ID",
+                   help="drive ego ID from ROS 2: geometry_msgs/PoseStamped on <prefix>/ego/<ID>/pose, "
+                        "nav_msgs/Odometry on <prefix>/ego/<ID>/odom (repeatable)")
+    p.add_argument("--domain-id", dest="domain_id", type=int, help="ROS_DOMAIN_ID (default: the environment's)")
+    p.add_argument("--duration", type=float, help="stop after this many wall-clock seconds")
+    _add_logging(p)
+
+
+def _export_parser(sub) -> None:
+    p = sub.add_parser("export", help="a recording in another format")
+    esub = p.add_subparsers(dest="export_cmd", required=True)
+    e = esub.add_parser("rosbag2", help="the ROS 2 topics of `sumoco ros2` from a recording, as a rosbag2 "
+                                        "(needs the ros2 extra)")
+    e.add_argument("recording", help="run.mcap written by `sumoco record` or the demo")
+    e.add_argument("--out", required=True, help="rosbag2 folder to create (must not exist)")
+    e.add_argument("--config", help="TOML config whose [ros2] table to use")
+    e.add_argument("--source", choices=["physics", "sumo"], help="where poses come from (default physics)")
+    e.add_argument("--instance", help="physics instance (default: the first in the recording)")
+    e.add_argument("--rate", dest="rate_hz", type=float, help="frames per second of simulated time, 0 = all "
+                                                               "(default 10)")
+    e.add_argument("--odometry", action="append", default=None, metavar="ID", help="nav_msgs/Odometry of agent ID")
+    e.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="rosbag2 storage (default mcap)")
+    _add_logging(e)
+
+
 def _map_parser(sub) -> None:
     p = sub.add_parser("map", help="the road network as a file for renderers and game engines")
     msub = p.add_subparsers(dest="map_cmd", required=True)
@@ -261,8 +298,8 @@ def _router_parser(sub) -> None:
 #: One parser builder per subcommand, in the order ``sumoco --help`` lists them.
 _PARSERS = (_sumo_parser, _physics_parser, _demo_parser, _bench_parser, _record_parser, _report_parser,
             _compare_parser,
-            _replay_parser, _gateway_parser, _foxglove_parser, _view_parser, _map_parser, _certs_parser,
-            _router_parser)
+            _replay_parser, _gateway_parser, _foxglove_parser, _view_parser, _ros2_parser, _export_parser,
+            _map_parser, _certs_parser, _router_parser)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -326,6 +363,8 @@ _COMMANDS = {
     "foxglove": "sumoco.viewing.foxglove_live:cli_main",
     "view": "sumoco.viewing.viewer.server:cli_main",
     "map": "sumoco.orchestrate.mapexport:cli_main",
+    "ros2": "sumoco.ros2.node:cli_main",
+    "export": "sumoco.ros2.bag:cli_main",
     "router": "sumoco.orchestrate.router:cli_main",
     "certs": "sumoco.orchestrate.certs:cli_main",
 }

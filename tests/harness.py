@@ -155,9 +155,9 @@ class Probe:
     """A Zenoh session in the test that decodes and keeps everything of one run."""
 
     def __init__(self, keys: Keys, connect: list[str], security: SecurityConfig | None = None,
-                 role: str = "viewer") -> None:
+                 role: str = "viewer", listen: str | None = None) -> None:
         self.keys = keys
-        zcfg = ZenohConfig(listen=(endpoint(),), connect=tuple(connect))
+        zcfg = ZenohConfig(listen=(listen or endpoint(),), connect=tuple(connect))
         if security is not None:
             zcfg = ZenohConfig(listen=zcfg.listen, connect=zcfg.connect, security=security)
         self.session = open_session(zcfg, role)
