@@ -76,7 +76,8 @@ class Processes:
         self._files.append(f)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         log.info("starting %s: %s", name, " ".join(argv[2:]))
-        p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                             preexec_fn=_die_with_parent())
         self.procs[name] = p
         return p
 
@@ -113,6 +114,27 @@ class Processes:
         self.stop(timeout_s=5.0)
         for f in self._files:
             f.close()
+
+
+#: Linux prctl option: the signal a child gets when the thread that started it ends
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent():
+    """A ``preexec_fn`` that makes a daemon receive SIGTERM when its parent dies, even by
+    SIGKILL or a test's timeout (which kills the demo, not its daemons); None where that is
+    unavailable or unsafe: not Linux, or started from a thread that may end first (the
+    signal follows the starting thread, not the process)."""
+    if not sys.platform.startswith("linux") or threading.current_thread() is not threading.main_thread():
+        return None
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+
+    def arm() -> None:  # (in the child, between fork and exec)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+    return arm
 
 
 def cli_argv(*args: str) -> list[str]:
