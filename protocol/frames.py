@@ -23,10 +23,15 @@ def yaw_to_sumo_angle(yaw_rad):
     return np.mod(90.0 - np.rad2deg(np.asarray(yaw_rad, dtype=np.float64)), 360.0)
 
 
+_TWO_PI = 2.0 * np.pi
+_INV_TWO_PI = 1.0 / _TWO_PI
+
+
 def wrap_pi(a):
-    """Wrap angles [rad] to (-pi, pi]."""
+    """Wrap angles [rad] to (-pi, pi]. (ceil instead of np.mod: the hot paths call it ~10
+    times per tick over every agent, and float mod is twice as slow.)"""
     a = np.asarray(a, dtype=np.float64)
-    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
+    return a - _TWO_PI * np.ceil((a - np.pi) * _INV_TWO_PI)
 
 
 def front_to_centre(x, y, yaw, length):

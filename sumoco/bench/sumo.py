@@ -1,4 +1,4 @@
-"""``sumoco bench sumo``: per-step cost of the SUMO side at ~250 and ~2,500 agents.
+"""``sumoco bench sumo``: per-step cost of the SUMO side at ~250, ~2,500 and ~10,000 agents.
 
 For each size a grid scenario (``sumo_side.scenarios.make_grid_scenario``) runs in
 libsumo until the network holds about that many vehicles; then, per step, it measures
@@ -170,12 +170,26 @@ def bench_one(sumocfg: Path, target: int, steps: int, warmup_max: int = 3000, se
         sim.close()
 
 
-def run_sumo_bench(sizes=(250, 2500), steps: int | None = None, quick: bool = False, seed: int = 42) -> list[dict]:
-    """One row per scenario size (about ``size`` vehicles in the network)."""
+#: [agents] from this size on a row measures fewer steps (SUMO alone takes ~150 ms per step)
+LARGE_AGENTS = 10_000
+LARGE_STEPS = 100
+QUICK_MAX_AGENTS = 2_500  # ``--quick`` leaves the largest size out
+
+
+def run_sumo_bench(sizes=(250, 2500, 10_000), steps: int | None = None, quick: bool = False,
+                   seed: int = 42) -> list[dict]:
+    """One row per scenario size (about ``size`` vehicles in the network), with the host's
+    load average (other processes share the cores the row measures)."""
+    import os
+
     steps = steps or (30 if quick else 300)
     rows = []
     for size in sizes:
+        if quick and size > QUICK_MAX_AGENTS:
+            continue
         cfg = grid_scenario(size, seed=seed)
         log.info("bench sumo: %d agents target, scenario %s", size, cfg)
-        rows.append({"target_agents": size, **bench_one(Path(cfg), size, steps, seed=seed)})
+        n = min(steps, LARGE_STEPS) if size >= LARGE_AGENTS else steps
+        rows.append({"target_agents": size, **bench_one(Path(cfg), size, n, seed=seed),
+                     "load_avg_1min": round(os.getloadavg()[0], 2)})
     return rows
