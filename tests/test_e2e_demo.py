@@ -41,10 +41,11 @@ def _demo(cfg, out):
 
 
 def _strip(summary):
-    # exit codes and the SUMO side's counters are the demo's knowledge, not the recording's:
-    # `sumoco report` cannot rebuild them (and ack coalescing depends on timing)
+    # exit codes, the SUMO side's counters and the configured authority are the demo's
+    # knowledge, not the recording's: `sumoco report` cannot rebuild them (and ack
+    # coalescing depends on timing)
     return {k: v for k, v in summary.items()
-            if k not in WALL_CLOCK_FIELDS + ("figures", "daemons", "interrupted", "sumo_side")}
+            if k not in WALL_CLOCK_FIELDS + ("figures", "daemons", "interrupted", "sumo_side", "authority")}
 
 
 @pytest.fixture(scope="module")

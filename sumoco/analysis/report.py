@@ -45,6 +45,13 @@ def _fmt_lc(lc: dict | None) -> str:
     return f"{lc['count']}, {lc['p95_error_m']:.3f} / {lc['max_error_m']:.3f}"
 
 
+_SHARE_TYPES = ("passenger", "taxi", "bus", "bicycle", "other")
+
+
+def _share(v) -> str:
+    return "n/a" if v is None else f"{100.0 * v:.1f} %"
+
+
 def render_markdown(summary: dict, recording) -> str:
     lines = [
         "# sumoco run report",
@@ -95,6 +102,17 @@ def render_markdown(summary: dict, recording) -> str:
     lines.append("|---" * (len(types) + 1) + "|")
     for inst, p in summary["presets"].items():
         lines.append(f"| {inst} | " + " | ".join(_fmt(p["error_m"]["per_type"].get(t)) for t in types) + " |")
+    shares = {inst: p.get("physical_share") for inst, p in summary["presets"].items()}
+    if any(v is not None for v in shares.values()):
+        lines += ["", f"Physical share (vehicle agent-time driven by physics, not carried or placed; "
+                      f"authority: {summary.get('authority', 'sumo')}):", "",
+                  "| preset | all vehicles | " + " | ".join(_SHARE_TYPES) + " | pedestrians |",
+                  "|---" * (len(_SHARE_TYPES) + 3) + "|"]
+        for inst, p in summary["presets"].items():
+            by = p.get("physical_share_by_type") or {}
+            lines.append(f"| {inst} | {_share(p.get('physical_share'))} | "
+                         + " | ".join(_share(by.get(t)) for t in _SHARE_TYPES)
+                         + f" | {_share(p.get('physical_share_pedestrians'))} |")
     if summary.get("figures"):
         lines += ["", "## Figures (reference car, presets side by side)", ""]
         for f in summary["figures"]:

@@ -370,7 +370,7 @@ class _DemoRun:
     def report(self, rec_path: Path) -> dict:
         """Summary, figures and report of the recording, with how the daemons ended; written
         to ``summary.json``."""
-        from sumoco.analysis.report import write_report
+        from sumoco.analysis.report import render_markdown, write_report
 
         try:
             summary = write_report(rec_path, self.out, lad_sweep=self.demo.lad_sweep)
@@ -390,6 +390,8 @@ class _DemoRun:
         summary["authority"] = self.common.coupling.authority
         summary["sumo_side"] = _sumo_side_stats(self.out / "sumo")
         (self.out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+        if summary.get("presets"):  # again, with what only the run knows (the authority)
+            (self.out / "report.md").write_text(render_markdown(summary, rec_path))
         return summary
 
 
