@@ -180,7 +180,8 @@ def keeps(s: Step, tight: np.ndarray, sustained: np.ndarray) -> np.ndarray:
 
 def manoeuvres(s: Step) -> np.ndarray:
     """Physical vehicles on a manoeuvre they cannot drive: starting one, or still on one."""
-    cand = (s.mode == AgentMode.PHYSICAL) & (s.kind != models.KIND_PED)
+    # (physics-authoritative vehicles are never carried: with every vehicle so, nothing to test)
+    cand = (s.mode == AgentMode.PHYSICAL) & (s.kind != models.KIND_PED) & ~s.authoritative
     if not (s.cfg.carry_infeasible and cand.any()):
         return np.zeros(s.n, bool)
     share, brake = grip_shares(s.kind, s.limits.max_rear, s.limits.mass)

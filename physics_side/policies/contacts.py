@@ -209,18 +209,39 @@ def _near(s: Step, sx: np.ndarray, sy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     if not len(i):
         return i, j, np.zeros(0), np.zeros(0)
 
+    # the bodies now and ahead: with their errors kept, or moving on at their velocity
+    kx, ky, kyaw = sx2 + px - sx, sy2 + py - sy, syaw2 + wrap_pi(pyaw - held.yaw)
+    lx, ly, lyaw = px + obs.vx * H, py + obs.vy * H, pyaw + obs.yaw_rate * H
+    # Only pairs that may come within GUARD_GAP_M are measured exactly (the disc test above
+    # takes every pair within the distance both may drive in H: most are far apart).
+    half_l, corner = 0.5 * np.maximum(L, pw), 0.5 * np.hypot(L, pw)
+    least = np.minimum(_sat_floor(px, py, i, j, half_l, corner),
+                       np.minimum(_sat_floor(kx, ky, i, j, half_l, corner), _sat_floor(lx, ly, i, j, half_l, corner)))
+    may = least < GUARD_GAP_M
+    i, j = i[may], j[may]
+
     def gaps(ax, ay, ah_, al, aw):
         return footprint_gap(ax[i], ay[i], ah_[i], al[i], aw[i], ax[j], ay[j], ah_[j], al[j], aw[j])
 
     sumo_now = gaps(sx, sy, held.yaw, s.sumo_len, s.sumo_wid)
-    # the bodies now and ahead: with their errors kept, or moving on at their velocity
-    kx, ky, kyaw = sx2 + px - sx, sy2 + py - sy, syaw2 + wrap_pi(pyaw - held.yaw)
-    lx, ly, lyaw = px + obs.vx * H, py + obs.vy * H, pyaw + obs.yaw_rate * H
     pg = np.minimum(gaps(px, py, pyaw, L, pw), np.minimum(gaps(kx, ky, kyaw, L, pw), gaps(lx, ly, lyaw, L, pw)))
     # SUMO's footprints this close are its own collision; only now counts (ahead they are our
     # extrapolation: a motorcycle SUMO stops within a step from 15 m/s runs on into its leader
     # there, SUMO's next sample does not)
     return i, j, pg, sumo_now
+
+
+def _sat_floor(x: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray, half_l: np.ndarray,
+               corner: np.ndarray) -> np.ndarray:
+    """A lower bound of ``footprint_gap`` [m] of the footprints at (x, y) of pairs (i, j)
+    (``half_l``: half the longer side, ``corner``: half the diagonal [m]). On one of a's two
+    axes the centres are at least |d| / sqrt(2) apart, a reaches at most half its longer side
+    along it and b at most its half diagonal: the separating-axis gap is at least that."""
+    d = np.hypot(x[i] - x[j], y[i] - y[j]) * _INV_SQRT2
+    return np.maximum(d - half_l[i] - corner[j], d - half_l[j] - corner[i])
+
+
+_INV_SQRT2 = 1.0 / np.sqrt(2.0)
 
 
 def detect_guard(s: Step, v: Verdict) -> None:
