@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from physics_side.policies.footprints import centre, footprint_gap, footprints_overlap, near_pairs, overlaps_any
+from physics_side.policies.footprints import (centre, footprint_gap, footprints_overlap, gap_floor, near_pairs,
+                                             overlaps_any)
 
 
 def test_near_pairs_and_footprint_gaps_match_a_brute_force_check():
@@ -50,3 +51,19 @@ def test_centre_is_half_a_length_behind_the_bumper_and_overlaps_any_checks_a_mas
     assert overlaps_any(0, x, y, yaw, L, W, np.array([False, True, True]))
     assert not overlaps_any(0, x, y, yaw, L, W, np.array([False, False, True]))
     assert not overlaps_any(0, x, y, yaw, L, W, np.zeros(3, bool))
+
+
+def test_gap_floor_never_exceeds_the_separating_axis_gap():
+    """The contact guard prunes pairs with ``gap_floor``: it must be a lower bound of
+    ``footprint_gap`` for every pair of rectangles, or the guard would miss a near pair."""
+    rng = np.random.default_rng(11)
+    n = 400
+    x, y = rng.uniform(-15, 15, n), rng.uniform(-15, 15, n)
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    length, width = rng.uniform(0.5, 18.0, n), rng.uniform(0.4, 2.6, n)
+    i, j = np.triu_indices(n, 1)
+    exact = footprint_gap(x[i], y[i], yaw[i], length[i], width[i], x[j], y[j], yaw[j], length[j], width[j])
+    floor = gap_floor(x, y, i, j, 0.5 * np.maximum(length, width), 0.5 * np.hypot(length, width))
+    assert np.all(floor <= exact + 1e-9), float(np.max(floor - exact))
+    # and it prunes: most of these pairs are far apart
+    assert np.mean(floor > 0.1) > 0.5

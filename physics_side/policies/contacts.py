@@ -23,7 +23,7 @@ import numpy as np
 
 from physics_side import models
 from physics_side.policies.base import Step, Verdict, log
-from physics_side.policies.footprints import centre, footprint_gap, near_pairs, overlaps_any
+from physics_side.policies.footprints import centre, footprint_gap, gap_floor, near_pairs, overlaps_any
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
 
@@ -215,8 +215,8 @@ def _near(s: Step, sx: np.ndarray, sy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     # Only pairs that may come within GUARD_GAP_M are measured exactly (the disc test above
     # takes every pair within the distance both may drive in H: most are far apart).
     half_l, corner = 0.5 * np.maximum(L, pw), 0.5 * np.hypot(L, pw)
-    least = np.minimum(_sat_floor(px, py, i, j, half_l, corner),
-                       np.minimum(_sat_floor(kx, ky, i, j, half_l, corner), _sat_floor(lx, ly, i, j, half_l, corner)))
+    least = np.minimum(gap_floor(px, py, i, j, half_l, corner),
+                       np.minimum(gap_floor(kx, ky, i, j, half_l, corner), gap_floor(lx, ly, i, j, half_l, corner)))
     may = least < GUARD_GAP_M
     i, j = i[may], j[may]
 
@@ -229,19 +229,6 @@ def _near(s: Step, sx: np.ndarray, sy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     # extrapolation: a motorcycle SUMO stops within a step from 15 m/s runs on into its leader
     # there, SUMO's next sample does not)
     return i, j, pg, sumo_now
-
-
-def _sat_floor(x: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray, half_l: np.ndarray,
-               corner: np.ndarray) -> np.ndarray:
-    """A lower bound of ``footprint_gap`` [m] of the footprints at (x, y) of pairs (i, j)
-    (``half_l``: half the longer side, ``corner``: half the diagonal [m]). On one of a's two
-    axes the centres are at least |d| / sqrt(2) apart, a reaches at most half its longer side
-    along it and b at most its half diagonal: the separating-axis gap is at least that."""
-    d = np.hypot(x[i] - x[j], y[i] - y[j]) * _INV_SQRT2
-    return np.maximum(d - half_l[i] - corner[j], d - half_l[j] - corner[i])
-
-
-_INV_SQRT2 = 1.0 / np.sqrt(2.0)
 
 
 def detect_guard(s: Step, v: Verdict) -> None:
