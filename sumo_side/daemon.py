@@ -562,7 +562,6 @@ class SumoDaemon:
             "vtypes_dropped": self.sim.vtypes.dropped,
             "vtypes_overflow": self.sim.vtypes.overflow,
             "tls_program_switches": self.sim.tls.switches,
-            **self.sim.trips(),
             **(self.coupling.stats() if self.coupling.active else {}),
         }
 
@@ -627,7 +626,9 @@ def cli_main(args) -> int:
         return daemon.run()
     finally:
         if daemon is not None and sim.output_dir is not None:
-            _write_stats(sim.output_dir, daemon.stats())
+            # SUMO's trip account is read here, on the main thread: libsumo is not
+            # thread-safe, and ``stats()`` also answers status queries on Zenoh's thread
+            _write_stats(sim.output_dir, {**daemon.stats(), **sim.trips()})
         for s, h in previous.items():
             signal.signal(s, h)
         sim.close()
