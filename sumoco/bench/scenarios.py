@@ -67,6 +67,10 @@ def run_one(cfg: Path, sumocfg: Path, out: Path, duration: float, begin: float |
         "authority": authority or "sumo",
     })
     side = s.get("sumo_side") or {}
+    # SUMO's own trip account, in both modes: what its traffic did, and no vehicle lost
+    row["trips"] = {k: side.get(k) for k in (
+        "vehicles_inserted", "trips_arrived", "vehicles_running_end", "vanished", "travel_time_mean_s",
+        "time_loss_mean_s")}
     if "feedback_steps_applied" in side:  # two-way coupling: what SUMO did with the physical states
         row["coupling"] = {k: side.get(k) for k in (
             "intent_gap_p50_m", "intent_gap_p95_m", "intent_gap_max_m", "feedback_ms", "feedback_late",
