@@ -189,7 +189,7 @@ def test_mixed_classes_no_phantom_collisions(mixed_scenario, tmp_path):
     assert err["per_type"]["other"]["p95"] <= MIXED_P95_LIMIT_M, err
 
 
-TWO_WAY_SIM_S = 40.0  # [s] simulated: the U-turns (16.5 s, 18 s) and most trips happen in it
+TWO_WAY_SIM_S = 30.0  # [s] simulated: the U-turns (16.5 s, 18 s) happen in it
 TWO_WAY_SHARE_MIN = 0.99  # [1] physical share of the physics-authoritative vehicles' time
 TWO_WAY_GAP_P95_LIMIT_M = 0.5  # [m] intent gap at 0.05 s steps
 
