@@ -46,6 +46,7 @@ from protocol.codec import decode_as, encode
 from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsAgents, PhysicsState, StaticData, StepAck, StepMessage
+from protocol.order import StepOrder, Verdict
 from protocol.tables import StaticTracker
 from runtime.config import RunConfig
 from runtime.queues import DropOldest
@@ -110,6 +111,10 @@ class PhysicsDaemon:
         self._seen_sumo = False
         self._resync = False
         self._last_step = -1
+        # which incarnation of the run it follows; steps of an older one, or out of order, or
+        # too far ahead are refused and counted (SPEC 3.1.1)
+        self.order = StepOrder()
+        self._run_over = False  # the followed incarnation sent its final step: no ticks, no states
         self._rate_cache: dict[float, Rates] = {}
         self._reject_log_t = 0.0
         self._reject_since_log = 0
@@ -216,6 +221,10 @@ class PhysicsDaemon:
         except ProtocolError as e:
             self._reject(str(e))
             return None
+        if msg.epoch != (self.order.epoch or 0) and msg.epoch > (self.order.epoch or 0):
+            # a newer incarnation numbers its static versions afresh: forget the old tables
+            # (an older epoch is refused in _apply and leaves them alone)
+            self._tables = StaticTracker()
         msg = self._resolve_vtypes(msg)
         rates = self._rate_cache.get(msg.step_length)
         if rates is None:
@@ -277,12 +286,20 @@ class PhysicsDaemon:
         if self.detail is not None:  # agents outside every detail zone never enter MuJoCo
             self.detail.points = self.cameras.points()
             msg = self.detail.apply(msg)
+        verdict = self.order.judge(msg.epoch, msg.step)
+        if verdict is Verdict.DUPLICATE:
+            return False  # a lockstep re-send of the step it has
+        if not verdict.accepted:
+            self._reject(f"step {msg.step} of epoch {msg.epoch} ({verdict.value}): {self.order.why}")
+            return False
         resync = self._resync
-        if msg.step <= self._last_step and not resync:
-            if msg.step == self._last_step:
-                return False
-            log.warning("SUMO step went back from %d to %d: resynchronising", self._last_step, msg.step)
+        restart = verdict is Verdict.RESTART
+        if restart:
+            log.warning("SUMO side restarted: epoch %d, first step %d%s: resetting the fleet", msg.epoch, msg.step,
+                        f" ({msg.step} steps missed)" if msg.step else "")
             resync = True
+        elif verdict is Verdict.FIRST and msg.step:
+            log.info("joined epoch %d at step %d (%d steps missed)", msg.epoch, msg.step, msg.step)
         # Physics time only moves forward, one control period per tick: in lockstep it stays
         # within dt/2 of SUMO's step end; in realtime the wall clock paces it and a step may
         # arrive a tick early or late (then the reference is extrapolated from it by the
@@ -293,9 +310,9 @@ class PhysicsDaemon:
         start = msg.time - (msg.step_length if self.fleet.interpolates(msg.step_length) else 0.0)
         ahead = self.time - start
         limit = self.cfg.max_extrapolation_steps * msg.step_length
-        restart = resync or ahead < -self.fleet.dt or ahead > limit
+        fresh = resync or ahead < -self.fleet.dt or ahead > limit
         try:
-            stats = self.fleet.apply_step(msg, resync=resync, tau=0.0 if restart else ahead)
+            stats = self.fleet.apply_step(msg, resync=resync, tau=0.0 if fresh else ahead, restart=restart)
         except (ValueError, IndexError, KeyError) as e:
             self._reject(f"step {msg.step}: {type(e).__name__}: {e}")
             return False
@@ -303,8 +320,9 @@ class PhysicsDaemon:
             # Durations count from the scenario's begin (SUMO time before the first step).
             self._begin = msg.time - msg.step_length
         self._resync = False
+        self._run_over = False
         self._last_step = msg.step
-        if restart:
+        if fresh:
             self.time = start
         self.fleet.rates = self._rate_cache[msg.step_length]
         if stats.spawned or stats.parked:
@@ -326,6 +344,8 @@ class PhysicsDaemon:
         c = dict(self.fleet.world.counters)
         c.update(self.fleet.counters)
         c.update(self.counters)
+        c.update(self.order.counters)
+        c["sumo_restarts"] = self.order.restarts
         c.update(self.fleet.mode_counts())
         if self.detail is not None:
             c["kinematic"] = c.get("kinematic", 0) + self.detail.far.n
@@ -382,8 +402,17 @@ class PhysicsDaemon:
                 break
             self._handle_alive()
             self._status.maybe_log(self.fleet, self.all_counters)  # counted only when it logs: a step waits behind this
-            if not self.sumo_present and self.fleet.stopping and self.fleet.n and not self._at_rest():
+            if self._run_over and not self._steps:
+                # after the final step (following the next run): nothing to simulate or publish
+                # until a step of a new incarnation arrives
+                self._wake.wait(IDLE_WAIT_S)
+                self._wake.clear()
+                next_tick = time.monotonic()
+                continue
+            if (not self.sumo_present and self.fleet.stopping and self.fleet.n and not self._at_rest()
+                    and not self._steps):
                 # SUMO gone: keep simulating at the control rate until every agent is at rest
+                # (steps that came before it left go first: the final one ends the run)
                 next_tick = self._pace(next_tick)
                 self._tick()
                 continue
@@ -405,6 +434,10 @@ class PhysicsDaemon:
                     log.info("last step %d at t=%.1f s (%s)", msg.step, msg.time,
                              "marked final" if msg.final else f"duration {self.run_cfg.duration_s:g} s")
                     break
+                if msg.final:
+                    self._end_of_run(msg)
+                elif not self.sumo_present:
+                    self.fleet.begin_stop()  # a step that came before SUMO left: stop after it
             else:
                 newest = None
                 while self._steps:
@@ -416,6 +449,11 @@ class PhysicsDaemon:
                     if newest.final and not self.cfg.follow_next_run:
                         log.info("last step %d at t=%.1f s (marked final)", newest.step, newest.time)
                         break
+                    if newest.final:
+                        self._end_of_run(newest)
+                        continue
+                    if not self.sumo_present:
+                        self.fleet.begin_stop()  # a step that came before SUMO left: stop after it
                 if self.fleet.ref is None and not self.fleet.n:
                     self._wake.wait(IDLE_WAIT_S)
                     self._wake.clear()
@@ -428,6 +466,13 @@ class PhysicsDaemon:
                     break
         self._status.maybe_log(self.fleet, self.all_counters(), force=True)
         return 0
+
+    def _end_of_run(self, msg: StepMessage) -> None:
+        """The followed incarnation's final step while following the next run: one last state,
+        then no ticks and no states until a new incarnation's step (SPEC 3.1)."""
+        self._publish_state()
+        self._run_over = True
+        log.info("last step %d at t=%.1f s (marked final): waiting for the next run", msg.step, msg.time)
 
     def _pace(self, next_tick: float) -> float:
         """Sleep until the next control tick (wall clock); skip ahead when far behind."""

@@ -44,6 +44,7 @@ from protocol.codec import decode, encode
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
 from protocol.messages import EgoPose, StepAck, SumoStatus
+from protocol.order import new_epoch
 from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.coupling import SumoCoupling
@@ -143,7 +144,9 @@ class SumoDaemon:
         self.run_cfg = run
         self.clock = clock
         self.pipeline = pipeline
-        self.bridge = Bridge(sim, cfg, run.id)
+        # this incarnation of the run: in every step and in the static data (SPEC 3.1.1)
+        self.epoch = new_epoch()
+        self.bridge = Bridge(sim, cfg, run.id, self.epoch)
         self.ego = EgoManager(sim.api, cfg, clock)
         self.counters = Counters()
         self._stop = threading.Event()
@@ -161,7 +164,7 @@ class SumoDaemon:
         self._limits = run.decode_limits  # acks and ego poses are small: any bound holds them
         # two-way coupling: physical states of physics-authoritative vehicles written back
         self.coupling = SumoCoupling(coupling or CouplingConfig(), sim, keys, self._limits, self._reject)
-        self._static_bytes = encode(sim.static_data())
+        self._static_bytes = encode(replace(sim.static_data(), epoch=self.epoch))
         self._static_version = sim.static_version
         self._static_encoded_at = -math.inf
         self.map = MapService(getattr(sim, "net_file", None), run.id)
@@ -184,7 +187,7 @@ class SumoDaemon:
         now = time.monotonic()
         if version == self._static_version or now - self._static_encoded_at < STATIC_REENCODE_PERIOD_S:
             return
-        data = encode(self.sim.static_data())
+        data = encode(replace(self.sim.static_data(), epoch=self.epoch))
         self._static_bytes = data  # one reference swap: the queryable thread reads either
         self._static_version = version
         self._static_encoded_at = now
@@ -360,8 +363,8 @@ class SumoDaemon:
                 keys.physics_alive_all, self._on_alive, history=True
             )
         log.info(
-            "SUMO side up: run %r, %s timing, step %.3g s, publishing on %s, static on %s",
-            run.id, run.timing, self.sim.step_length, keys.step, keys.static,
+            "SUMO side up: run %r (epoch %d), %s timing, step %.3g s, publishing on %s, static on %s",
+            run.id, self.epoch, run.timing, self.sim.step_length, keys.step, keys.static,
         )
         try:
             if lockstep:
@@ -557,6 +560,7 @@ class SumoDaemon:
             "ego_drift_mean_m": round(self.ego.drift_mean_m, 4),
             "lane_walks": self.bridge.planner.resolved,
             "static_version": self.sim.static_version,
+            "epoch": self.epoch,
             "static_versions": c.static_versions,
             "vtypes_live": self.sim.vtypes.live,
             "vtypes_dropped": self.sim.vtypes.dropped,

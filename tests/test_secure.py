@@ -360,6 +360,44 @@ def test_router_certificate_cannot_forge_a_step_in_a_peer_run(run):
     _forge_steps(run, "router")
 
 
+def test_replayed_steps_and_absurd_jumps_are_refused_even_from_the_sumo_role(run):
+    """The red team's replay: a step captured seconds earlier, put again with the ``sumo``
+    certificate five times (accepted before protocol 1.4: "went back ... resynchronising"),
+    and one with a huge index. Physics refuses and counts them (SPEC 3.1.1) and never
+    follows them; the run goes on."""
+    captured: list[bytes] = []
+    sub = run.viewer.session.declare_subscriber(run.keys.step, lambda smp: captured.append(smp.payload.to_bytes()))
+    try:
+        wait_until(lambda: len(captured) >= 2, 20, "a step to capture", procs=[run.sumo])
+        old = captured[0]
+        old_step, epoch = decode(old).step, decode(old).epoch
+        assert epoch > 0
+        wait_until(lambda: run.viewer.last_physics().sumo_step > old_step + 20, 30, "the run to move on",
+                   procs=[run.physics])
+    finally:
+        sub.undeclare()
+    before = run.viewer.last_physics().counters
+    attacker = run.client("sumo")
+    try:
+        for _ in range(5):
+            attacker.put(run.keys.step, old)
+        attacker.put(run.keys.step, encode(dataclasses.replace(synthetic_step(5, step=2**40), run="sec", epoch=epoch)))
+        wait_until(lambda: (c := run.viewer.last_physics().counters)["replayed_steps"] >= before["replayed_steps"] + 5
+                   and c["step_jumps"] >= before["step_jumps"] + 1, 20, "the replays and the jump counted",
+                   procs=[run.physics])
+    finally:
+        attacker.close()
+    s0 = run.viewer.last_physics().tick
+    wait_until(lambda: run.viewer.last_physics().tick > s0 + 50, 20, "physics to keep ticking", procs=[run.physics])
+    with run.viewer.lock:
+        states = [st for lst in run.viewer.physics.values() for st in lst]
+    seq = [st.sumo_step for st in states]
+    assert all(b >= a for a, b in zip(seq, seq[1:])), "physics followed a replayed step back"
+    assert max(seq) < 2**40
+    assert states[-1].counters["sumo_restarts"] == 0
+    assert "went back" not in run.physics.tail(400)
+
+
 def test_renderer_cannot_acknowledge_steps_for_physics_and_physics_can(run):
     attacker = run.client("renderer-ego")
     try:
