@@ -179,8 +179,10 @@ class PhysicsDaemon:
 
     # ------------------------------------------------------------------ messages
 
-    def _reject(self, why: str) -> None:
-        self.counters["rejected"] += 1
+    def _reject(self, why: str, counter: str = "rejected") -> None:
+        """Count a refused message (in ``counter``) and log it, at most once per REJECT_LOG_PERIOD_S."""
+        if counter in self.counters:
+            self.counters[counter] += 1
         self._reject_since_log += 1
         now = time.monotonic()
         if now - self._reject_log_t >= REJECT_LOG_PERIOD_S:
@@ -290,7 +292,8 @@ class PhysicsDaemon:
         if verdict is Verdict.DUPLICATE:
             return False  # a lockstep re-send of the step it has
         if not verdict.accepted:
-            self._reject(f"step {msg.step} of epoch {msg.epoch} ({verdict.value}): {self.order.why}")
+            # counted by the order rule (replayed_steps, step_jumps), not as malformed
+            self._reject(f"step {msg.step} of epoch {msg.epoch} ({verdict.value}): {self.order.why}", counter="")
             return False
         resync = self._resync
         restart = verdict is Verdict.RESTART
@@ -352,6 +355,7 @@ class PhysicsDaemon:
             c["lod_far"] = self.detail.far.n
             c["viewer_cameras"] = len(self.cameras)
             c["rejected_cameras"] = self.cameras.rejected + self.cameras.refused
+            c["evicted_cameras"] = self.cameras.evicted
         if self.shard is not None:
             c["shards_alive"] = len(self.shard.living)
             c["shard_takeovers"] = self.shard.takeovers

@@ -6,7 +6,7 @@ place that reads files and command-line arguments.
 
 Per step (main thread only; libsumo is not thread-safe):
 
-1. drain ego poses (RingChannel: the newest poses only) and apply them (``moveToXY``);
+1. drain ego poses (``EgoInbox``: the newest poses only, each refused by its length when too big) and apply them (``moveToXY``);
 2. ``simulationStep`` (timed as ``sumo_ms``);
 3. read all agents, look-ahead points and paths, encode, publish (``bridge_ms``);
 4. pace: wall-clock deadlines ``t0 + (k+1) * step_length`` (realtime) or wait for the
@@ -26,6 +26,7 @@ once at start, the ack callback only enqueues payloads for the main loop.
 
 from __future__ import annotations
 
+import collections
 import gc
 import json
 import logging
@@ -61,6 +62,37 @@ STATIC_REENCODE_PERIOD_S = 1.0  # [s] at most one re-encoding of the static data
 
 #: An acknowledgement is ~40 bytes; bigger payloads on an ack key are refused unread [bytes].
 MAX_ACK_BYTES = 1024
+#: An ego pose is ~100 bytes (a vType name of 1,024 characters at most): bigger payloads on an
+#: ego key are refused by their length, before they are copied or decoded [bytes].
+MAX_EGO_BYTES = 4096
+#: Ego poses waiting for the main loop (newest kept: one pose per ego is applied per step) [poses]
+EGO_INBOX = 256
+
+
+class EgoInbox:
+    """Ego poses from Zenoh's threads to the main loop: the newest ``size`` (key, payload),
+    each at most ``max_bytes`` (a bigger one is counted in ``oversized`` and never copied).
+    Held payloads are bounded by ``size`` x ``max_bytes`` (1 MiB), whatever a sender puts."""
+
+    def __init__(self, size: int = EGO_INBOX, max_bytes: int = MAX_EGO_BYTES) -> None:
+        self._q: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=size)
+        self.max_bytes = max_bytes
+        self.oversized = 0
+        self.dropped = 0  # the oldest pose made room for a newer one
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        if len(sample.payload) > self.max_bytes:
+            self.oversized += 1
+            return
+        if len(self._q) == self._q.maxlen:
+            self.dropped += 1
+        self._q.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def try_recv(self) -> tuple[str, bytes] | None:
+        try:
+            return self._q.popleft()
+        except IndexError:
+            return None
 
 
 class LockstepTimeout(SumocoError):
@@ -149,6 +181,7 @@ class SumoDaemon:
         self.bridge = Bridge(sim, cfg, run.id, self.epoch)
         self.ego = EgoManager(sim.api, cfg, clock)
         self.counters = Counters()
+        self._egos = EgoInbox()  # ego poses, refused by length before they are copied (SPEC 5.1)
         self._stop = threading.Event()
         # Bounded hand-over from Zenoh's threads (SPEC 5.1): the newest ack and liveliness
         # change per key, at most [sumo] max_peer_keys keys (more are refused, counted).
@@ -241,12 +274,12 @@ class SumoDaemon:
 
     def _drain_ego(self, sub) -> None:
         while True:
-            sample = sub.try_recv()
-            if sample is None:
+            got = sub.try_recv()
+            if got is None:
                 return
-            key = str(sample.key_expr)
+            key, payload = got
             try:
-                msg = decode(sample.payload.to_bytes(), self._limits)
+                msg = decode(payload, self._limits)
             except ProtocolError as e:
                 self._reject(f"message on {key}", e)
                 continue
@@ -354,7 +387,8 @@ class SumoDaemon:
             congestion_control=zenoh.CongestionControl.BLOCK,  # SPEC: steps are never dropped
             express=True,  # one big message per step: send it now, do not batch
         )
-        ego_sub = session.declare_subscriber(keys.ego_all, zenoh.handlers.RingChannel(256))
+        ego_decl = session.declare_subscriber(keys.ego_all, self._egos.on_sample)
+        ego_sub = self._egos
         feedback_sub = self.coupling.declare(session)
         ack_sub = alive_sub = None
         if lockstep:
@@ -373,7 +407,7 @@ class SumoDaemon:
                 with HotLoopGC() as hot_gc:
                     self._loop(publisher, ego_sub, lockstep, hot_gc)
         finally:
-            for what, obj in (("ego subscriber", ego_sub), ("ack subscriber", ack_sub),
+            for what, obj in (("ego subscriber", ego_decl), ("ack subscriber", ack_sub),
                               ("feedback subscriber", feedback_sub),
                               ("liveliness subscriber", alive_sub),
                               ("publisher", publisher), ("queryable", queryable),
@@ -554,6 +588,8 @@ class SumoDaemon:
             "strict_steps": c.strict_steps,
             "acks_coalesced": self._acks.replaced,
             "peer_keys_refused": self._acks.refused + self._alive_events.refused,
+            "ego_oversized": self._egos.oversized,
+            "ego_inbox_dropped": self._egos.dropped,
             **self.sim.counters,
             **self.ego.counters,
             "ego_drift_max_m": round(self.ego.drift_max_m, 4),
