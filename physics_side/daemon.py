@@ -61,6 +61,11 @@ SHUTDOWN_DUMP_S = 5.0  # [s] a shutdown longer than this dumps every thread's st
 OVERRUN_S = 0.25  # [s] realtime pacing this far behind the wall clock skips ahead (counted as an overrun)
 DURATION_TOLERANCE_S = 1e-6  # [s] float rounding of SUMO times when the run's duration is checked
 SIBLING_END_STEPS = 2.0  # [SUMO steps] a sibling shard that leaves this close to the run's end finished it
+#: [s] after its first step a shard has seen every running sibling's liveliness token (peers
+#: link to each other by gossip within ~2 s); a sibling never seen by then is taken as not
+#: running and its tiles as this shard's: in peer mode a shard hears a sibling leave only over
+#: a direct link, so without one it would never take over that sibling's agents
+SIBLING_SEEN_S = 10.0
 # Bounds of what Zenoh's threads hand over between two turns of the loop (oldest dropped)
 ALIVE_EVENTS = 64  # [events] SUMO-side liveliness changes
 SHARD_EVENTS = 256  # [events] sibling shards' liveliness changes
@@ -123,6 +128,9 @@ class PhysicsDaemon:
         self._declared: list = []
         self._finished = False
         self._begin: float | None = None  # [s] SUMO time before the first step applied
+        self._siblings_seen: set[int] = set()  # sibling shards whose liveliness token came
+        self._first_step_at: float | None = None  # monotonic [s] of the first step (shards)
+        self._siblings_checked = False
 
     # ------------------------------------------------------------------ zenoh plumbing
 
@@ -262,12 +270,34 @@ class PhysicsDaemon:
             other = shard_of_instance(Keys.instance_of(key))
             if mine is None or other is None or other[0] != mine[0] or other[2] != mine[2]:
                 continue
+            if up:
+                self._siblings_seen.add(other[1])
             if not up and self._duration_done(self.time + SIBLING_END_STEPS * self.fleet.step_length):
                 continue  # a sibling that finished the run's last step leaves: nothing to take over
             if self.shard.set_alive(other[1], up):
                 log.warning("shard %d/%d %s: %d of %d shards alive (%s)", other[1], other[2],
                             "is back" if up else "is gone, taking over its tiles", len(self.shard.living),
                             self.shard.count, ", ".join(map(str, self.shard.living)))
+        if mine is not None:
+            self._check_siblings_seen(mine)
+
+    def _check_siblings_seen(self, mine: tuple[str, int, int]) -> None:
+        """Once, SIBLING_SEEN_S after the first step: siblings never seen are not running."""
+        now = time.monotonic()
+        if self._first_step_at is None:
+            self._first_step_at = now
+        if self._siblings_checked or now - self._first_step_at < SIBLING_SEEN_S:
+            return
+        self._siblings_checked = True
+        unseen = [i for i in self.shard.living if i != mine[1] and i not in self._siblings_seen]
+        for i in unseen:
+            self.shard.set_alive(i, False)
+        self.counters["shard_siblings_unseen"] = len(unseen)
+        if unseen:
+            log.warning("shard(s) %s of %d never seen %g s after the first step (no liveliness token: not "
+                        "running, or no direct link to this shard): taking over their tiles; peers of one run "
+                        "must all link to each other (gossip on, or connect every shard to every other, or a router)",
+                        ", ".join(map(str, unseen)), self.shard.count, SIBLING_SEEN_S)
 
     def handle_step(self, payload: bytes) -> StepMessage | None:
         """One step as it arrives on ``Keys.step``: decoded, its vTypes resolved, applied to the

@@ -192,6 +192,7 @@ class SumoDaemon:
             cfg.max_peer_keys, frozenset(k.physics_alive for k in waited))
         self._alive: set[str] = set()
         self._waited = list(cfg.lockstep_instances)  # shrinks when a physics shard is lost
+        self._awaited = frozenset(cfg.lockstep_instances)  # the only instances whose acks and tokens are kept
         self._lost: dict[str, float] = {}  # awaited instances whose token went: clock() when
         self._last_reject_log = -math.inf
         self._limits = run.decode_limits  # acks and ego poses are small: any bound holds them
@@ -315,7 +316,9 @@ class SumoDaemon:
                 self.counters.acks += 1
                 if msg.feedback:
                     self.coupling.announced(inst, msg.step)
-                if msg.step > self._acked.get(inst, -1):
+                # kept for the instances lockstep waits for only: a flood of acks under new
+                # instance names (each a remote declaration) leaves nothing behind
+                if inst in self._awaited and msg.step > self._acked.get(inst, -1):
                     self._acked[inst] = msg.step
 
     def _update_alive(self) -> bool:
@@ -323,6 +326,8 @@ class SumoDaemon:
         back = False
         for key, up in self._alive_events.drain().items():
             inst = Keys.instance_of(key)
+            if inst not in self._awaited:
+                continue  # only the instances lockstep waits for are followed (bounded by the config)
             if up:
                 self._alive.add(inst)
                 if self._lost.pop(inst, None) is not None:

@@ -39,7 +39,8 @@ follow_next_run = {follow}
 
 
 class FakeSumo:
-    def __init__(self, tmp_path, run: str, timing: str, follow: bool = False) -> None:
+    def __init__(self, tmp_path, run: str, timing: str, follow: bool = False, args: tuple[str, ...] = (),
+                 instance: str = "main") -> None:
         self.run, self.keys = run, Keys("sumoco", run)
         cfg = tmp_path / "physics.toml"
         cfg.write_text(CONFIG.format(run=run, timing=timing, follow=str(follow).lower()))
@@ -49,11 +50,12 @@ class FakeSumo:
         self.lock = threading.Lock()
         self._sub = self.session.declare_subscriber(self.keys.ack_all, self._on_ack)
         self.token = self.session.liveliness().declare_token(self.keys.sumo_alive)
-        self.daemon = Daemon("physics", ["physics", "--config", str(cfg), "--connect", ep, "--listen", endpoint()],
-                             tmp_path / "logs")
+        self.daemon = Daemon("physics", ["physics", "--config", str(cfg), "--connect", ep, "--listen", endpoint(),
+                                         *args], tmp_path / "logs")
         self.probe = Probe(self.keys, connect=[ep])
-        wait_until(lambda: self.keys.physics_alive in self.probe.alive, 30.0, "the physics token",
-                   procs=[self.daemon])
+        self.instance = instance
+        token = Keys("sumoco", run, instance).physics_alive
+        wait_until(lambda: token in self.probe.alive, 30.0, "the physics token", procs=[self.daemon])
 
     def _on_ack(self, s) -> None:
         with self.lock:
@@ -73,7 +75,7 @@ class FakeSumo:
             return step in self.acks
 
     def counters(self) -> dict:
-        return self.probe.last_physics().counters
+        return self.probe.last_physics(self.instance).counters
 
     def close(self) -> int:
         code = self.daemon.terminate(15.0)
@@ -137,5 +139,33 @@ def test_realtime_follower_publishes_no_state_after_the_final_step(tmp_path):
         s.put(new_epoch(), 0, prefix="car")
         wait_until(lambda: s.probe.last_physics().sumo_step == 0 and "car0" in s.probe.last_physics().agents.ids,
                    10.0, "states of the next run", procs=[s.daemon])
+    finally:
+        assert s.close() == 0, s.daemon.tail()
+
+
+def test_a_shard_that_never_hears_its_sibling_takes_over_its_tiles(tmp_path):
+    """Bench scale's take-over timed out once in two runs: in peer mode a shard hears a sibling
+    leave only over a direct link; without one it kept the sibling's tiles forever. A sibling
+    whose token never came within SIBLING_SEEN_S of the first step is taken as not running."""
+    from physics_side.daemon import SIBLING_SEEN_S
+
+    s = FakeSumo(tmp_path, "siblings", "lockstep", args=("--shard", "0/2"), instance="main.0of2")
+    try:
+        epoch = new_epoch()
+        t0 = time.monotonic()
+        k = 0
+        s.step(epoch, k, n=40)
+        wait_until(lambda: s.probe.last_physics("main.0of2").sumo_step == 0, 10.0, "the state of step 0")
+        assert 0 < s.probe.last_physics("main.0of2").agents.n < 40  # its own tiles only
+        while time.monotonic() - t0 < SIBLING_SEEN_S + 5.0:
+            k += 1
+            s.step(epoch, k, n=40)
+            st = s.probe.last_physics("main.0of2")
+            if st.sumo_step == k and st.agents.n == 40:
+                break
+            time.sleep(0.2)
+        st = s.probe.last_physics("main.0of2")
+        assert st.agents.n == 40 and st.counters["shard_siblings_unseen"] == 1 and st.counters["shards_alive"] == 1
+        assert time.monotonic() - t0 >= SIBLING_SEEN_S - 1.0, "taken over before the siblings had a chance"
     finally:
         assert s.close() == 0, s.daemon.tail()
