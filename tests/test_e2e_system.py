@@ -218,6 +218,9 @@ def test_late_joining_outside_client_gets_static_and_live_steps(system):
     static = p.static()
     assert out["static"]["lanes"] == len(static.lanes.ids) > 10
     assert out["steps_received"] > 15 and out["steps_increasing"]
+    # SPEC 3.1.1 with zenoh + msgpack only: the incarnation it followed and how late it joined
+    assert out["epoch"] == p.last_step().epoch > 0 and out["sumo_restarts"] == 0 and out["steps_refused"] == 0
+    assert out["missed_at_join"] > 0
     assert "main" in out["physics_instances"] and out["physics_states_received"] > 50
     assert out["rejected"] == 0
 
