@@ -231,7 +231,7 @@ class PhysicsDaemon:
         except ProtocolError as e:
             self._reject(str(e))
             return None
-        if msg.epoch != (self.order.epoch or 0) and msg.epoch > (self.order.epoch or 0):
+        if msg.epoch > (self.order.epoch or 0):
             # a newer incarnation numbers its static versions afresh: forget the old tables
             # (an older epoch is refused in _apply and leaves them alone)
             self._tables = StaticTracker()
@@ -308,7 +308,14 @@ class PhysicsDaemon:
         return msg
 
     def _apply(self, msg: StepMessage) -> bool:
-        """Apply one step; False if it was a duplicate and ignored."""
+        """Apply one step; False if it was a duplicate and ignored, or refused (SPEC 3.1.1)."""
+        verdict = self.order.judge(msg.epoch, msg.step)  # first: a refused step changes nothing
+        if verdict is Verdict.DUPLICATE:
+            return False  # a lockstep re-send of the step it has
+        if not verdict.accepted:
+            # counted by the order rule (replayed_steps, step_jumps), not as malformed
+            self._reject(f"step {msg.step} of epoch {msg.epoch} ({verdict.value}): {self.order.why}", counter="")
+            return False
         if self.shard is not None:
             self._handle_shards()
             # every size of the step gets a pool (compiled in the background): taking over a
@@ -318,13 +325,6 @@ class PhysicsDaemon:
         if self.detail is not None:  # agents outside every detail zone never enter MuJoCo
             self.detail.points = self.cameras.points()
             msg = self.detail.apply(msg)
-        verdict = self.order.judge(msg.epoch, msg.step)
-        if verdict is Verdict.DUPLICATE:
-            return False  # a lockstep re-send of the step it has
-        if not verdict.accepted:
-            # counted by the order rule (replayed_steps, step_jumps), not as malformed
-            self._reject(f"step {msg.step} of epoch {msg.epoch} ({verdict.value}): {self.order.why}", counter="")
-            return False
         resync = self._resync
         restart = verdict is Verdict.RESTART
         if restart:

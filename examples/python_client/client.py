@@ -93,6 +93,8 @@ class Client:
         conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
         conf.insert_json5("connect/endpoints", json.dumps(connect))
         conf.insert_json5("scouting/multicast/enabled", "false")
+        # started before the SUMO side: retry at least every 0.5 s, not Zenoh's 4 s (SPEC 3.1.1)
+        conf.insert_json5("connect/retry", '{"period_init_ms": 125, "period_max_ms": 500, "period_increase_factor": 2}')
         self.session = zenoh.open(conf)
         self.base = f"{root}/{run}"
         self.lock = threading.Lock()
