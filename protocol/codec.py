@@ -976,7 +976,7 @@ def decode_as(data: bytes, cls: type, limits: DecodeLimits = DEFAULT_LIMITS) -> 
     return msg
 
 
-_PEEK_HEAD_BYTES = 4096  # the encoder writes kind, run, step, t, dt, sv before the agent columns
+_PEEK_HEAD_BYTES = 4096  # the encoder writes kind, run, step, t, dt, sv, epoch before the agent columns
 
 
 def peek(data: bytes, names: tuple[str, ...], limits: DecodeLimits = DEFAULT_LIMITS) -> dict[str, int | float]:
