@@ -46,6 +46,7 @@ from protocol.codec import decode_as, encode
 from protocol.errors import ConfigError, ProtocolError
 from protocol.keys import Keys
 from protocol.messages import PhysicsAgents, PhysicsState, StaticData, StepAck, StepMessage
+from protocol.order import StepOrder, Verdict
 from protocol.tables import StaticTracker
 from runtime.config import RunConfig
 from runtime.queues import DropOldest
@@ -60,6 +61,11 @@ SHUTDOWN_DUMP_S = 5.0  # [s] a shutdown longer than this dumps every thread's st
 OVERRUN_S = 0.25  # [s] realtime pacing this far behind the wall clock skips ahead (counted as an overrun)
 DURATION_TOLERANCE_S = 1e-6  # [s] float rounding of SUMO times when the run's duration is checked
 SIBLING_END_STEPS = 2.0  # [SUMO steps] a sibling shard that leaves this close to the run's end finished it
+#: [s] after its first step a shard has seen every running sibling's liveliness token (peers
+#: link to each other by gossip within ~2 s); a sibling never seen by then is taken as not
+#: running and its tiles as this shard's: in peer mode a shard hears a sibling leave only over
+#: a direct link, so without one it would never take over that sibling's agents
+SIBLING_SEEN_S = 10.0
 # Bounds of what Zenoh's threads hand over between two turns of the loop (oldest dropped)
 ALIVE_EVENTS = 64  # [events] SUMO-side liveliness changes
 SHARD_EVENTS = 256  # [events] sibling shards' liveliness changes
@@ -110,6 +116,10 @@ class PhysicsDaemon:
         self._seen_sumo = False
         self._resync = False
         self._last_step = -1
+        # which incarnation of the run it follows; steps of an older one, or out of order, or
+        # too far ahead are refused and counted (SPEC 3.1.1)
+        self.order = StepOrder()
+        self._run_over = False  # the followed incarnation sent its final step: no ticks, no states
         self._rate_cache: dict[float, Rates] = {}
         self._reject_log_t = 0.0
         self._reject_since_log = 0
@@ -118,6 +128,9 @@ class PhysicsDaemon:
         self._declared: list = []
         self._finished = False
         self._begin: float | None = None  # [s] SUMO time before the first step applied
+        self._siblings_seen: set[int] = set()  # sibling shards whose liveliness token came
+        self._first_step_at: float | None = None  # monotonic [s] of the first step (shards)
+        self._siblings_checked = False
 
     # ------------------------------------------------------------------ zenoh plumbing
 
@@ -174,8 +187,10 @@ class PhysicsDaemon:
 
     # ------------------------------------------------------------------ messages
 
-    def _reject(self, why: str) -> None:
-        self.counters["rejected"] += 1
+    def _reject(self, why: str, counter: str = "rejected") -> None:
+        """Count a refused message (in ``counter``) and log it, at most once per REJECT_LOG_PERIOD_S."""
+        if counter in self.counters:
+            self.counters[counter] += 1
         self._reject_since_log += 1
         now = time.monotonic()
         if now - self._reject_log_t >= REJECT_LOG_PERIOD_S:
@@ -216,6 +231,10 @@ class PhysicsDaemon:
         except ProtocolError as e:
             self._reject(str(e))
             return None
+        if msg.epoch > (self.order.epoch or 0):
+            # a newer incarnation numbers its static versions afresh: forget the old tables
+            # (an older epoch is refused in _apply and leaves them alone)
+            self._tables = StaticTracker()
         msg = self._resolve_vtypes(msg)
         rates = self._rate_cache.get(msg.step_length)
         if rates is None:
@@ -251,12 +270,34 @@ class PhysicsDaemon:
             other = shard_of_instance(Keys.instance_of(key))
             if mine is None or other is None or other[0] != mine[0] or other[2] != mine[2]:
                 continue
+            if up:
+                self._siblings_seen.add(other[1])
             if not up and self._duration_done(self.time + SIBLING_END_STEPS * self.fleet.step_length):
                 continue  # a sibling that finished the run's last step leaves: nothing to take over
             if self.shard.set_alive(other[1], up):
                 log.warning("shard %d/%d %s: %d of %d shards alive (%s)", other[1], other[2],
                             "is back" if up else "is gone, taking over its tiles", len(self.shard.living),
                             self.shard.count, ", ".join(map(str, self.shard.living)))
+        if mine is not None:
+            self._check_siblings_seen(mine)
+
+    def _check_siblings_seen(self, mine: tuple[str, int, int]) -> None:
+        """Once, SIBLING_SEEN_S after the first step: siblings never seen are not running."""
+        now = time.monotonic()
+        if self._first_step_at is None:
+            self._first_step_at = now
+        if self._siblings_checked or now - self._first_step_at < SIBLING_SEEN_S:
+            return
+        self._siblings_checked = True
+        unseen = [i for i in self.shard.living if i != mine[1] and i not in self._siblings_seen]
+        for i in unseen:
+            self.shard.set_alive(i, False)
+        self.counters["shard_siblings_unseen"] = len(unseen)
+        if unseen:
+            log.warning("shard(s) %s of %d never seen %g s after the first step (no liveliness token: not "
+                        "running, or no direct link to this shard): taking over their tiles; peers of one run "
+                        "must all link to each other (gossip on, or connect every shard to every other, or a router)",
+                        ", ".join(map(str, unseen)), self.shard.count, SIBLING_SEEN_S)
 
     def handle_step(self, payload: bytes) -> StepMessage | None:
         """One step as it arrives on ``Keys.step``: decoded, its vTypes resolved, applied to the
@@ -267,7 +308,14 @@ class PhysicsDaemon:
         return msg
 
     def _apply(self, msg: StepMessage) -> bool:
-        """Apply one step; False if it was a duplicate and ignored."""
+        """Apply one step; False if it was a duplicate and ignored, or refused (SPEC 3.1.1)."""
+        verdict = self.order.judge(msg.epoch, msg.step)  # first: a refused step changes nothing
+        if verdict is Verdict.DUPLICATE:
+            return False  # a lockstep re-send of the step it has
+        if not verdict.accepted:
+            # counted by the order rule (replayed_steps, step_jumps), not as malformed
+            self._reject(f"step {msg.step} of epoch {msg.epoch} ({verdict.value}): {self.order.why}", counter="")
+            return False
         if self.shard is not None:
             self._handle_shards()
             # every size of the step gets a pool (compiled in the background): taking over a
@@ -278,11 +326,13 @@ class PhysicsDaemon:
             self.detail.points = self.cameras.points()
             msg = self.detail.apply(msg)
         resync = self._resync
-        if msg.step <= self._last_step and not resync:
-            if msg.step == self._last_step:
-                return False
-            log.warning("SUMO step went back from %d to %d: resynchronising", self._last_step, msg.step)
+        restart = verdict is Verdict.RESTART
+        if restart:
+            log.warning("SUMO side restarted: epoch %d, first step %d%s: resetting the fleet", msg.epoch, msg.step,
+                        f" ({msg.step} steps missed)" if msg.step else "")
             resync = True
+        elif verdict is Verdict.FIRST and msg.step:
+            log.info("joined epoch %d at step %d (%d steps missed)", msg.epoch, msg.step, msg.step)
         # Physics time only moves forward, one control period per tick: in lockstep it stays
         # within dt/2 of SUMO's step end; in realtime the wall clock paces it and a step may
         # arrive a tick early or late (then the reference is extrapolated from it by the
@@ -293,9 +343,9 @@ class PhysicsDaemon:
         start = msg.time - (msg.step_length if self.fleet.interpolates(msg.step_length) else 0.0)
         ahead = self.time - start
         limit = self.cfg.max_extrapolation_steps * msg.step_length
-        restart = resync or ahead < -self.fleet.dt or ahead > limit
+        fresh = resync or ahead < -self.fleet.dt or ahead > limit
         try:
-            stats = self.fleet.apply_step(msg, resync=resync, tau=0.0 if restart else ahead)
+            stats = self.fleet.apply_step(msg, resync=resync, tau=0.0 if fresh else ahead, restart=restart)
         except (ValueError, IndexError, KeyError) as e:
             self._reject(f"step {msg.step}: {type(e).__name__}: {e}")
             return False
@@ -303,8 +353,9 @@ class PhysicsDaemon:
             # Durations count from the scenario's begin (SUMO time before the first step).
             self._begin = msg.time - msg.step_length
         self._resync = False
+        self._run_over = False
         self._last_step = msg.step
-        if restart:
+        if fresh:
             self.time = start
         self.fleet.rates = self._rate_cache[msg.step_length]
         if stats.spawned or stats.parked:
@@ -326,12 +377,15 @@ class PhysicsDaemon:
         c = dict(self.fleet.world.counters)
         c.update(self.fleet.counters)
         c.update(self.counters)
+        c.update(self.order.counters)
+        c["sumo_restarts"] = self.order.restarts
         c.update(self.fleet.mode_counts())
         if self.detail is not None:
             c["kinematic"] = c.get("kinematic", 0) + self.detail.far.n
             c["lod_far"] = self.detail.far.n
             c["viewer_cameras"] = len(self.cameras)
             c["rejected_cameras"] = self.cameras.rejected + self.cameras.refused
+            c["evicted_cameras"] = self.cameras.evicted
         if self.shard is not None:
             c["shards_alive"] = len(self.shard.living)
             c["shard_takeovers"] = self.shard.takeovers
@@ -382,8 +436,17 @@ class PhysicsDaemon:
                 break
             self._handle_alive()
             self._status.maybe_log(self.fleet, self.all_counters)  # counted only when it logs: a step waits behind this
-            if not self.sumo_present and self.fleet.stopping and self.fleet.n and not self._at_rest():
+            if self._run_over and not self._steps:
+                # after the final step (following the next run): nothing to simulate or publish
+                # until a step of a new incarnation arrives
+                self._wake.wait(IDLE_WAIT_S)
+                self._wake.clear()
+                next_tick = time.monotonic()
+                continue
+            if (not self.sumo_present and self.fleet.stopping and self.fleet.n and not self._at_rest()
+                    and not self._steps):
                 # SUMO gone: keep simulating at the control rate until every agent is at rest
+                # (steps that came before it left go first: the final one ends the run)
                 next_tick = self._pace(next_tick)
                 self._tick()
                 continue
@@ -405,6 +468,10 @@ class PhysicsDaemon:
                     log.info("last step %d at t=%.1f s (%s)", msg.step, msg.time,
                              "marked final" if msg.final else f"duration {self.run_cfg.duration_s:g} s")
                     break
+                if msg.final:
+                    self._end_of_run(msg)
+                elif not self.sumo_present:
+                    self.fleet.begin_stop()  # a step that came before SUMO left: stop after it
             else:
                 newest = None
                 while self._steps:
@@ -416,6 +483,11 @@ class PhysicsDaemon:
                     if newest.final and not self.cfg.follow_next_run:
                         log.info("last step %d at t=%.1f s (marked final)", newest.step, newest.time)
                         break
+                    if newest.final:
+                        self._end_of_run(newest)
+                        continue
+                    if not self.sumo_present:
+                        self.fleet.begin_stop()  # a step that came before SUMO left: stop after it
                 if self.fleet.ref is None and not self.fleet.n:
                     self._wake.wait(IDLE_WAIT_S)
                     self._wake.clear()
@@ -428,6 +500,13 @@ class PhysicsDaemon:
                     break
         self._status.maybe_log(self.fleet, self.all_counters(), force=True)
         return 0
+
+    def _end_of_run(self, msg: StepMessage) -> None:
+        """The followed incarnation's final step while following the next run: one last state,
+        then no ticks and no states until a new incarnation's step (SPEC 3.1)."""
+        self._publish_state()
+        self._run_over = True
+        log.info("last step %d at t=%.1f s (marked final): waiting for the next run", msg.step, msg.time)
 
     def _pace(self, next_tick: float) -> float:
         """Sleep until the next control tick (wall clock); skip ahead when far behind."""

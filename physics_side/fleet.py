@@ -192,17 +192,21 @@ class Fleet:
         fam = sync.families(cls, vtype, length, self._vtypes, self._warned_vclass)
         return self.world.reserve(zip(fam, length, width))
 
-    def apply_step(self, msg: StepMessage, resync: bool = False, tau: float = 0.0) -> StepStats:
+    def apply_step(self, msg: StepMessage, resync: bool = False, tau: float = 0.0, restart: bool = False) -> StepStats:
         """Sync with a SUMO step: the agent set, each agent's previous sample and the reference
         (``_sync``), then the policies' detect phase in table order (``policies.DETECT``), then
         act on their verdict (``_act``). ``resync`` after a SUMO restart; ``tau`` [s]: how far
         physics time is past the step's time (steps shorter than a control tick, realtime
-        jitter): placements and errors use the reference then."""
+        jitter): placements and errors use the reference then. ``restart``: a new incarnation of
+        the run (another epoch, SPEC 3.1.1): every agent of the old one leaves (parked), so an
+        id that comes again is a new agent, spawned and placed."""
         self._cache = self._last_obs = None
         st = StepStats()
         ph, clock = self.phase_s, time.perf_counter
         t0 = clock()
-        s = self._sync(msg, resync, tau, st)
+        if restart:
+            self._forget()
+        s = self._sync(msg, resync or restart, tau, st)
         t1 = clock()
         v = Verdict.empty(s)
         for policy in policies.DETECT:
@@ -218,6 +222,16 @@ class Fleet:
         if resync:
             self.counters["resyncs"] += 1
         return st
+
+    def _forget(self) -> None:
+        """Park every agent and drop what the fleet kept of them (a new incarnation of the run)."""
+        if self.ids:
+            self.world.park(self.world.slot_of(self.ids))
+        self.ids, self._index = [], {}
+        self.wire_vtype = np.zeros(0, np.uint16)
+        self.wire_cls = np.zeros(0, np.uint8)
+        self._samples = sync.Samples()
+        self.counters["restarts"] = self.counters.get("restarts", 0) + 1
 
     def _sync(self, msg: StepMessage, resync: bool, tau: float, st: StepStats) -> Step:
         """The agent set (parked, retyped, spawned), each agent's previous sample, the

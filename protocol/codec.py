@@ -228,6 +228,7 @@ _I64_MAX = 2**63 - 1
 STEP_FIELDS = (
     Field("run", _STR), Field("step", _INT, 0, _I64_MAX), Field("t", _NUM, *_FINITE),
     Field("dt", _NUM, 1e-6, 3600.0), Field("sv", _INT, 0, _I64_MAX, 0), Field("final", _BOOL, False, True, False),
+    Field("epoch", _INT, 0, _I64_MAX, 0),
 )
 EGO_FIELDS = (
     Field("id", _STR), Field("x", _NUM, -COORD_LIMIT, COORD_LIMIT), Field("y", _NUM, -COORD_LIMIT, COORD_LIMIT),
@@ -247,7 +248,8 @@ ACK_FIELDS = (
     Field("run", _STR), Field("step", _INT, 0, _I64_MAX), Field("tick", _INT, 0, _I64_MAX),
     Field("fb", _BOOL, False, True, False),
 )
-STATIC_FIELDS = (Field("run", _STR), Field("dt", _NUM, 1e-6, 3600.0), Field("sv", _INT, 0, _I64_MAX, 0))
+STATIC_FIELDS = (Field("run", _STR), Field("dt", _NUM, 1e-6, 3600.0), Field("sv", _INT, 0, _I64_MAX, 0),
+                 Field("epoch", _INT, 0, _I64_MAX, 0))
 _PROJECTION = (Field("proj", _STR),)
 
 
@@ -323,6 +325,7 @@ def _encode_step(msg: StepMessage) -> dict[str, Any]:
         "t": float(msg.time),
         "dt": float(msg.step_length),
         "sv": int(msg.static_version),
+        **({"epoch": int(msg.epoch)} if msg.epoch else {}),  # since 1.4; absent = 0
         "agents": agents,
         "tls": tls,
     }
@@ -380,6 +383,7 @@ def _encode_static(msg: StaticData) -> dict[str, Any]:
     return _head("static") | {
         "run": msg.run,
         "sv": int(msg.version),
+        **({"epoch": int(msg.epoch)} if msg.epoch else {}),  # since 1.4; absent = 0
         "dt": float(msg.step_length),
         "net": {
             "offset": [float(v) for v in msg.net_offset],
@@ -786,9 +790,9 @@ def _decode_step(d: dict, r: _Reader) -> StepMessage:
     vtypes = _vtype_pairs(d, r)
     agents = _step_agents(_map(d, "agents", ""), r, vtypes)
     tls = _decode_tls(_map(d, "tls", ""), r)
-    run, step, t, dt, sv, final = _fields(d, STEP_FIELDS, "", r.lim.max_str)
+    run, step, t, dt, sv, final, epoch = _fields(d, STEP_FIELDS, "", r.lim.max_str)
     return StepMessage(run=run, step=step, time=t, step_length=dt, agents=agents, tls=tls, vtypes=vtypes,
-                       static_version=sv, final=final)
+                       static_version=sv, final=final, epoch=epoch)
 
 
 def _step_agents(a: dict, r: _Reader, vtypes: list[VType] | None) -> AgentBatch:
@@ -933,7 +937,7 @@ def _decode_static(d: dict, r: _Reader) -> StaticData:
     nv = r.count(vt, "vtypes.", MAX_VTYPES)
     vids = r.strs(vt, "id", "vtypes.", nv)
     vcls = r.strs(vt, "vclass", "vtypes.", nv)
-    run, dt, sv = _fields(d, STATIC_FIELDS, "", r.lim.max_str)
+    run, dt, sv, epoch = _fields(d, STATIC_FIELDS, "", r.lim.max_str)
     return StaticData(
         run=run,
         step_length=dt,
@@ -948,6 +952,7 @@ def _decode_static(d: dict, r: _Reader) -> StaticData:
         tls_ids=tls_ids,
         tls_links=tls_links,
         version=sv,
+        epoch=epoch,
     )
 
 
@@ -971,7 +976,7 @@ def decode_as(data: bytes, cls: type, limits: DecodeLimits = DEFAULT_LIMITS) -> 
     return msg
 
 
-_PEEK_HEAD_BYTES = 4096  # the encoder writes kind, run, step, t, dt, sv before the agent columns
+_PEEK_HEAD_BYTES = 4096  # the encoder writes kind, run, step, t, dt, sv, epoch before the agent columns
 
 
 def peek(data: bytes, names: tuple[str, ...], limits: DecodeLimits = DEFAULT_LIMITS) -> dict[str, int | float]:

@@ -57,6 +57,8 @@ VTYPES = (  # id, vClass, length [m], width [m]
     ("DEFAULT_PEDTYPE", "pedestrian", 0.215, 0.478),
 )
 STATIC_VERSION = 1
+#: The golden run's incarnation: its SUMO side started at 2026-09-21 12:13:20.123456789 UTC [ns].
+EPOCH = 1_790_000_000_123_456_789
 #: UTM-sized translation of the golden world (step_utm): x ~ 691,000 m, y ~ 5,335,000 m.
 UTM_SHIFT = (691_000.25, 5_335_000.75)
 
@@ -103,6 +105,7 @@ def _step(with_paths: bool, shift: tuple[float, float] = (0.0, 0.0), with_vtypes
         tls=TrafficLights(["J1"], ["Gr"], np.array([0], np.int32), np.array([3.5], f32), ["0"]),
         vtypes=[VType(i, c) for i, c, _, _ in VTYPES] if with_vtypes else None,
         static_version=STATIC_VERSION,
+        epoch=EPOCH,
     )
 
 
@@ -163,6 +166,7 @@ def _static() -> StaticData:
         tls_links=TlsLinks(np.array([0, 0], np.uint16), np.array([0, 1], np.uint16),
                            np.array([0, 3], np.int32), np.array([2, 2], np.int32), np.array([1, 4], np.int32)),
         version=STATIC_VERSION,
+        epoch=EPOCH,
     )
 
 
@@ -250,6 +254,9 @@ def invalid_vectors() -> dict[str, tuple[bytes, str]]:
     d = dict(good)
     d["agents"] = dict(good["agents"], speed=np.array([10.0, 5.0, 5e4], "<f4").tobytes())
     out["invalid_speed_out_of_range"] = (msgpack.packb(d, use_bin_type=True), "agents.speed")
+
+    d = dict(good, epoch=-1)
+    out["invalid_negative_epoch"] = (msgpack.packb(d, use_bin_type=True), "epoch")
     return out
 
 

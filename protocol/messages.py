@@ -17,8 +17,8 @@ from enum import IntEnum
 import numpy as np
 
 #: Protocol version (major, minor). A different major is rejected by the decoder.
-SCHEMA_VERSION: tuple[int, int] = (1, 3)  # 1.1: StaticData.tls_links; 1.2: anchored positions, static version;
-# 1.3: two-way coupling (AgentFlag.PHYSICS_AUTHORITY, PhysicsFeedback)
+SCHEMA_VERSION: tuple[int, int] = (1, 4)  # 1.1: StaticData.tls_links; 1.2: anchored positions, static version;
+# 1.3: two-way coupling (AgentFlag.PHYSICS_AUTHORITY, PhysicsFeedback); 1.4: run incarnations (epoch)
 
 
 class AgentClass(IntEnum):
@@ -189,6 +189,9 @@ class StepMessage:
     final: bool = False
     """The run's last step: the SUMO side publishes nothing after it (lockstep peers
     acknowledge it and leave)."""
+    epoch: int = 0
+    """Incarnation of the run: the SUMO side's start time [ns since the Unix epoch], the same
+    in every step of one SUMO process (since 1.4; 0 from older senders). ``protocol.order``."""
 
 
 @dataclass(frozen=True)
@@ -412,3 +415,5 @@ class StaticData:
     version: int = 0
     """Static version: equals ``StepMessage.static_version`` of the steps it describes
     (since 1.2; 0 from older senders)."""
+    epoch: int = 0
+    """Incarnation that serves it: equals ``StepMessage.epoch`` of its steps (since 1.4)."""

@@ -17,12 +17,17 @@ import ctypes
 import ctypes.util
 import gc
 import logging
+import os
 import threading
 
 log = logging.getLogger(__name__)
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
+_M_ARENA_MAX = -8
+#: [arenas] for the long-running observers: glibc makes up to 8 x cores arenas, one per thread
+#: that contends; each keeps its own high-water mark (``MALLOC_ARENA_MAX`` does the same)
+OBSERVER_ARENAS = 2
 MMAP_THRESHOLD = 16 << 20  # [bytes] larger blocks still get their own mapping (glibc max: 32 MB)
 TRIM_THRESHOLD = 64 << 20  # [bytes] free heap top kept before it goes back to the kernel
 
@@ -46,6 +51,19 @@ def _libc():
         return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
     except OSError:
         return None
+
+
+def limit_arenas(arenas: int = OBSERVER_ARENAS) -> bool:
+    """At most ``arenas`` glibc malloc arenas (call before threads start); False without glibc.
+
+    The recorder allocates from Zenoh's threads, its writer and its scene worker: with one
+    arena each, the freed memory of every burst stays spread over arenas that ``malloc_trim``
+    returns only in part. ``MALLOC_ARENA_MAX`` in the environment wins when set."""
+
+    libc = _libc()
+    if libc is None or os.environ.get("MALLOC_ARENA_MAX"):
+        return False
+    return bool(libc.mallopt(_M_ARENA_MAX, int(arenas)))
 
 
 def start_heap_trimmer(period_s: float = 30.0) -> threading.Event | None:
@@ -77,4 +95,4 @@ def freeze_startup_objects() -> None:
     gc.freeze()
 
 
-__all__ = ["freeze_startup_objects", "start_heap_trimmer", "tune_allocator"]
+__all__ = ["freeze_startup_objects", "limit_arenas", "start_heap_trimmer", "tune_allocator"]

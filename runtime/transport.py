@@ -132,6 +132,11 @@ ACCEPT_TIMEOUT_S = 2.0
 #: incoming links that may be mid-handshake at once (each a socket and a small task)
 ACCEPT_PENDING = 4096
 
+#: [s] a session whose peer is not up yet retries connecting at least this often (Zenoh's own
+#: back-off grows to 4 s: a viewer or recorder started before the SUMO side missed the first
+#: ~4 s of its run, 166 steps of a lockstep run); the first retry comes after a quarter of it
+CONNECT_RETRY_MAX_S = 0.5
+
 #: Link protocols the secure profile accepts: TLS (``tcp/`` endpoints are turned into ``tls/``).
 SECURE_LINKS = ("tcp/", "tls/")
 
@@ -177,6 +182,9 @@ def zenoh_config(cfg: ZenohConfig, role: str = "viewer") -> zenoh.Config:
         _secure(conf, cfg, role)
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(connect))
+    retry_ms = int(CONNECT_RETRY_MAX_S * 1000)
+    conf.insert_json5("connect/retry", json.dumps({"period_init_ms": retry_ms // 4, "period_max_ms": retry_ms,
+                                                   "period_increase_factor": 2}))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
     # Bounds what one peer can make us buffer while reassembling a message (default 1 GiB).

@@ -10,14 +10,17 @@ from __future__ import annotations
 import numpy as np
 
 from protocol.messages import AgentBatch, StepMessage
+from protocol.order import new_epoch
 from sumo_side.config import SumoConfig
 from sumo_side.lookahead import MODE_LANES, LookAhead, PathPlanner
 from sumo_side.simulation import Snapshot, SumoSim
 
 
 class Bridge:
-    def __init__(self, sim: SumoSim, cfg: SumoConfig, run_id: str) -> None:
+    def __init__(self, sim: SumoSim, cfg: SumoConfig, run_id: str, epoch: int | None = None) -> None:
+        """``epoch``: this incarnation of the run (SPEC 3.1.1; default: the time now)."""
         self.sim = sim
+        self.epoch = new_epoch() if epoch is None else int(epoch)
         self.cfg = cfg
         self.run_id = run_id
         self.planner = PathPlanner(
@@ -87,4 +90,5 @@ class Bridge:
             vtypes=vtypes,
             static_version=sv,
             final=final,
+            epoch=self.epoch,
         )

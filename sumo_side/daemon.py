@@ -6,7 +6,7 @@ place that reads files and command-line arguments.
 
 Per step (main thread only; libsumo is not thread-safe):
 
-1. drain ego poses (RingChannel: the newest poses only) and apply them (``moveToXY``);
+1. drain ego poses (``EgoInbox``: the newest poses only, each refused by its length when too big) and apply them (``moveToXY``);
 2. ``simulationStep`` (timed as ``sumo_ms``);
 3. read all agents, look-ahead points and paths, encode, publish (``bridge_ms``);
 4. pace: wall-clock deadlines ``t0 + (k+1) * step_length`` (realtime) or wait for the
@@ -26,6 +26,7 @@ once at start, the ack callback only enqueues payloads for the main loop.
 
 from __future__ import annotations
 
+import collections
 import gc
 import json
 import logging
@@ -44,6 +45,7 @@ from protocol.codec import decode, encode
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
 from protocol.messages import EgoPose, StepAck, SumoStatus
+from protocol.order import new_epoch
 from sumo_side.bridge import Bridge
 from sumo_side.config import SumoConfig, sumo_config_from
 from sumo_side.coupling import SumoCoupling
@@ -60,6 +62,37 @@ STATIC_REENCODE_PERIOD_S = 1.0  # [s] at most one re-encoding of the static data
 
 #: An acknowledgement is ~40 bytes; bigger payloads on an ack key are refused unread [bytes].
 MAX_ACK_BYTES = 1024
+#: An ego pose is ~100 bytes (a vType name of 1,024 characters at most): bigger payloads on an
+#: ego key are refused by their length, before they are copied or decoded [bytes].
+MAX_EGO_BYTES = 4096
+#: Ego poses waiting for the main loop (newest kept: one pose per ego is applied per step) [poses]
+EGO_INBOX = 256
+
+
+class EgoInbox:
+    """Ego poses from Zenoh's threads to the main loop: the newest ``size`` (key, payload),
+    each at most ``max_bytes`` (a bigger one is counted in ``oversized`` and never copied).
+    Held payloads are bounded by ``size`` x ``max_bytes`` (1 MiB), whatever a sender puts."""
+
+    def __init__(self, size: int = EGO_INBOX, max_bytes: int = MAX_EGO_BYTES) -> None:
+        self._q: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=size)
+        self.max_bytes = max_bytes
+        self.oversized = 0
+        self.dropped = 0  # the oldest pose made room for a newer one
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        if len(sample.payload) > self.max_bytes:
+            self.oversized += 1
+            return
+        if len(self._q) == self._q.maxlen:
+            self.dropped += 1
+        self._q.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def try_recv(self) -> tuple[str, bytes] | None:
+        try:
+            return self._q.popleft()
+        except IndexError:
+            return None
 
 
 class LockstepTimeout(SumocoError):
@@ -143,9 +176,12 @@ class SumoDaemon:
         self.run_cfg = run
         self.clock = clock
         self.pipeline = pipeline
-        self.bridge = Bridge(sim, cfg, run.id)
+        # this incarnation of the run: in every step and in the static data (SPEC 3.1.1)
+        self.epoch = new_epoch()
+        self.bridge = Bridge(sim, cfg, run.id, self.epoch)
         self.ego = EgoManager(sim.api, cfg, clock)
         self.counters = Counters()
+        self._egos = EgoInbox()  # ego poses, refused by length before they are copied (SPEC 5.1)
         self._stop = threading.Event()
         # Bounded hand-over from Zenoh's threads (SPEC 5.1): the newest ack and liveliness
         # change per key, at most [sumo] max_peer_keys keys (more are refused, counted).
@@ -156,12 +192,13 @@ class SumoDaemon:
             cfg.max_peer_keys, frozenset(k.physics_alive for k in waited))
         self._alive: set[str] = set()
         self._waited = list(cfg.lockstep_instances)  # shrinks when a physics shard is lost
+        self._awaited = frozenset(cfg.lockstep_instances)  # the only instances whose acks and tokens are kept
         self._lost: dict[str, float] = {}  # awaited instances whose token went: clock() when
         self._last_reject_log = -math.inf
         self._limits = run.decode_limits  # acks and ego poses are small: any bound holds them
         # two-way coupling: physical states of physics-authoritative vehicles written back
         self.coupling = SumoCoupling(coupling or CouplingConfig(), sim, keys, self._limits, self._reject)
-        self._static_bytes = encode(sim.static_data())
+        self._static_bytes = encode(replace(sim.static_data(), epoch=self.epoch))
         self._static_version = sim.static_version
         self._static_encoded_at = -math.inf
         self.map = MapService(getattr(sim, "net_file", None), run.id)
@@ -184,7 +221,7 @@ class SumoDaemon:
         now = time.monotonic()
         if version == self._static_version or now - self._static_encoded_at < STATIC_REENCODE_PERIOD_S:
             return
-        data = encode(self.sim.static_data())
+        data = encode(replace(self.sim.static_data(), epoch=self.epoch))
         self._static_bytes = data  # one reference swap: the queryable thread reads either
         self._static_version = version
         self._static_encoded_at = now
@@ -238,12 +275,12 @@ class SumoDaemon:
 
     def _drain_ego(self, sub) -> None:
         while True:
-            sample = sub.try_recv()
-            if sample is None:
+            got = sub.try_recv()
+            if got is None:
                 return
-            key = str(sample.key_expr)
+            key, payload = got
             try:
-                msg = decode(sample.payload.to_bytes(), self._limits)
+                msg = decode(payload, self._limits)
             except ProtocolError as e:
                 self._reject(f"message on {key}", e)
                 continue
@@ -279,7 +316,9 @@ class SumoDaemon:
                 self.counters.acks += 1
                 if msg.feedback:
                     self.coupling.announced(inst, msg.step)
-                if msg.step > self._acked.get(inst, -1):
+                # kept for the instances lockstep waits for only: a flood of acks under new
+                # instance names (each a remote declaration) leaves nothing behind
+                if inst in self._awaited and msg.step > self._acked.get(inst, -1):
                     self._acked[inst] = msg.step
 
     def _update_alive(self) -> bool:
@@ -287,6 +326,8 @@ class SumoDaemon:
         back = False
         for key, up in self._alive_events.drain().items():
             inst = Keys.instance_of(key)
+            if inst not in self._awaited:
+                continue  # only the instances lockstep waits for are followed (bounded by the config)
             if up:
                 self._alive.add(inst)
                 if self._lost.pop(inst, None) is not None:
@@ -351,7 +392,8 @@ class SumoDaemon:
             congestion_control=zenoh.CongestionControl.BLOCK,  # SPEC: steps are never dropped
             express=True,  # one big message per step: send it now, do not batch
         )
-        ego_sub = session.declare_subscriber(keys.ego_all, zenoh.handlers.RingChannel(256))
+        ego_decl = session.declare_subscriber(keys.ego_all, self._egos.on_sample)
+        ego_sub = self._egos
         feedback_sub = self.coupling.declare(session)
         ack_sub = alive_sub = None
         if lockstep:
@@ -360,8 +402,8 @@ class SumoDaemon:
                 keys.physics_alive_all, self._on_alive, history=True
             )
         log.info(
-            "SUMO side up: run %r, %s timing, step %.3g s, publishing on %s, static on %s",
-            run.id, run.timing, self.sim.step_length, keys.step, keys.static,
+            "SUMO side up: run %r (epoch %d), %s timing, step %.3g s, publishing on %s, static on %s",
+            run.id, self.epoch, run.timing, self.sim.step_length, keys.step, keys.static,
         )
         try:
             if lockstep:
@@ -370,7 +412,7 @@ class SumoDaemon:
                 with HotLoopGC() as hot_gc:
                     self._loop(publisher, ego_sub, lockstep, hot_gc)
         finally:
-            for what, obj in (("ego subscriber", ego_sub), ("ack subscriber", ack_sub),
+            for what, obj in (("ego subscriber", ego_decl), ("ack subscriber", ack_sub),
                               ("feedback subscriber", feedback_sub),
                               ("liveliness subscriber", alive_sub),
                               ("publisher", publisher), ("queryable", queryable),
@@ -551,12 +593,15 @@ class SumoDaemon:
             "strict_steps": c.strict_steps,
             "acks_coalesced": self._acks.replaced,
             "peer_keys_refused": self._acks.refused + self._alive_events.refused,
+            "ego_oversized": self._egos.oversized,
+            "ego_inbox_dropped": self._egos.dropped,
             **self.sim.counters,
             **self.ego.counters,
             "ego_drift_max_m": round(self.ego.drift_max_m, 4),
             "ego_drift_mean_m": round(self.ego.drift_mean_m, 4),
             "lane_walks": self.bridge.planner.resolved,
             "static_version": self.sim.static_version,
+            "epoch": self.epoch,
             "static_versions": c.static_versions,
             "vtypes_live": self.sim.vtypes.live,
             "vtypes_dropped": self.sim.vtypes.dropped,

@@ -121,7 +121,7 @@ def _demo_parser(sub) -> None:
 def _bench_parser(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks, JSON on stdout")
     p.add_argument("what", choices=["sumo", "physics", "coupling", "e2e", "codec", "fidelity", "soak", "record",
-                                    "gateway", "scenarios", "generated", "scale", "viewer"])
+                                    "gateway", "scenarios", "generated", "scale", "takeover", "viewer"])
     p.add_argument("--pack", help="scenarios, generated: folder of the scenario pack (default ../shared/scenarios "
                                   "beside the repository)")
     p.add_argument("--net", action="append", default=[],
@@ -137,6 +137,7 @@ def _bench_parser(sub) -> None:
     p.add_argument("--agents", help="viewer: agent counts, comma-separated (default 500,1000,2500)")
     p.add_argument("--sample-s", dest="sample_s", type=float, help="soak: seconds between rows (default 60)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for smoke tests")
+    p.add_argument("--runs", type=int, help="takeover: take-overs in a row (default 20)")
     p.add_argument("--authority", choices=["sumo", "physics"],
                    help="scenarios: who owns the vehicles' motion in every run (default: the config's, sumo)")
     _add_logging(p)

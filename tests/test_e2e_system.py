@@ -177,6 +177,7 @@ def test_killing_sumo_stops_agents_and_resume_when_it_returns(system):
     p = system.probe
     wait_until(lambda: (st := p.last_physics()) is not None and (st.agents.speed > 2).sum() >= 2, 60,
                "moving physics agents", procs=[system.physics])
+    old_epoch = p.last_step().epoch
     system.sumo.kill()
     wait_until(lambda: system.keys.sumo_alive not in p.alive, 10, "the SUMO token to drop")
 
@@ -194,6 +195,14 @@ def test_killing_sumo_stops_agents_and_resume_when_it_returns(system):
     wait_until(lambda: (st := p.last_physics()) is not None and st.agents.n > 0
                and bool(np.all(st.agents.mode != AgentMode.STOPPING)) and st.sumo_step < 200, 30,
                "physics to resume on the new SUMO run", procs=[system.physics])
+    # the restart is visible: a newer epoch in every step of the new run (SPEC 3.1.1), and
+    # physics reset its fleet for it once instead of reading a step that went backwards
+    with p.lock:
+        epochs = {m.epoch for m in p.steps}
+    assert len(epochs) == 1 and epochs.pop() > old_epoch > 0
+    c = p.last_physics().counters
+    assert c["sumo_restarts"] == 1 and c["restarts"] == 1 and c["replayed_steps"] == 0, c
+    assert "went back" not in system.physics.tail(400)
 
 
 def test_late_joining_outside_client_gets_static_and_live_steps(system):
@@ -209,6 +218,9 @@ def test_late_joining_outside_client_gets_static_and_live_steps(system):
     static = p.static()
     assert out["static"]["lanes"] == len(static.lanes.ids) > 10
     assert out["steps_received"] > 15 and out["steps_increasing"]
+    # SPEC 3.1.1 with zenoh + msgpack only: the incarnation it followed and how late it joined
+    assert out["epoch"] == p.last_step().epoch > 0 and out["sumo_restarts"] == 0 and out["steps_refused"] == 0
+    assert out["missed_at_join"] > 0
     assert "main" in out["physics_instances"] and out["physics_states_received"] > 50
     assert out["rejected"] == 0
 

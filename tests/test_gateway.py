@@ -386,9 +386,15 @@ def test_gateway_relays_liveliness_dedups_overlaps_and_tells_ego_errors():
         with pytest.raises(urllib.error.HTTPError) as e:
             urllib.request.urlopen(f"{base}/status", timeout=5)
         assert e.value.code == 401
+        # the right token under a foreign Host (DNS rebinding): refused as the WebSocket is
+        req = urllib.request.Request(f"{base}/status?token={gw.token}", headers={"Host": f"evil.example:{gw.port}"})
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(req, timeout=5)
+        assert e.value.code == 403
         with urllib.request.urlopen(f"{base}/status?token={gw.token}", timeout=5) as r:
             st = json.loads(r.read())
         assert st["rejected"] == 3 and st["duplicates"] >= 20, st  # counted after the client left
+        assert st["oversized"] == 0
     finally:
         stop()
         sub.undeclare()

@@ -89,6 +89,12 @@ class _Listener:
         self.s.close()
 
 
+def _sans_epoch(payload: bytes) -> bytes:
+    d = msgpack.unpackb(payload, raw=False)
+    d.pop("epoch", None)
+    return msgpack.packb(d, use_bin_type=True)
+
+
 @pytest.mark.integration
 def test_replay_republishes_keys_static_map_and_tokens(recording, map_reply, tmp_path):
     ep = endpoint()
@@ -104,7 +110,10 @@ def test_replay_republishes_keys_static_map_and_tokens(recording, map_reply, tmp
                    5.0, "liveliness tokens", procs=[replay])
         static = lis.static()
         assert static is not None and isinstance(decode(static), StaticData)
-        assert static == next(m.data for m in rec.messages if m.topic == KEYS.static)
+        # as recorded but for the epoch: a replay is an incarnation of its own (SPEC 3.1.1, 11)
+        recorded_static = next(m.data for m in rec.messages if m.topic == KEYS.static)
+        assert decode(static).epoch > decode(recorded_static).epoch
+        assert _sans_epoch(static) == _sans_epoch(recorded_static)
         # The recorded glTF map is served like the SUMO side serves it, hash check included.
         full = [r.ok.payload.to_bytes() for r in lis.s.get(KEYS.sumo_map, timeout=5.0) if r.ok is not None]
         assert full == [map_reply]
@@ -113,10 +122,14 @@ def test_replay_republishes_keys_static_map_and_tokens(recording, map_reply, tmp
                                                                               timeout=5.0) if r.ok is not None]
         assert short[0]["glb"] is None and short[0]["sha256"] == sha
         got = lis.steps()
-        # Byte-exact: every replayed step is one of the recorded payloads, in recorded order.
-        index = {d: i for i, (d, _) in enumerate(recorded_steps)}
-        order = [index[d] for _, d, _ in got]
+        # Byte-exact but for the epoch: every replayed step is one of the recorded payloads,
+        # in recorded order; each pass of the loop is a newer incarnation
+        index = {_sans_epoch(d): i for i, (d, _) in enumerate(recorded_steps)}
+        order = [index[_sans_epoch(d)] for _, d, _ in got]
         assert all(b == (a + 1) % len(recorded_steps) for a, b in zip(order, order[1:])), order
+        epochs = [decode(d).epoch for _, d, _ in got]
+        assert all(e > 0 for e in epochs) and epochs == sorted(epochs)
+        assert len(set(epochs)) == 1 + sum(b < a for a, b in zip(order, order[1:]))
         assert isinstance(decode(got[0][1]), StepMessage)
         # Pacing: replayed intervals follow the recorded ones (10 Hz) within scheduling noise.
         rec_dt = np.diff([t for _, t in recorded_steps]) / 1e9
@@ -146,7 +159,8 @@ def test_replay_at_four_times_speed_waits_for_a_subscriber_and_ends(recording, t
     stats = json.loads(r.stdout.strip().splitlines()[-1])
     steps = [m for m in read_recording(recording).messages if m.topic == KEYS.step]
     assert stats["steps"] == len(steps) and stats["loops"] == 1
-    assert got == [m.data for m in steps]  # every step, byte-exact, in order
+    # every step, byte-exact but for the replay's own epoch, in order
+    assert [_sans_epoch(d) for d in got] == [_sans_epoch(m.data) for m in steps]
     rec_dt = np.median(np.diff([m.log_time_ns for m in steps])) / 1e9
     assert rec_dt / 8 < np.median(np.diff(when)) < rec_dt / 2  # paced at 4x: neither 1x nor unpaced
 

@@ -210,6 +210,26 @@ def test_user_password_is_checked_on_top_of_the_certificate(tmp_path, certs):
             s.close()
 
 
+def test_rust_log_debug_does_not_print_the_password(certs):
+    """Zenoh's debug log prints its configuration: with user/password authentication the
+    process's password would be in the log. The process warns and keeps Zenoh's log off."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("from pathlib import Path; from runtime.config import SecurityConfig, ZenohConfig; "
+            "from runtime.transport import open_session; "
+            f"s = open_session(ZenohConfig(listen=('{endpoint()}',), security=SecurityConfig(certs=Path(r'{certs}'), "
+            f"users=Path(r'{certs / 'users.txt'}'))), role='sumo'); s.close()")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                       env=dict(os.environ, RUST_LOG="debug"))
+    assert r.returncode == 0, r.stderr
+    password = next(line.split(":", 1)[1] for line in (certs / "users.txt").read_text().splitlines()
+                    if line.startswith("sumo:"))
+    assert password not in r.stdout + r.stderr
+    assert "would print this process's password" in r.stderr
+
+
 def test_a_valid_peer_joins_within_2_s_while_200_half_open_connections_are_held(certs):
     """Connections that open TCP and never start TLS must not keep a real peer out."""
     sec = SecurityConfig(certs=certs, renderers=("ego", "ego2"))
@@ -273,6 +293,7 @@ renderers = ["ego", "ego2"]
 sumocfg = "{PAPER_CFG}"
 [physics]
 preset = "kinematic"
+lod_radius_m = 30.0
 """)
     return str(p)
 
@@ -360,6 +381,46 @@ def test_router_certificate_cannot_forge_a_step_in_a_peer_run(run):
     _forge_steps(run, "router")
 
 
+def test_replayed_steps_and_absurd_jumps_are_refused_even_from_the_sumo_role(run):
+    """The red team's replay: a step captured seconds earlier, put again with the ``sumo``
+    certificate five times (accepted before protocol 1.4: "went back ... resynchronising"),
+    and one with a huge index. Physics refuses and counts them (SPEC 3.1.1) and never
+    follows them; the run goes on."""
+    captured: list[bytes] = []
+    sub = run.viewer.session.declare_subscriber(run.keys.step, lambda smp: captured.append(smp.payload.to_bytes()))
+    try:
+        wait_until(lambda: len(captured) >= 2, 20, "a step to capture", procs=[run.sumo])
+        old = captured[0]
+        old_step, epoch = decode(old).step, decode(old).epoch
+        assert epoch > 0
+        wait_until(lambda: run.viewer.last_physics().sumo_step > old_step + 20, 30, "the run to move on",
+                   procs=[run.physics])
+    finally:
+        sub.undeclare()
+    before = run.viewer.last_physics().counters
+    attacker = run.client("sumo")
+    try:
+        for _ in range(5):
+            attacker.put(run.keys.step, old)
+        attacker.put(run.keys.step, encode(dataclasses.replace(synthetic_step(5, step=2**40), run="sec", epoch=epoch)))
+        wait_until(lambda: (c := run.viewer.last_physics().counters)["replayed_steps"] >= before["replayed_steps"] + 5
+                   and c["step_jumps"] >= before["step_jumps"] + 1, 20, "the replays and the jump counted",
+                   procs=[run.physics])
+    finally:
+        attacker.close()
+    s0 = run.viewer.last_physics().tick
+    wait_until(lambda: run.viewer.last_physics().tick > s0 + 50, 20, "physics to keep ticking", procs=[run.physics])
+    with run.viewer.lock:
+        states = [st for lst in run.viewer.physics.values() for st in lst]
+    seq = [st.sumo_step for st in states]
+    assert all(b >= a for a, b in zip(seq, seq[1:])), "physics followed a replayed step back"
+    assert max(seq) < 2**40
+    assert states[-1].counters["sumo_restarts"] == 0
+    assert "went back" not in run.physics.tail(400)
+    with run.viewer.lock:  # the probe forgets the steps this test put (later tests read its steps)
+        run.viewer.steps[:] = [m for m in run.viewer.steps if m.step < 2**40]
+
+
 def test_renderer_cannot_acknowledge_steps_for_physics_and_physics_can(run):
     attacker = run.client("renderer-ego")
     try:
@@ -410,6 +471,43 @@ def test_renderer_may_drive_only_its_own_ego(run):
         assert wait_until(run.status, 10, "SUMO status")["ego_poses"] > 0
     finally:
         owner.close()
+
+
+def _peak_rss_mb(pid: int) -> float:
+    """Peak resident memory (VmHWM) of a process [MiB]."""
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024
+
+
+def test_oversized_ego_poses_are_refused_by_length_before_they_are_kept(run):
+    """The red team's renderer put 12 ego poses padded to 50 MiB: the SUMO side kept them in its
+    ring (256 held) and peaked at 482 MB. Now a pose over 4 KiB is refused by its length on
+    Zenoh's thread (``ego_oversized``), never copied, never queued."""
+    pad = 4 << 20  # [bytes] each
+
+    def settled():  # no pose of an earlier test still on its way
+        a = run.status()
+        time.sleep(0.5)
+        b = run.status()
+        return b if a and a.get("ego_poses") == b.get("ego_poses") else None
+    before = wait_until(settled, 20, "the SUMO side's ego counters to settle")
+    hwm0 = _peak_rss_mb(run.sumo.proc.pid)
+    m = run.viewer.last_step()
+    pose = msgpack.unpackb(encode(EgoPose("ego", float(m.agents.x[0]) + 3.0, float(m.agents.y[0]),
+                                          float(m.agents.angle[0]), 0.0)), raw=False)
+    padded = msgpack.packb({**pose, "pad": bytes(pad)}, use_bin_type=True)
+    attacker = run.client("renderer-ego")
+    try:
+        for _ in range(12):
+            attacker.put(run.keys.ego("ego"), padded)
+        wait_until(lambda: run.status().get("ego_oversized", 0) >= before.get("ego_oversized", 0) + 12, 30,
+                   "the 12 padded poses refused by length", procs=[run.sumo])
+    finally:
+        attacker.close()
+    after = run.status()
+    assert after["ego_poses"] == before["ego_poses"]  # none was applied
+    grew = _peak_rss_mb(run.sumo.proc.pid) - hwm0
+    assert grew < 6 * pad / 2**20, f"the SUMO side's peak memory grew {grew:.0f} MiB"
 
 
 def test_each_role_may_put_only_its_own_cameras(run):
@@ -489,6 +587,77 @@ def test_gateway_role_relays_egos_of_any_id(run):
         wait_until(sent_and_counted, 20, "the gateway's ego poses at the SUMO side", poll_s=0.05)
     finally:
         gateway.close()
+
+
+def _physics_counters(run) -> dict:
+    return run.viewer.last_physics().counters
+
+
+def test_one_role_cannot_pin_every_camera_slot(run):
+    """A viewer certificate puts 64 cameras (every slot, kept fresh): before, a renderer's camera
+    was then refused; now one role holds at most 16 and its own newest replace its oldest."""
+    before = _physics_counters(run)
+    flood = run.client("viewer")
+    renderer = run.client("renderer-ego")
+    try:
+        for _ in range(2):  # twice: every flood camera was updated within the last second
+            for i in range(64):
+                flood.put(run.keys.viewer_camera("viewer", f"flood{i}"), encode(CameraPose(f"flood{i}", 0.0, 0.0)))
+        wait_until(lambda: _physics_counters(run)["evicted_cameras"] >= before["evicted_cameras"] + 48, 20,
+                   "the flood's oldest cameras replaced by its newest", procs=[run.physics])
+        assert _physics_counters(run)["viewer_cameras"] <= 16 + before["viewer_cameras"]
+        own = run.keys.viewer_camera("renderer-ego", "r1")
+
+        def counted():
+            renderer.put(own, encode(CameraPose("r1", 5.0, 5.0)))
+            c = _physics_counters(run)
+            return c["viewer_cameras"] >= 17 if before["viewer_cameras"] == 0 else c["viewer_cameras"] > 16
+        wait_until(counted, 20, "the renderer's camera among the physics side's cameras", poll_s=0.05,
+                   procs=[run.physics])
+        assert _physics_counters(run)["rejected_cameras"] == before["rejected_cameras"]
+    finally:
+        flood.close()
+        renderer.close()
+
+
+def test_gateway_certificate_relays_a_websocket_clients_camera_to_physics(run):
+    """The gateway relays its clients' cameras under its own role (``viewer/gateway/``), which
+    its certificate may put: before, it used ``viewer/viewer/`` and the access control dropped
+    every relayed camera, so none reached physics in the secure profile."""
+    import asyncio
+    import threading
+
+    from websockets.sync.client import connect
+
+    from sumoco.viewing.gateway import SECURE_CAMERA_ROLE, Gateway, GatewayConfig, pack_frame
+
+    session = run.client("gateway")
+    gw = Gateway(session, run.keys, GatewayConfig(port=0), camera_role=SECURE_CAMERA_ROLE)
+    ready, loop_of = threading.Event(), {}
+
+    async def serve():
+        loop_of["stop"], loop_of["loop"] = asyncio.Event(), asyncio.get_running_loop()
+        await gw.run(loop_of["stop"], lambda _: ready.set())
+    server = threading.Thread(target=asyncio.run, args=(serve(),), daemon=True)
+    server.start()
+    try:
+        assert ready.wait(20), "the gateway did not start"
+        with connect(gw.url(), open_timeout=10) as ws:
+            json.loads(ws.recv(timeout=5))  # hello
+            # cameras of earlier tests time out first (5 s), so the count is the relayed one
+            wait_until(lambda: _physics_counters(run)["viewer_cameras"] == 0, 20, "no camera at physics",
+                       procs=[run.physics])
+
+            def relayed_and_counted():
+                ws.send(pack_frame("viewer/camera", encode(CameraPose("page", 7.0, 7.0))))
+                return _physics_counters(run)["viewer_cameras"] == 1
+            wait_until(relayed_and_counted, 20, "the relayed camera at physics, past the access control",
+                       poll_s=0.1, procs=[run.physics])
+            assert gw.cameras_forwarded > 0 and gw.rejected == 0
+    finally:
+        loop_of["loop"].call_soon_threadsafe(loop_of["stop"].set)
+        server.join(10)
+        session.close()
 
 
 # ------------------------------------------------- rules no other test attacks: serve, state, tokens

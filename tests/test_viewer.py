@@ -203,6 +203,42 @@ def test_feed_fetches_static_when_sumo_appears_late_and_again_after_a_restart():
             feed.stop()
 
 
+def test_feed_relays_no_replayed_step_to_the_pages():
+    """SPEC 3.1.1: the viewer relays steps as they came, so a step put again (a replay, or one of
+    an older incarnation) went to every page and moved its agents back; now it is refused and
+    counted, and a newer epoch (a restart) goes through."""
+    from protocol.order import NS_PER_S, new_epoch
+    from sumoco.viewing.viewer.server import ZenohFeed
+    from synthetic.traffic import circle_traffic
+
+    zport = free_tcp_port()
+    keys = Keys("sumoco", "replayed")
+    store = LatestStore()
+    epoch = new_epoch()
+
+    def step(k: int, e: int = epoch) -> bytes:
+        return encode(dataclasses.replace(circle_traffic(3, k, run="replayed"), epoch=e))
+
+    with open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{zport}",))) as viewer_side, \
+            open_session(ZenohConfig(connect=(f"tcp/127.0.0.1:{zport}",))) as sumo_side:
+        feed = ZenohFeed(viewer_side, keys, store, ViewerConfig(static_timeout_s=0.5, static_attempts=1)).start()
+        try:
+            wait_for(lambda: list(sumo_side.info.peers_zid()), 10.0, "the link")
+            for k in range(4):
+                sumo_side.put(keys.step, step(k))
+            wait_for(lambda: store.steps_received == 4, 10.0, "four steps")
+            sumo_side.put(keys.step, step(1))  # a replay
+            sumo_side.put(keys.step, step(7, epoch - NS_PER_S))  # an older incarnation
+            sumo_side.put(keys.step, step(4))
+            wait_for(lambda: store.steps_received == 5, 10.0, "the next step")
+            assert store.steps_refused == 2 and decode(store.step).step == 4
+            sumo_side.put(keys.step, step(0, epoch + NS_PER_S))  # a restart
+            wait_for(lambda: store.steps_received == 6, 10.0, "the restarted SUMO side's step")
+            assert decode(store.step).epoch == epoch + NS_PER_S
+        finally:
+            feed.stop()
+
+
 # --------------------------------------------------------------------------- browser
 
 

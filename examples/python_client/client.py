@@ -93,10 +93,16 @@ class Client:
         conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
         conf.insert_json5("connect/endpoints", json.dumps(connect))
         conf.insert_json5("scouting/multicast/enabled", "false")
+        # started before the SUMO side: retry at least every 0.5 s, not Zenoh's 4 s (SPEC 3.1.1)
+        conf.insert_json5("connect/retry", '{"period_init_ms": 125, "period_max_ms": 500, "period_increase_factor": 2}')
         self.session = zenoh.open(conf)
         self.base = f"{root}/{run}"
         self.lock = threading.Lock()
-        self.steps: list[int] = []
+        self.steps: list[tuple[int, int]] = []  # (epoch, step) of every step taken
+        self.epoch: int | None = None  # the SUMO side's incarnation followed (SPEC 3.1.1)
+        self.restarts = 0
+        self.missed_at_join = 0
+        self.steps_refused = 0
         self.last_step: dict | None = None
         self.physics: dict[str, dict] = {}
         self.physics_count = 0
@@ -120,8 +126,22 @@ class Client:
         except Exception:
             self.rejected += 1
             return
+        epoch, step = doc.get("epoch", 0), doc["step"]
         with self.lock:
-            self.steps.append(doc["step"])
+            # SPEC 3.1.1: a newer epoch is a restarted SUMO side (its static data may differ);
+            # an older one, or a step behind the last one, is a replay: refused
+            if self.epoch is None:
+                self.missed_at_join = step  # steps of this incarnation before we joined
+            elif epoch > self.epoch:
+                self.restarts += 1
+                self.missed_at_join = step
+                self.static_version = -1  # query the new incarnation's static data
+                self.vtypes = None
+            elif epoch < self.epoch or step <= self.steps[-1][1]:
+                self.steps_refused += 1
+                return
+            self.epoch = epoch
+            self.steps.append((epoch, step))
             self.last_step = doc
             self.step_version = doc.get("sv", 0)
             if "vtypes" in doc:
@@ -232,6 +252,10 @@ def main(argv: list[str] | None = None) -> int:
             "steps_received": len(c.steps),
             "steps_increasing": all(b > a for a, b in zip(c.steps, c.steps[1:])),
             "last_step": last["step"] if last else None,
+            "epoch": c.epoch,
+            "sumo_restarts": c.restarts,
+            "missed_at_join": c.missed_at_join,
+            "steps_refused": c.steps_refused,
             "agents_last_step": last["agents"]["n"] if last else 0,
             "agent_ids_last_step": last["agents"]["id"] if last else [],
             "ego_in_step": bool(last and args.ego_id in last["agents"]["id"]),

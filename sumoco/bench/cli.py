@@ -152,6 +152,10 @@ def cli_main(args) -> int:
         from sumoco.bench.scale import run_scale_bench
 
         rows = run_scale_bench(quick=quick)
+    elif args.what == "takeover":
+        from sumoco.bench.scale import takeover_bench
+
+        rows = takeover_bench(getattr(args, "runs", None) or 20)
     elif args.what == "viewer":
         from sumoco.bench.viewer import run_viewer_bench
 

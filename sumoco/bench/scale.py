@@ -45,6 +45,7 @@ import logging
 import os
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -482,10 +483,14 @@ class _Takeover:
         return st if want and want <= set(st.agents.ids) else None
 
 
-def takeover_row(kill_at_s: float = 20.0) -> dict:
+TAKEOVER_TIMEOUT_S = 60.0  # [s] a take-over slower than this fails the row
+
+
+def takeover_row(kill_at_s: float = 20.0, timeout_s: float = TAKEOVER_TIMEOUT_S) -> dict:
     """Two physics shards in lockstep on the bundled scenario; one is killed (SIGKILL) once
     SUMO time passes ``kill_at_s``: ``takeover_s`` is the wall time from the kill until the
-    survivor publishes a state with every agent of that step."""
+    survivor publishes a state with every agent of that step. A row that times out raises
+    ``RuntimeError`` naming the folder with the daemons' logs."""
     tmp = Path(tempfile.mkdtemp(prefix="sumoco-takeover-"))
     cfg = write_toml(tmp / "run.toml", {
         "run": {"id": "takeover", "timing": "lockstep", "duration_s": kill_at_s + 200.0, "lockstep_timeout_s": 20.0},
@@ -509,10 +514,14 @@ def takeover_row(kill_at_s: float = 20.0) -> dict:
             victim = len(run.states[VICTIM].agents.ids)
         run.procs["physics1"].kill()
         t_kill = time.monotonic()
-        st = run.wait(watch.taken_over, 60, "shard 0 simulating every agent")
+        try:
+            st = run.wait(watch.taken_over, timeout_s, "shard 0 simulating every agent")
+        except RuntimeError as e:
+            raise RuntimeError(f"{e} (logs in {tmp})") from None
         took = time.monotonic() - t_kill
     finally:
         run.close()
+    shutil.rmtree(tmp, ignore_errors=True)
     c = st.counters
     row = {"shards": 2, "takeover_s": round(took, 3), "agents_of_killed_shard": victim, "new_size": new_size,
            "agents_after": len(st.agents.ids), "shard_takeovers": c.get("shard_takeovers"),
@@ -520,6 +529,25 @@ def takeover_row(kill_at_s: float = 20.0) -> dict:
            "load_avg_1min": _load()}
     log.info("bench scale: %s", row)
     return row
+
+
+def takeover_bench(runs: int = 20, kill_at_s: float = 8.0) -> list[dict]:
+    """``takeover_row`` ``runs`` times in a row, then one summary row: take-over times p50 and
+    max [s] and the runs that failed (timed out; each failure row says why and where its logs are)."""
+    rows = []
+    for i in range(runs):
+        try:
+            row = takeover_row(kill_at_s)
+        except RuntimeError as e:
+            row = {"shards": 2, "error": str(e)}
+            log.warning("bench takeover: run %d of %d failed: %s", i + 1, runs, e)
+        rows.append({"run": i, **row})
+    took = [r["takeover_s"] for r in rows if "takeover_s" in r]
+    rows.append({"summary": "takeover", "runs": runs, "ok": len(took), "failed": runs - len(took),
+                 "takeover_p50_s": round(float(np.median(took)), 3) if took else None,
+                 "takeover_max_s": round(max(took), 3) if took else None, "kill_at_s": kill_at_s,
+                 "load_avg_1min": _load()})
+    return rows
 
 
 def _sumo_alone(sumocfg, size: int, steps: int, seed: int = 42) -> tuple[float, float, np.ndarray, np.ndarray]:
@@ -708,4 +736,5 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
     return rows
 
 
-__all__ = ["cosim_rows", "lockstep_row", "pool_row", "realtime_row", "run_scale_bench", "shard_rows", "takeover_row"]
+__all__ = ["cosim_rows", "lockstep_row", "pool_row", "realtime_row", "run_scale_bench", "shard_rows", "takeover_bench",
+           "takeover_row"]

@@ -195,7 +195,8 @@ class CompactEncoder:
             vals = {f[0]: getattr(a, f[0]) for f in STEP_FIELDS if not f[0].startswith("la_")}
             vals["la_dx"], vals["la_dy"] = np.subtract(a.la_x, x), np.subtract(a.la_y, y)
             head = {"run": msg.run, "step": int(msg.step), "t": float(msg.time), "dt": float(msg.step_length),
-                    "sv": int(msg.static_version), "final": bool(msg.final)}
+                    "sv": int(msg.static_version), "final": bool(msg.final),
+                    "epoch": int(msg.epoch)}
             tls = [list(msg.tls.ids), list(msg.tls.state), [int(p) for p in msg.tls.phase],
                    [float(s) for s in msg.tls.next_switch], None if msg.tls.program is None else list(msg.tls.program)]
             vt = None if msg.vtypes is None else [[v.id, v.vclass] for v in msg.vtypes]
@@ -295,6 +296,6 @@ class CompactDecoder:
                                    None if tls[4] is None else list(tls[4]))
             return StepMessage(rec["run"], rec["step"], rec["t"], rec["dt"], agents, lights,
                                None if vt is None else [VType(i, c) for i, c in vt],
-                               static_version=rec["sv"], final=rec["final"])
+                               static_version=rec["sv"], final=rec["final"], epoch=rec.get("epoch", 0))
         return PhysicsState(rec["run"], rec["tick"], rec["t"], rec["sumo_step"],
                             PhysicsAgents(ids=ids, **vals), dict(rec["counters"]))

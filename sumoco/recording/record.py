@@ -467,8 +467,10 @@ def record_cli(args) -> int:
 
     from runtime.config import CommonConfig, apply_cli, load_common, replace, section
     from runtime.errors import MissingExtraError
-    from runtime.hotpath import start_heap_trimmer
+    from runtime.hotpath import limit_arenas, start_heap_trimmer
     from runtime.transport import open_session
+
+    limit_arenas()  # before Zenoh's and the writer's threads: their bursts share two arenas
 
     try:
         import foxglove  # noqa: F401  (the MCAP writer and the scene)

@@ -16,7 +16,10 @@ daemons offered live:
 Ego poses in the recording came from outside clients and the Foxglove ``/scene`` channel
 is not a Zenoh key: neither is republished. With ``loop`` the recording starts over at the
 end (step indices and simulated time then go back: a client sees a restarted run). A
-recording that ends early (a crash) is replayed up to its last readable message.
+replay is an incarnation of the run of its own (SPEC 3.1.1): steps and static data go out
+with the replayer's ``epoch`` instead of the recorded one, a new one for every pass, so a
+receiver takes each pass as a restart and not as a replay of old steps. A recording that
+ends early (a crash) is replayed up to its last readable message.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import msgpack
 import zenoh
 
 from protocol.errors import ConfigError
+from protocol.order import new_epoch
 from sumoco.recording.record import RecordedMessage, RecordingError, kind_of_topic, open_recording
 
 log = logging.getLogger(__name__)
@@ -73,6 +77,19 @@ def _static_and_map(rec) -> tuple[tuple[str, bytes] | None, tuple[str, bytes] | 
     return static, mapped
 
 
+def restamp(payload: bytes, epoch: int) -> bytes:
+    """A recorded step or static data with ``epoch`` in place of the recorded one (SPEC 3.1.1);
+    everything else as recorded (a payload that is not a msgpack map goes out unchanged)."""
+    try:
+        d = msgpack.unpackb(payload, raw=False)
+    except Exception:  # msgpack raises a zoo of types; a receiver rejects it as it would have
+        return payload
+    if not isinstance(d, dict):
+        return payload
+    d["epoch"] = int(epoch)
+    return msgpack.packb(d, use_bin_type=True)
+
+
 def map_reply(recorded: bytes, parameters: str) -> bytes:
     """The recorded map answer, without the GLB when the asker already holds that hash (SPEC 9)."""
     pairs = (p.partition("=") for p in str(parameters or "").replace("&", ";").split(";"))
@@ -106,10 +123,11 @@ class Replayer:
         self._tokens: dict[str, object] = {}
         self._static: tuple[str, bytes] | None = None
         self._map: tuple[str, bytes] | None = None
+        self.epoch = new_epoch()  # this pass's incarnation (a new one for every pass)
 
     def _on_query(self, query: zenoh.Query) -> None:
         self.stats.static_queries += 1
-        query.reply(self._static[0], self._static[1])
+        query.reply(self._static[0], restamp(self._static[1], self.epoch))
 
     def _on_map_query(self, query: zenoh.Query) -> None:
         self.stats.map_queries += 1
@@ -159,13 +177,15 @@ class Replayer:
         if pub is None:
             self._announce(m.topic)
             pub = self._pubs[m.topic] = self.session.declare_publisher(m.topic)
-        pub.put(m.data)
+        pub.put(restamp(m.data, self.epoch) if m.schema == "step" else m.data)
         self.stats.published += 1
         if m.schema == "step":
             self.stats.steps += 1
 
     def _one_pass(self) -> bool:
         """Publish the recording once; False when stopped."""
+        if self.stats.loops:
+            self.epoch = max(new_epoch(), self.epoch + 1)
         t0_rec = None
         t0_wall = time.monotonic()
         first_static = self._static

@@ -65,13 +65,17 @@ MAX_UPSTREAM_BYTES = 64 * 1024  # [B] an EgoPose is ~100 B; anything near this i
 #: limits while msgpack parses, whatever the run's ``[run] max_agents``.
 UPSTREAM_LIMITS = DecodeLimits(max_agents=1, max_static_rows=16, max_points=1, max_bytes=MAX_UPSTREAM_BYTES)
 _KEY_LEN = struct.Struct("<H")
+CLOSE_TOO_BIG = 1009  # WebSocket close code "message too big" (RFC 6455 7.4.1)
 #: samples remembered per client to deliver one that matches two of its subscriptions once
 DEDUP_WINDOW = 1024
 _LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
 
 
-#: The gateway's certificate role (it opens its session as a viewer): cameras go under it.
+#: The ``<role>`` chunk of the cameras the gateway relays (SPEC 3.7): its certificate's role in
+#: the secure profile (the access control lets it put cameras under ``viewer/gateway/`` only),
+#: ``viewer`` without it.
 CAMERA_ROLE = "viewer"
+SECURE_CAMERA_ROLE = "gateway"
 
 
 def pack_frame(key: str, payload: bytes) -> bytes:
@@ -154,8 +158,11 @@ class _Client:
 class Gateway:
     """WebSocket server relaying one run's keys; ``run`` serves until ``stop`` is set."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, cfg: GatewayConfig) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys, cfg: GatewayConfig, camera_role: str = CAMERA_ROLE) -> None:
+        """``camera_role``: the role chunk of relayed cameras' keys (``SECURE_CAMERA_ROLE`` when
+        the session presents the gateway certificate)."""
         self.session, self.keys, self.cfg = session, keys, cfg
+        self.camera_role = check_chunk(camera_role, "camera role")
         self.token = cfg.token or secrets.token_urlsafe(24)
         self.clients: set[_Client] = set()
         self.port = cfg.port
@@ -167,6 +174,7 @@ class Gateway:
         self.ego_refused = 0  # poses for an ego id beyond ego_per_client or ego_total
         self.rejected = 0  # upstream frames and requests refused, over every client that ever connected
         self.duplicates = 0  # samples that matched two subscriptions of one client, delivered once
+        self.oversized = 0  # connections closed for a frame over MAX_UPSTREAM_BYTES (also in ``rejected``)
         self._lock = threading.Lock()
 
     # --- handshake checks -------------------------------------------------------------
@@ -334,7 +342,7 @@ class Gateway:
         if not isinstance(msg, CameraPose):
             raise ProtocolError(f"expected a camera message, got {type(msg).__name__}", "viewer/camera")
         if client.camera is None:
-            client.camera = CameraPublisher(self.session, self.keys, client.camera_id, role=CAMERA_ROLE)
+            client.camera = CameraPublisher(self.session, self.keys, client.camera_id, role=self.camera_role)
         client.camera.put(msg.x, msg.y, msg.time)
         client.upstream += 1
         self.cameras_forwarded += 1
@@ -397,6 +405,10 @@ class Gateway:
         except ConnectionClosed:
             pass
         finally:
+            if ws.close_code == CLOSE_TOO_BIG:  # a frame over MAX_UPSTREAM_BYTES: closed unread (SPEC 10)
+                client.rejected += 1
+                self.rejected += 1
+                self.oversized += 1
             self.clients.discard(client)
             sender.cancel()
             for sub in (*client.subs.values(), *client.alive_subs.values()):
@@ -419,7 +431,7 @@ class Gateway:
                 "dropped": sum(c.box.dropped for c in self.clients), "refused": self.refused,
                 "ego_forwarded": self.ego_forwarded, "cameras_forwarded": self.cameras_forwarded,
                 "egos": sum(len(c.egos) for c in self.clients), "ego_refused": self.ego_refused,
-                "rejected": self.rejected, "duplicates": self.duplicates}
+                "rejected": self.rejected, "duplicates": self.duplicates, "oversized": self.oversized}
 
     def url(self) -> str:
         host = f"[{self.cfg.host}]" if ":" in self.cfg.host else self.cfg.host
@@ -493,7 +505,7 @@ def cli_main(args) -> int:
         await gw.run(stop, ready)
 
     with open_session(common.zenoh, role="gateway") as session:
-        gw = Gateway(session, keys, cfg)
+        gw = Gateway(session, keys, cfg, SECURE_CAMERA_ROLE if common.zenoh.security.enabled else CAMERA_ROLE)
         t0 = time.monotonic()
         asyncio.run(main())
         log.info("gateway stopped after %.0f s: %s", time.monotonic() - t0, gw.status())

@@ -66,6 +66,7 @@ from protocol.codec import COORD_LIMIT, DEFAULT_LIMITS, decode_as, peek
 from protocol.errors import ProtocolError
 from protocol.keys import Keys
 from protocol.messages import StaticData
+from protocol.order import StepOrder, Verdict
 from sumoco.viewing.camera import CameraPublisher
 
 log = logging.getLogger(__name__)
@@ -138,6 +139,7 @@ class LatestStore:
         self.steps_received = 0
         self.physics_received = 0
         self.static_queries = 0  # static-data queries sent (by the feed's one worker)
+        self.steps_refused = 0  # steps of an older incarnation, behind or far ahead (SPEC 3.1.1): not relayed
         self._listeners: list[Callable[[], None]] = []
 
     def add_listener(self, fn: Callable[[], None]) -> None:
@@ -362,6 +364,7 @@ class ViewerServer:
             "static_sv": self.store.static_sv,
             "static_queries": self.store.static_queries,
             "steps_received": self.store.steps_received,
+            "steps_refused": self.store.steps_refused,
             "physics_received": self.store.physics_received,
             "physics_instances": sorted(self.store.physics),
             "sumo_alive": self.store.sumo_alive,
@@ -568,7 +571,9 @@ class ZenohFeed:
         self._stop = threading.Event()
         self._last_step_idx: int | None = None
         self._step_sv: int | None = None  # ``sv`` of the newest step
-        self._restarted = False  # a step index went back: a new SUMO side under the same run id
+        self._restarted = False  # a newer epoch: a new SUMO side under the same run id
+        self._order = StepOrder()  # which steps to relay (SPEC 3.1.1); Zenoh may call from several threads
+        self._order_lock = threading.Lock()
         self._fetching = False  # the worker is in a fetch round (it asks until the versions agree)
         self._network_hash = ""  # lanes + junctions of the held static data (the map depends on them only)
         self._last_static_ask = 0.0
@@ -602,11 +607,17 @@ class ZenohFeed:
     # page decodes them with its own msgpack reader.
     def _on_step(self, sample: Any) -> None:
         payload = sample.payload.to_bytes()
-        self.store.put_step(payload)
-        head = peek(payload, ("step", "sv"))  # the first bytes only: the agents stay undecoded
+        head = peek(payload, ("step", "sv", "epoch"))  # the first bytes only: the agents stay undecoded
         sv, idx = int(head.get("sv", 0)), head.get("step")
-        if idx is not None and self._last_step_idx is not None and idx < self._last_step_idx:
-            self._restarted = True  # its static versions start again, its network may differ
+        if idx is not None:
+            with self._order_lock:
+                verdict = self._order.judge(int(head.get("epoch", 0)), int(idx))
+            if not verdict.accepted:  # a replay, a re-send or an absurd jump: the pages never see it
+                self.store.steps_refused += verdict is not Verdict.DUPLICATE
+                return
+            if verdict is Verdict.RESTART:
+                self._restarted = True  # its static versions start again, its network may differ
+        self.store.put_step(payload)
         self._last_step_idx = idx
         self._step_sv = sv
         since = time.monotonic() - self._last_static_ask
