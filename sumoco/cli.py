@@ -101,6 +101,9 @@ def _physics_parser(sub) -> None:
     p.add_argument("--instance", help="physics instance name in the keys (default: [physics].instance or 'main')")
     p.add_argument("--shard", help="i/k: simulate only shard i of k (spatial tiles); the instance becomes "
                                    "<instance>.<i>of<k>")
+    p.add_argument("--processes", help="N|auto: run the instance as N shard processes (--shard i/N each) under "
+                                       "one supervisor that restarts a crashed one; auto = the cores here minus "
+                                       "one for the SUMO side (overrides [physics].processes; default 1)")
     p.add_argument("--expect", help="agents expected at once, to size the pools up front: N passenger cars "
                                     "or type=N,type=N (overrides [physics].expect)")
 
@@ -315,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
 #: Subcommand -> "module:function" it runs; imported only when chosen.
 _COMMANDS = {
     "sumo": "sumo_side.daemon:cli_main",
-    "physics": "physics_side.daemon:cli_main",
+    "physics": "physics_side.processes:cli_main",
     "demo": "sumoco.orchestrate.demo:cli_main",
     "bench": "sumoco.bench.cli:cli_main",
     "record": "sumoco.recording.record:record_cli",
