@@ -114,6 +114,9 @@ def _demo_parser(sub) -> None:
     _add_scenario(p)
     p.add_argument("--out", help="output folder (default: runs/demo, or runs/<scenario name> with --sumocfg)")
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
+    p.add_argument("--processes", help="N|auto: run each physics instance as N shard processes under a "
+                                       "supervisor; auto shares the cores here minus one among the presets "
+                                       "(overrides [physics].processes; default 1)")
     p.add_argument("--compare-authority", dest="compare_authority", action="store_true",
                    help="run the scenario twice, SUMO- and physics-authoritative (OUT/sumo-authority, "
                         "OUT/physics-authority), and compare them in OUT/modes.md")
