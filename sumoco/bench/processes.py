@@ -13,12 +13,13 @@ them crosses the step length, as ``shard_rows`` does for bare workers.
 Row: ``{"bench": "scale_processes", "processes", "agents_realtime", "vs_linear"
 (agents_realtime / (processes x the one-process figure)), "step_ms_at" (wall time per
 step at each probe size), "step_s", "exit_code" (the supervisor's, after the final step),
-"restarts", "load_avg_1min"}``.
+"restarts", "load_avg_1min"}``, and the same from CPU time: ``agents_realtime_cpu``,
+``vs_linear_cpu``, ``step_cpu_ms_at`` (the busiest process's CPU time per step: what it
+needs of a core of its own, whatever else the host runs).
 """
 
 from __future__ import annotations
 
-import collections
 import logging
 import os
 import re
@@ -27,6 +28,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +40,8 @@ START_TIMEOUT_S = 120.0  # [s] for every shard process to be up
 EXIT_TIMEOUT_S = 60.0  # [s] for the supervisor to end after the final step
 TILE_M = 50.0  # [m] shard tiles: the circle traffic's ring (radius 300 m) touches ~50 of them
 HALO_M = 5.0  # [m]
-SLOT_HEADROOM = 1.2  # [1] pre-allocated slots per expected agent: no pool growth while measuring
+SLOT_HEADROOM = 1.2  # [1] a shard's slots per agent of an even split: tiles never split the agents evenly
+SLOT_EXTRA = 8  # [slots] beyond that (as ``shard_rows``)
 POLL_S = 0.002  # [s] while waiting for acknowledgements
 
 
@@ -133,19 +136,53 @@ def _encoded_steps(n: int, count: int, run: str) -> list[bytes]:
     return [encode(m) for m in steps]
 
 
-def _step_ms(processes: int, agents: int, steps: int, folder: Path) -> tuple[float, int, int]:
-    """Wall time per lockstep step [ms] of ``sumoco physics --processes <processes>`` with
-    ``agents`` cars over ``steps`` steps; the supervisor's exit code and restarts."""
+def _cpu_s(pid: int) -> float:
+    """CPU time [s] (user + system, all threads) of process ``pid`` so far, 0 when gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (the supervisor's shard processes)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(d))
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+class _Measured(NamedTuple):
+    step_ms: float  # [ms] wall time per lockstep step
+    cpu_ms: float  # [ms] CPU time per step of the busiest physics process
+    exit_code: int  # the supervisor's (the daemon's with one process)
+    restarts: int
+
+
+def _step_ms(processes: int, agents: int, steps: int, folder: Path) -> _Measured:
+    """``sumoco physics --processes <processes>`` following a lockstep run of ``agents`` cars
+    for ``steps`` steps: wall time per step, CPU time per step of the busiest shard
+    process, the supervisor's exit code and restarts."""
     from runtime.transport import free_tcp_port
     from sumoco.bench.scenario import write_toml
     from sumoco.orchestrate.demo import Processes, cli_argv
 
     run = f"procs{processes}x{agents}"
-    per = int(agents / processes * SLOT_HEADROOM) + 8
+    per = int(agents / processes * (1.0 if processes == 1 else SLOT_HEADROOM)) + SLOT_EXTRA
     cfg = write_toml(folder / f"{run}.toml", {
         "run": {"id": run, "timing": "lockstep", "duration_s": 0.0, "lockstep_timeout_s": ACK_TIMEOUT_S},
+        # one thread per process: processes, not threads, use the cores here
         "physics": {"preset": "default", "shards": 1, "threads": 1, "initial_slots": {"passenger": per},
-                    "expect": {"passenger": per}, "shard_tile_m": TILE_M, "shard_halo_m": HALO_M}})
+                    "shard_tile_m": TILE_M, "shard_halo_m": HALO_M}})
     payloads = _encoded_steps(agents, WARMUP_STEPS + steps + 1, run)
     sumo_ep, phys_ep = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
     instances = {"main"} if processes == 1 else {f"main.{i}of{processes}" for i in range(processes)}
@@ -156,12 +193,15 @@ def _step_ms(processes: int, agents: int, steps: int, folder: Path) -> tuple[flo
         p = procs.start(name, cli_argv("physics", "--config", str(cfg), "--processes", str(processes),
                                        "--listen", phys_ep, "--connect", sumo_ep))
         driver.wait_up(instances, START_TIMEOUT_S, p)
-        t0 = 0.0
+        t0, cpu0, pids = 0.0, {}, []
         for k, payload in enumerate(payloads[:-1]):
             if k == WARMUP_STEPS:
+                pids = [p.pid] if processes == 1 else _children(p.pid)
+                cpu0 = {q: _cpu_s(q) for q in pids}
                 t0 = time.perf_counter()
             driver.step(k, payload, instances)
         wall = (time.perf_counter() - t0) / steps
+        cpu = max((_cpu_s(q) - c for q, c in cpu0.items()), default=0.0) / steps
         driver.step(len(payloads) - 1, payloads[-1], instances)  # final: the shards leave
         code = p.wait(EXIT_TIMEOUT_S)
     finally:
@@ -169,7 +209,7 @@ def _step_ms(processes: int, agents: int, steps: int, folder: Path) -> tuple[flo
         driver.close()
     text = (folder / "logs" / f"{name}.log").read_text(errors="replace")
     m = re.search(r"physics supervisor done: \d+ shard processes, restarts (\d+)", text)
-    return wall * 1e3, code, int(m[1]) if m else 0
+    return _Measured(wall * 1e3, cpu * 1e3, code, int(m[1]) if m else 0)
 
 
 def process_counts() -> tuple[int, ...]:
@@ -192,26 +232,32 @@ def process_rows(counts=None, probe=(150, 450), steps: int = 30) -> list[dict]:
     folder = Path(tempfile.mkdtemp(prefix="sumoco-processes-"))
     rows: list[dict] = []
     for p in counts:
-        sizes = [n * p for n in probe]
-        measured = {}
-        codes, restarts = [], 0
-        for n in sizes:
-            ms, code, r = _step_ms(p, n, steps, folder)
-            measured[n] = ms
-            codes.append(code)
-            restarts += r
-        (n_a, t_a), (n_b, t_b) = measured.items()
-        slope = max((t_b - t_a) / (n_b - n_a), 1e-9)  # [ms per car]
-        most = max(0, int(n_a + (STEP_S * 1e3 - t_a) / slope))
-        rows.append({"bench": "scale_processes", "processes": p, "agents_realtime": most,
-                     "step_ms_at": {str(n): round(t, 2) for n, t in measured.items()}, "step_s": STEP_S,
-                     "steps": steps, "exit_code": max(codes, key=abs), "restarts": restarts,
+        m = {n * p: _step_ms(p, n * p, steps, folder) for n in probe}
+        rows.append({"bench": "scale_processes", "processes": p,
+                     "agents_realtime": _most({n: x.step_ms for n, x in m.items()}),
+                     # the same from CPU time per step of the busiest process: what it needs of a
+                     # core of its own (independent of other load; equal on an idle host)
+                     "agents_realtime_cpu": _most({n: x.cpu_ms for n, x in m.items()}),
+                     "step_ms_at": {str(n): round(x.step_ms, 2) for n, x in m.items()},
+                     "step_cpu_ms_at": {str(n): round(x.cpu_ms, 2) for n, x in m.items()}, "step_s": STEP_S,
+                     "steps": steps, "exit_code": max((x.exit_code for x in m.values()), key=abs),
+                     "restarts": sum(x.restarts for x in m.values()),
                      "cores": len(os.sched_getaffinity(0)), "load_avg_1min": _load()})
         log.info("bench scale: %s", rows[-1])
-    one = collections.OrderedDict((r["processes"], r["agents_realtime"]) for r in rows).get(1)
+    one = {r["processes"]: r for r in rows}.get(1)
     for r in rows:
-        r["vs_linear"] = round(r["agents_realtime"] / (r["processes"] * one), 2) if one else None
+        for field in ("agents_realtime", "agents_realtime_cpu"):
+            base = one[field] if one else 0
+            r[field.replace("agents_realtime", "vs_linear")] = (
+                round(r[field] / (r["processes"] * base), 2) if base else None)
     return rows
+
+
+def _most(step_ms: dict[int, float]) -> int:
+    """Agents at which the line through two (agents, ms per step) points reaches the step length."""
+    (n_a, t_a), (n_b, t_b) = step_ms.items()
+    slope = max((t_b - t_a) / (n_b - n_a), 1e-9)  # [ms per car]
+    return max(0, int(n_a + (STEP_S * 1e3 - t_a) / slope))
 
 
 __all__ = ["process_counts", "process_rows"]
