@@ -274,7 +274,7 @@ class Supervisor:
             print(f"sumoco physics: {e}", file=sys.stderr, flush=True)
             return e.code
         finally:
-            self._stop_children(signal.SIGKILL if any(c.proc for c in self.children) else signal.SIGTERM)
+            self._stop_children()  # none left but after an unexpected error
             log.info("physics supervisor done: %d shard processes, restarts %d%s", len(self.children),
                      self.restarts, "".join(f", {c.index}/{c.count}: {c.restarts}" for c in self.children
                                             if c.restarts))
@@ -286,7 +286,8 @@ class Supervisor:
             if self._stop_signal is not None:
                 log.info("signal %d: stopping %d shard processes", self._stop_signal, len(self.children))
                 codes = self._stop_children()
-                bad = {i: c for i, c in codes.items() if c != 0}
+                # a child still starting (no handler yet) ends by the signal itself: a clean stop too
+                bad = {i: c for i, c in codes.items() if c not in (0, -signal.SIGTERM, -signal.SIGINT)}
                 if bad:
                     i, code = next(iter(bad.items()))
                     raise Failure(f"{self.children[i].name} {exit_text(code)} while stopping", ExitCode.FAILURE)
