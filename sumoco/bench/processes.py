@@ -38,10 +38,9 @@ ACK_TIMEOUT_S = 60.0  # [s] a step not acknowledged by every shard in this long 
 RESEND_S = 1.0  # [s] a step not yet acknowledged by every shard is sent again (a late subscriber)
 START_TIMEOUT_S = 120.0  # [s] for every shard process to be up
 EXIT_TIMEOUT_S = 60.0  # [s] for the supervisor to end after the final step
-TILE_M = 50.0  # [m] shard tiles: the circle traffic's ring (radius 300 m) touches ~50 of them
-HALO_M = 5.0  # [m]
-SLOT_HEADROOM = 1.2  # [1] a shard's slots per agent of an even split: tiles never split the agents evenly
-SLOT_EXTRA = 8  # [slots] beyond that (as ``shard_rows``)
+TILE_M = 100.0  # [m] shard tiles: the circle traffic's ring (radius 300-320 m) touches ~25 of them
+HALO_M = 10.0  # [m] (a car crosses a tile every ~10 s: each crossing of a shard border is a hand-over)
+SHARD_SHARE = 1.1  # [1] agents a shard expects per agent of an even split: tiles never split them evenly
 POLL_S = 0.002  # [s] while waiting for acknowledgements
 
 
@@ -177,11 +176,13 @@ def _step_ms(processes: int, agents: int, steps: int, folder: Path) -> _Measured
     from sumoco.orchestrate.demo import Processes, cli_argv
 
     run = f"procs{processes}x{agents}"
-    per = int(agents / processes * (1.0 if processes == 1 else SLOT_HEADROOM)) + SLOT_EXTRA
+    # pools sized from the agents each process expects (``expect``: no parked slots beyond its
+    # headroom, the same number of MuJoCo simulations per agent at every count)
+    per = int(agents / processes * (1.0 if processes == 1 else SHARD_SHARE))
     cfg = write_toml(folder / f"{run}.toml", {
         "run": {"id": run, "timing": "lockstep", "duration_s": 0.0, "lockstep_timeout_s": ACK_TIMEOUT_S},
         # one thread per process: processes, not threads, use the cores here
-        "physics": {"preset": "default", "shards": 1, "threads": 1, "initial_slots": {"passenger": per},
+        "physics": {"preset": "default", "shards": 1, "threads": 1, "initial_slots": {}, "expect": {"passenger": per},
                     "shard_tile_m": TILE_M, "shard_halo_m": HALO_M}})
     payloads = _encoded_steps(agents, WARMUP_STEPS + steps + 1, run)
     sumo_ep, phys_ep = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
