@@ -368,7 +368,11 @@ def cli_main(args) -> int:
     if count == 1:
         return _single(args)
     instance = getattr(args, "instance", None) or phys.instance
-    listens = child_endpoints(args.listen, count, free_tcp_port)
+    listen = common.zenoh.listen  # --listen, else the config's [zenoh] listen: never the same port twice
+    if not listen and common.zenoh.mode == "peer":
+        # peers without a router reach each other only where they listen: loopback for the siblings here
+        listen = (f"tcp/127.0.0.1:{free_tcp_port()}",)
+    listens = child_endpoints(listen, count, free_tcp_port)
     children = [Child(i, count, shard_instance(instance, i, count), child_argv(args, i, count, listens[i]))
                 for i in range(count)]
     log.info("physics supervisor: %d shard processes of instance %s (%s), %d cores here, up to %d restarts "
