@@ -174,12 +174,20 @@ class Supervisor:
 
     # -------------------------------------------------------------- processes
 
-    def _start(self, c: Child) -> None:
+    def _start(self, c: Child, now: float) -> None:
+        """Start child ``c``; a start that fails (fork, exec) counts as one of its failures."""
         c.restart_at = None
         c.last_error = ""
-        c.proc = subprocess.Popen(c.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                  env=self.env, preexec_fn=_die_with_parent if sys.platform.startswith("linux")
-                                  else None)
+        try:
+            c.proc = subprocess.Popen(c.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                      stdin=subprocess.DEVNULL, env=self.env,
+                                      preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        except (OSError, subprocess.SubprocessError) as e:
+            c.proc, c.relay = None, None
+            c.last_error = f"could not start it: {e}"
+            log.error("%s: %s", c.name, c.last_error)
+            self._ended(c, ExitCode.FAILURE, now, run_over=False)
+            return
         c.relay = threading.Thread(target=self._relay, args=(c, c.proc), name=f"relay-{c.index}", daemon=True)
         c.relay.start()
         log.info("%s started (pid %d)%s", c.name, c.proc.pid, f", restart {c.restarts}" if c.restarts else "")
@@ -206,8 +214,8 @@ class Supervisor:
                 except ProcessLookupError:
                     pass
 
-    def request_stop(self, signum: int = signal.SIGTERM) -> None:
-        """Stop every child (from a signal handler or another thread)."""
+    def request_stop(self, signum: int = 0) -> None:
+        """Stop every child (from a signal handler: ``signum``; 0: the supervisor's own decision)."""
         self._stop_signal = signum
         self._wake.set()
 
@@ -267,7 +275,7 @@ class Supervisor:
         """Start every child and watch them until the run ends; the exit code."""
         try:
             for c in self.children:
-                self._start(c)
+                self._start(c, time.monotonic())
             return self._watch()
         except Failure as e:
             self._stop_children()
@@ -284,7 +292,8 @@ class Supervisor:
         while True:
             now = time.monotonic()
             if self._stop_signal is not None:
-                log.info("signal %d: stopping %d shard processes", self._stop_signal, len(self.children))
+                log.info("%sstopping %d shard processes", f"signal {self._stop_signal}: " if self._stop_signal else "",
+                         len(self.children))
                 codes = self._stop_children()
                 # a child still starting (no handler yet) ends by the signal itself: a clean stop too
                 bad = {i: c for i, c in codes.items() if c not in (0, -signal.SIGTERM, -signal.SIGINT)}
@@ -298,7 +307,7 @@ class Supervisor:
                     if c.done and finished_at is None:
                         finished_at = now
                 if c.restart_at is not None and now >= c.restart_at and finished_at is None:
-                    self._start(c)
+                    self._start(c, now)
             if all(c.done for c in self.children):
                 return ExitCode.OK
             if finished_at is not None and now - finished_at > FINISH_TIMEOUT_S:

@@ -7,7 +7,9 @@ and the run ends with exit 0; a shard that keeps failing ends the supervisor wit
 
 from __future__ import annotations
 
+import os
 import re
+import signal
 
 import pytest
 
@@ -99,14 +101,10 @@ def test_two_shard_processes_cover_every_agent_and_a_killed_one_is_restarted(tmp
         k, a0, a1 = wait_until(covered_step, 60, "both shard processes simulating every agent", procs=daemons)
         assert not a0 & a1, f"step {k}: agents in both shards: {a0 & a1}"
 
-        victim = wait_until(lambda: pids_with("--shard", "1/2", "--run", run_id)
-                            or pids_with("--shard", "1/2"), 10, "the pid of shard 1")
-        # only the child of this test's supervisor: its command line names this run's config
-        victim = [p for p in victim if cfg.encode() in open(f"/proc/{p}/cmdline", "rb").read()]
+        # the shard process of this test's supervisor: its command line names this run's config
+        victim = pids_with("--shard", "1/2", "--config", cfg)
         assert len(victim) == 1, victim
         killed_at = probe.last_step().step
-        import os
-        import signal
         os.kill(victim[0], signal.SIGKILL)
 
         def shard0_alone():
@@ -124,7 +122,7 @@ def test_two_shard_processes_cover_every_agent_and_a_killed_one_is_restarted(tmp
             return (st1 is not None and st1.sumo_step > killed_at and len(st1.agents.ids) > 0
                     and st0.counters.get("shards_alive") == 2)
         wait_until(back, 30, "the restarted shard 1 taking its tiles back", procs=daemons)
-        assert pids_with("--shard", "1/2") and victim[0] not in pids_with("--shard", "1/2")
+        assert pids_with("--shard", "1/2", "--config", cfg) not in ([], victim)  # a new process
 
         wait_until(lambda: sumo.poll() is not None, 90, "the SUMO side reaching the run's end")
         assert sumo.returncode == 0, sumo.tail()

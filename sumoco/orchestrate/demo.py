@@ -37,7 +37,7 @@ REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 @dataclass(frozen=True)
 class DemoConfig:
     presets: tuple[str, ...] = ("paper", "default")  # one physics instance per preset
-    processes: int | str = 1  # shard processes per physics instance, N or "auto" (``--processes`` and ``[physics] processes`` win)
+    processes: int | str = 1  # shard processes per physics instance, N or "auto" (--processes, [physics] processes win)
     wall_limit_s: float = 120.0  # [s] wall-clock bound of the whole run
     startup_timeout_s: float = 60.0  # [s] for the daemons to come up
     stop_timeout_s: float = 10.0  # [s] grace period after SIGTERM before SIGKILL
