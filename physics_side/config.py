@@ -59,6 +59,8 @@ class PhysicsConfig:
     stop_decel: float = 3.0  # [m/s^2] deceleration of the safe stop when the SUMO side is gone
     shards: int = 2  # parallel MuJoCo simulations (agents in different shards never touch)
     threads: int = 0  # worker threads for the shards, 0 = one per shard
+    processes: int | str = 1  # shard processes of this instance under one supervisor (N or "auto"; --processes)
+    process_restarts: int = 3  # [restarts] of one shard process within 300 s before its supervisor gives up (exit 3)
     initial_slots: dict[str, int] = field(
         default_factory=lambda: {"passenger": 64, "taxi": 4, "bus": 4, "bicycle": 8, "pedestrian": 16}
     )  # [slots per shard] pre-allocated parked slots per type (its default size bucket)
@@ -116,6 +118,11 @@ class PhysicsConfig:
                 raise ConfigError(f"physics.expect.{k}: expected >= 0, got {v}")
         if self.shards < 1 or self.threads < 0:
             raise ConfigError("physics: shards must be >= 1 and threads >= 0")
+        if isinstance(self.processes, str) and self.processes != "auto" or isinstance(self.processes, int) and (
+                self.processes < 1):
+            raise ConfigError(f"physics.processes: expected a number >= 1 or \"auto\", got {self.processes!r}")
+        if self.process_restarts < 0:
+            raise ConfigError(f"physics.process_restarts: expected >= 0, got {self.process_restarts}")
         if self.pool_chunk < 1 or self.step_queue < 1:
             raise ConfigError("physics: pool_chunk and step_queue must be >= 1")
         if self.step_queue_mb <= 0:

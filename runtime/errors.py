@@ -17,6 +17,7 @@ class ExitCode(IntEnum):
     OK = 0
     FAILURE = 1  #: a run failed (a peer went silent, SUMO failed, ...): the message says why
     USAGE = 2  #: bad config, bad scenario, bad arguments or a missing extra: fix and rerun
+    PROCESS_FAILED = 3  #: ``sumoco physics --processes N``: a shard process kept failing; the message names it
     INTERRUPTED = 130  #: Ctrl-C / SIGINT
 
 

@@ -334,6 +334,12 @@ class SumoDaemon:
                     back = True
                     self.counters.rejoined += 1
                     log.info("lockstep: physics instance %r is back", inst)
+                elif inst in self.cfg.lockstep_instances and inst not in self._waited and not self._stop.is_set():
+                    # a lost shard restarted (``--processes``): it takes its tiles back, so wait for it again
+                    self._waited.append(inst)
+                    back = True
+                    self.counters.rejoined += 1
+                    log.info("lockstep: physics shard %r is back; waiting for %s", inst, ", ".join(self._waited))
             elif inst in self._alive:
                 self._alive.discard(inst)
                 if inst in self._waited and not self._stop.is_set():

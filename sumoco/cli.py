@@ -103,6 +103,9 @@ def _physics_parser(sub) -> None:
     p.add_argument("--instance", help="physics instance name in the keys (default: [physics].instance or 'main')")
     p.add_argument("--shard", help="i/k: simulate only shard i of k (spatial tiles); the instance becomes "
                                    "<instance>.<i>of<k>")
+    p.add_argument("--processes", help="N|auto: run the instance as N shard processes (--shard i/N each) under "
+                                       "one supervisor that restarts a crashed one; auto = the cores here minus "
+                                       "one for the SUMO side (overrides [physics].processes; default 1)")
     p.add_argument("--expect", help="agents expected at once, to size the pools up front: N passenger cars "
                                     "or type=N,type=N (overrides [physics].expect)")
 
@@ -113,6 +116,9 @@ def _demo_parser(sub) -> None:
     _add_scenario(p)
     p.add_argument("--out", help="output folder (default: runs/demo, or runs/<scenario name> with --sumocfg)")
     p.add_argument("--wall", type=float, help="wall-clock limit [s]")
+    p.add_argument("--processes", help="N|auto: run each physics instance as N shard processes under a "
+                                       "supervisor; auto shares the cores here minus one among the presets "
+                                       "(overrides [physics].processes; default 1)")
     p.add_argument("--compare-authority", dest="compare_authority", action="store_true",
                    help="run the scenario twice, SUMO- and physics-authoritative (OUT/sumo-authority, "
                         "OUT/physics-authority), and compare them in OUT/modes.md")
@@ -353,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
 #: Subcommand -> "module:function" it runs; imported only when chosen.
 _COMMANDS = {
     "sumo": "sumo_side.daemon:cli_main",
-    "physics": "physics_side.daemon:cli_main",
+    "physics": "physics_side.processes:cli_main",
     "demo": "sumoco.orchestrate.demo:cli_main",
     "bench": "sumoco.bench.cli:cli_main",
     "record": "sumoco.recording.record:record_cli",

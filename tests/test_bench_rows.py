@@ -54,8 +54,9 @@ def test_scale_bench_quick_rows():
     shards = [r for r in rows if "shards" in r]
     realtime = [r for r in rows if r.get("timing") == "realtime"]
     lockstep = [r for r in rows if r.get("timing") == "lockstep"]
-    assert pools and cosim and shards and realtime and lockstep, rows
-    assert len(pools) + len(cosim) + len(shards) + len(realtime) + len(lockstep) == len(rows), rows
+    processes = [r for r in rows if r.get("bench") == "scale_processes"]
+    assert pools and cosim and shards and realtime and lockstep and processes, rows
+    assert len(pools) + len(cosim) + len(shards) + len(realtime) + len(lockstep) + len(processes) == len(rows), rows
 
     for r in pools:
         _count(r, "pool_slots")
@@ -78,6 +79,13 @@ def test_scale_bench_quick_rows():
         # the CPU-time figure does not depend on other load
         _count(r, "agents_realtime", 0)
         _count(r, "agents_realtime_cpu")
+
+    # one command per count (`sumoco physics --processes p`): it ended 0 after the final step
+    assert [r["processes"] for r in processes] == [1, 2], processes
+    for r in processes:
+        _count(r, "agents_realtime", 0)
+        assert r["exit_code"] == 0 and r["restarts"] == 0, r
+        assert isinstance(r["vs_linear"], float) and isinstance(r["load_avg_1min"], float), r
 
     for r in lockstep:
         n = _count(r, "agents")

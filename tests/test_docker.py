@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -42,8 +43,8 @@ def test_compose_file_parses_and_wires_router():
     yaml = pytest.importorskip("yaml")
     doc = yaml.safe_load((DOCKER / "compose.yaml").read_text())
     services = doc["services"]
-    assert {"router", "sumo", "physics-0", "physics-1"} <= set(services)
-    for name in ("sumo", "physics-0", "physics-1"):
+    assert {"router", "sumo", "physics"} <= set(services)
+    for name in ("sumo", "physics"):
         svc = services[name]
         assert (ROOT / "docker" / svc["build"]["context"] / svc["build"]["dockerfile"]).is_file()
         env = svc["environment"]
@@ -51,7 +52,8 @@ def test_compose_file_parses_and_wires_router():
         config = env["SUMOCO_CONFIG"].removeprefix("/app/")
         assert (ROOT / config).is_file(), f"{name} uses missing config {config}"
         assert "router" in svc["depends_on"]
-    assert services["physics-0"]["command"] == ["--shard", "0/2"]
+    # one supervisor of shard processes; their number from PHYSICS_PROCESSES, else auto
+    assert services["physics"]["command"] == ["--processes", "${PHYSICS_PROCESSES:-auto}"]
 
 
 def _entrypoint(dockerfile: str) -> list[str]:
@@ -61,11 +63,17 @@ def _entrypoint(dockerfile: str) -> list[str]:
     raise AssertionError(f"{dockerfile}: no ENTRYPOINT")
 
 
-def _service_argv(svc: dict, port: int) -> tuple[list[str], dict[str, str]]:
+def _interpolate(text: str, variables: dict[str, str]) -> str:
+    """Compose's ``${NAME:-default}``: the variable's value, else the default."""
+    return re.sub(r"\$\{(\w+):-([^}]*)\}", lambda m: variables.get(m[1], m[2]), text)
+
+
+def _service_argv(svc: dict, port: int, variables: dict[str, str] | None = None) -> tuple[list[str], dict[str, str]]:
     """The service's command and environment as a local process: the router's address and
-    /app paths rewritten to this machine (only the docker network knows ``router``)."""
+    /app paths rewritten to this machine (only the docker network knows ``router``), compose
+    variables set from ``variables``."""
     argv = list(svc.get("entrypoint") or _entrypoint(Path(svc["build"]["dockerfile"]).name))
-    argv += [str(a) for a in svc.get("command", [])]
+    argv += [_interpolate(str(a), variables or {}) for a in svc.get("command", [])]
     local = f"tcp/127.0.0.1:{port}"
     argv = [a.replace("tcp/0.0.0.0:7447", local) for a in argv]
     env = {k: str(v).replace("tcp/router:7447", local).replace("/app/", f"{ROOT}/")
@@ -77,7 +85,8 @@ def _service_argv(svc: dict, port: int) -> tuple[list[str], dict[str, str]]:
 @pytest.mark.integration
 def test_compose_services_run_as_local_processes(tmp_path, monkeypatch):
     """Docker cannot run here: start exactly the services' commands and environment from
-    compose.yaml as local processes (router, SUMO with the bundled scenario, two shards)."""
+    compose.yaml as local processes (router, SUMO with the bundled scenario, the physics
+    supervisor with PHYSICS_PROCESSES=2: two shard processes)."""
     yaml = pytest.importorskip("yaml")
     from protocol.keys import Keys
     from runtime.transport import free_tcp_port
@@ -88,8 +97,8 @@ def test_compose_services_run_as_local_processes(tmp_path, monkeypatch):
     daemons = []
     probe = None
     try:
-        for name in ("router", "sumo", "physics-0", "physics-1"):  # the depends_on order
-            argv, env = _service_argv(services[name], port)
+        for name in ("router", "sumo", "physics"):  # the depends_on order
+            argv, env = _service_argv(services[name], port, {"PHYSICS_PROCESSES": "2"})
             for k in [k for k in os.environ if k.startswith("SUMOCO_")]:
                 monkeypatch.delenv(k)
             for k, v in env.items():
@@ -112,7 +121,7 @@ def test_compose_services_run_as_local_processes(tmp_path, monkeypatch):
         if probe is not None:
             probe.close()
         codes = {d.name: d.terminate(10) for d in reversed(daemons)}
-    assert codes == {"router": 0, "sumo": 0, "physics-0": 0, "physics-1": 0}, codes
+    assert codes == {"router": 0, "sumo": 0, "physics": 0}, codes
 
 
 def test_cli_takes_settings_from_environment(monkeypatch):

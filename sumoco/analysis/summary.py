@@ -28,12 +28,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from physics_side.shard import shard_of_instance
 from protocol.keys import Keys
 from protocol.messages import AgentClass, AgentFlag, AgentMode, PhysicsState, StaticData, StepMessage
 from sumo_side.config import SumoConfig
 from sumoco.recording.record import ReadResult, Recording, iter_decoded
 
 log = logging.getLogger(__name__)
+
+#: counters of a shard process that describe the set of shards (the same in each): not summed
+SHARD_GAUGES = ("shards_alive",)
 
 CLASS_NAMES = {int(c): c.name.lower() for c in AgentClass}
 #: Fields of summary.json that depend on the wall clock (excluded from determinism checks).
@@ -500,6 +504,7 @@ class Analysis:
         self.w_first = self.w_last = None
         self.sumo_seen: dict[int, set] = {}
         self.inst: dict[str, _Instance] = {}
+        self._shard_counters: dict[str, dict[str, dict]] = {}  # base instance -> shard instance -> newest counters
         self.track: dict[int, dict[str, list]] = {}
         # reference-car candidates: an explicit id, "ref", the first passenger car SUMO reported
         self.wanted: set[str] = {ref_id or "ref", "ref"}
@@ -572,7 +577,18 @@ class Analysis:
                     "mode": np.asarray(a.mode, np.int64),
                     **{k: np.asarray(getattr(a, k), np.float64)
                        for k in ("x", "y", "heading", "speed", "steer", "drive", "brake")}}
-            self.inst.setdefault(inst, _Instance()).counters = dict(msg.counters)
+            shard = shard_of_instance(inst)
+            if shard is None:
+                counters = dict(msg.counters)
+            else:  # one instance run as shard processes (``--processes``): its samples and summed counters
+                per = self._shard_counters.setdefault(shard[0], {})
+                per[inst] = msg.counters
+                inst = shard[0]
+                counters = {}
+                for c in per.values():
+                    for k, v in c.items():  # counts add up; the shards' own view of their set does not
+                        counters[k] = max(counters.get(k, 0), v) if k in SHARD_GAUGES else counters.get(k, 0) + v
+            self.inst.setdefault(inst, _Instance()).counters = counters
             self._phys_buf.setdefault(inst, []).append((t, cols))
         self._t_max = max(self._t_max, t)
         while self._t_max >= self._w_lo + 2 * self.window_s:

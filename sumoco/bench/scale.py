@@ -22,6 +22,9 @@ Rows (one JSON object each; field names stable across versions):
 - shard rows: ``shards``, ``agents_realtime`` (most full-physics cars that many physics
   processes, one thread each, keep at real-time factor >= 1), ``vs_one_shard``; the same
   from CPU time per tick (``agents_realtime_cpu``, ``vs_one_shard_cpu``).
+- ``scale_processes`` rows (``sumoco.bench.processes``): ``processes``, ``agents_realtime``,
+  ``vs_linear``: the same figure through one command, ``sumoco physics --processes p``
+  (supervisor, shard processes, Zenoh, a lockstep run driven from this process).
 - take-over row: ``takeover_s`` from a SIGKILL of one of two lockstep shards until the
   survivor publishes every agent (``new_size``: the killed shard had a vehicle size the
   survivor had not simulated).
@@ -57,6 +60,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sumoco.bench.processes import process_rows as supervised_rows
 from sumoco.bench.scenario import FILL_SHARE, PAPER_SUMOCFG, fill, grid_scenario, write_toml
 
 log = logging.getLogger(__name__)
@@ -713,7 +717,8 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
     agent in full physics beyond that is minutes per row), shard rows, the take-over of a
     killed shard and the realtime row. Quick (a smoke run of every kind of row but the
     take-over, which ``tests/test_e2e_shards.py`` covers): 1,024 slots, 1,000 agents for
-    10 steps, one shard probed at 20 and 60 cars for 1 s each, and 1,000 agents in realtime
+    10 steps, one shard probed at 20 and 60 cars for 1 s each, 1 and 2 supervised processes
+    at 20 and 60 cars per process for 10 steps, and 1,000 agents in realtime
     for 3 s with about 100 in full physics."""
     if quick:
         sizes, pool_sizes, steps = (1000,), (1024,), 10
@@ -722,10 +727,11 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
         rows.extend(cosim_rows(size, steps, lod_modes=(False, True) if size <= lod_off_max else (True,)))
     if quick:
         process_rows = (("shards", lambda: shard_rows(counts=(1,), probe=(20, 60), seconds=1.0)),
+                        ("processes", lambda: supervised_rows(counts=(1, 2), probe=(20, 60), steps=10)),
                         ("lockstep", lambda: [lockstep_row(agents=1000, seconds=3.0, full=100, alone_steps=5)]),
                         ("realtime", lambda: [realtime_row(agents=1000, seconds=3.0, full=100, alone_steps=5)]))
     else:
-        process_rows = (("shards", shard_rows), ("takeover", lambda: [takeover_row()]),
+        process_rows = (("shards", shard_rows), ("processes", supervised_rows), ("takeover", lambda: [takeover_row()]),
                         ("lockstep", lambda: [lockstep_row()]), ("realtime", lambda: [realtime_row()]))
     for name, f in process_rows:
         try:  # processes under load may miss a deadline: the other rows still count

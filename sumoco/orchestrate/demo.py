@@ -36,7 +36,8 @@ REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 @dataclass(frozen=True)
 class DemoConfig:
-    presets: tuple[str, ...] = ("paper", "default")  # one physics process per preset
+    presets: tuple[str, ...] = ("paper", "default")  # one physics instance per preset
+    processes: int | str = 1  # shard processes per physics instance, N or "auto" (--processes, [physics] processes win)
     wall_limit_s: float = 120.0  # [s] wall-clock bound of the whole run
     startup_timeout_s: float = 60.0  # [s] for the daemons to come up
     stop_timeout_s: float = 10.0  # [s] grace period after SIGTERM before SIGKILL
@@ -193,11 +194,13 @@ def _exit_text(code: int) -> str:
 
 def daemon_failure(name: str, code: int, log_dir: Path) -> DaemonFailed:
     """One line naming the daemon, its signal or code and its own message; the demo's exit
-    code: 2 for a crash (signal) or a broken configuration/scenario, 1 for a failed run."""
+    code: 2 for a crash (signal) or a broken configuration/scenario, 1 for a failed run (also
+    a physics supervisor's 3: one of its shard processes kept failing)."""
     log_file = log_dir / f"{name}.log"
     own = _last_error_line(log_file, name)
     text = f"{name} {_exit_text(code)}" + (f": {own}" if own else "") + f" (log: {log_file})"
-    return DaemonFailed(text, ExitCode.FAILURE if code == ExitCode.FAILURE else ExitCode.USAGE)
+    return DaemonFailed(text, ExitCode.FAILURE if code in (ExitCode.FAILURE, ExitCode.PROCESS_FAILED)
+                        else ExitCode.USAGE)
 
 
 def _wait_for(cond, timeout_s: float, what: str, procs: Processes) -> None:
@@ -229,12 +232,21 @@ def _port_clash(procs: Processes) -> bool:
     return False
 
 
+def physics_instances(demo: DemoConfig) -> list[str]:
+    """The physics instances the SUMO side waits for: one per preset, or its shard processes
+    (``<preset>.<i>of<N>``) when each preset runs as ``demo.processes`` processes."""
+    if demo.processes == 1:
+        return list(demo.presets)
+    return [f"{p}.{i}of{demo.processes}" for p in demo.presets for i in range(demo.processes)]
+
+
 def _start_daemons(procs: Processes, common_args: list[str], hub: str, sumo_ep: str, demo: DemoConfig,
                    out: Path, sumocfg: str | None, begin: float | None, common: CommonConfig) -> None:
-    """The SUMO side listening on ``sumo_ep`` and one physics process per preset."""
+    """The SUMO side listening on ``sumo_ep`` and one physics instance per preset (a process,
+    or a supervisor of ``demo.processes`` shard processes)."""
     sumo_args = ["sumo", *common_args, "--listen", sumo_ep, "--connect", hub, "--output-dir", str(out / "sumo")]
-    for p in demo.presets:
-        sumo_args += ["--wait-for", p]
+    for inst in physics_instances(demo):
+        sumo_args += ["--wait-for", inst]
     if sumocfg:
         sumo_args += ["--sumocfg", str(sumocfg)]
     if begin is not None:
@@ -244,7 +256,7 @@ def _start_daemons(procs: Processes, common_args: list[str], hub: str, sumo_ep: 
     procs.start("sumo", cli_argv(*sumo_args))
     for p in demo.presets:
         procs.start(f"physics-{p}", cli_argv(
-            "physics", *common_args, "--instance", p, "--preset", p,
+            "physics", *common_args, "--instance", p, "--preset", p, "--processes", str(demo.processes),
             "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--connect", sumo_ep, "--connect", hub))
 
 
@@ -261,6 +273,9 @@ class _DemoRun:
 
     def __init__(self, config_path: Path, out: Path, common: CommonConfig, demo: DemoConfig,
                  sumocfg: str | None, begin: float | None, quiet: bool) -> None:
+        from physics_side.processes import parse_processes
+
+        demo = replace(demo, processes=parse_processes(demo.processes, len(demo.presets)))
         self.config_path, self.out, self.common, self.demo = config_path, out, common, demo
         self.sumocfg, self.begin, self.quiet = sumocfg, begin, quiet
         self.keys = Keys(common.zenoh.root, common.run.id)
@@ -307,7 +322,7 @@ class _DemoRun:
                 _wait_for(lambda: keys.sumo_alive in self.alive, demo.startup_timeout_s, "the SUMO side", procs)
                 if live.fetch_static(timeout_s=10.0) is None:
                     log.warning("no static data from the SUMO side")
-                want = {Keys(keys.root, keys.run, p).physics_alive for p in demo.presets}
+                want = {Keys(keys.root, keys.run, p).physics_alive for p in physics_instances(demo)}
                 _wait_for(lambda: want <= self.alive, demo.startup_timeout_s, "the physics processes", procs)
                 break
             except DaemonFailed as e:
@@ -457,6 +472,18 @@ def _print_progress(progress: _Progress, elapsed: float) -> None:
           f"physics states {states}", file=sys.stderr, flush=True)
 
 
+def _processes(args, data: dict, base: Path, config: Path, instances: int, demo_processes: int | str) -> int:
+    """Shard processes per physics instance: ``--processes``, else ``[physics] processes``;
+    ``auto`` shares the cores left beside the SUMO side among the ``instances``."""
+    from physics_side.config import load_physics_config
+    from physics_side.processes import parse_processes
+
+    value = getattr(args, "processes", None)
+    if value is None and "processes" in data.get("physics", {}):
+        value = load_physics_config(data, base, str(config)).physics.processes
+    return parse_processes(value if value is not None else demo_processes, instances)
+
+
 def cli_main(args) -> int:
     from sumo_side.simulation import check_sumocfg
 
@@ -466,6 +493,7 @@ def cli_main(args) -> int:
     demo = section(data, "demo", DemoConfig, base, str(config))
     if getattr(args, "wall", None):
         demo = replace(demo, wall_limit_s=float(args.wall))
+    demo = replace(demo, processes=_processes(args, data, base, config, len(demo.presets), demo.processes))
     record = section(data, "record", RecordConfig, base, str(config)) if "record" in data else None
     sumocfg = getattr(args, "sumocfg", None)
     if sumocfg:
