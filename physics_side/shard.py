@@ -118,6 +118,10 @@ class ShardFilter:
             return False
         if up and index not in self.living:
             self.living = sorted([*self.living, index])
+            # A sibling that comes back (restarted) knows no sticky assignments: every shard
+            # drops its own too, so all decide by tile alone and no agent is simulated twice
+            # (kept in a survivor's halo while the newcomer takes it by tile).
+            self._owner = {}
             return True
         if not up and index in self.living:
             self.living.remove(index)

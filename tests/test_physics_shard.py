@@ -54,6 +54,22 @@ def test_an_agent_keeps_its_shard_inside_the_halo_and_a_lost_shard_is_taken_over
     assert f.set_alive(1, True)
 
 
+def test_a_restarted_sibling_and_the_survivor_split_the_agents_again_without_overlap():
+    """Shard 1 dies and comes back with an empty assignment: the survivor drops its sticky
+    one, so the two partition the agents again (no agent simulated by both)."""
+    a = circle_traffic(200, 0).agents
+    survivor = ShardFilter(0, 2)
+    survivor.owners(a)
+    survivor.set_alive(1, False)
+    later = circle_traffic(200, 5).agents
+    assert len(survivor.rows(later)) == later.n  # it covers the lost shard meanwhile
+    survivor.set_alive(1, True)
+    restarted = ShardFilter(1, 2)
+    again = circle_traffic(200, 6).agents
+    mine, theirs = set(survivor.rows(again).tolist()), set(restarted.rows(again).tolist())
+    assert not mine & theirs and len(mine | theirs) == again.n and theirs
+
+
 def test_every_size_of_a_step_is_reserved_once_without_a_compile_on_the_stepping_thread():
     from dataclasses import replace
 
