@@ -104,11 +104,15 @@ def drive(node, args, out) -> threading.Thread:
         bad = pose("map", args.x, args.y, args.yaw)
         bad.pose.orientation.z = bad.pose.orientation.w = 0.0
         cycle = 0
+        malformed = (pose("odom", args.x, args.y, args.yaw), pose("map", float("nan"), args.y, args.yaw), bad)
         while not stop.wait(1.0 / args.rate):
-            if cycle < 60 and cycle % 10 == 5:
-                for m in (pose("odom", args.x, args.y, args.yaw), pose("map", float("nan"), args.y, args.yaw), bad):
-                    pub.publish(m)
-            pub.publish(pose("map", args.x, args.y, args.yaw))
+            # one malformed pose in a cycle of its own: the ego topic keeps the last message
+            # only, so a burst would leave the node just its last one
+            k = cycle % 10 - 5
+            if cycle < 60 and 0 <= k < len(malformed):
+                pub.publish(malformed[k])
+            else:
+                pub.publish(pose("map", args.x, args.y, args.yaw))
             cycle += 1
 
     th = threading.Thread(target=loop, daemon=True)
