@@ -507,7 +507,9 @@ def test_oversized_ego_poses_are_refused_by_length_before_they_are_kept(run):
     after = run.status()
     assert after["ego_poses"] == before["ego_poses"]  # none was applied
     grew = _peak_rss_mb(run.sumo.proc.pid) - hwm0
-    assert grew < 6 * pad / 2**20, f"the SUMO side's peak memory grew {grew:.0f} MiB"
+    # Zenoh reassembles each 4 MiB message before any callback sees it, several at once under
+    # load (25 MiB seen): the bound is well under the 48 MiB the 12 poses would hold if kept
+    assert grew < 8 * pad / 2**20, f"the SUMO side's peak memory grew {grew:.0f} MiB"
 
 
 def test_each_role_may_put_only_its_own_cameras(run):
