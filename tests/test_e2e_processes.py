@@ -74,6 +74,20 @@ def test_processes_flag_values():
     assert child_endpoints(None, 2, lambda: 1) == [[], []]
 
 
+def test_processes_and_shard_exclude_each_other_and_the_config_is_checked(tmp_path):
+    from physics_side.config import load_physics_config
+    from physics_side.processes import cli_main
+    from sumoco.cli import parse_args
+
+    cfg = _config(tmp_path, "procs-args")
+    with pytest.raises(ConfigError, match="exclude each other"):
+        cli_main(parse_args(["physics", "--config", cfg, "--shard", "0/2", "--processes", "2"]))
+    assert load_physics_config({"physics": {"processes": "auto"}}).physics.processes == "auto"
+    for bad in ({"processes": "many"}, {"processes": 0}, {"process_restarts": -1}):
+        with pytest.raises(ConfigError, match="physics.process"):
+            load_physics_config({"physics": bad})
+
+
 def test_two_shard_processes_cover_every_agent_and_a_killed_one_is_restarted(tmp_path):
     run_id = "procs-kill"
     cfg = _config(tmp_path, run_id)
