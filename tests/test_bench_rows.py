@@ -48,7 +48,7 @@ def _count(row: dict, field: str, minimum: int = 1) -> int:
 
 
 def test_scale_bench_quick_rows():
-    rows = _bench("scale", 300)
+    rows = _bench("scale", 420)
     pools = [r for r in rows if "pool_slots" in r]
     cosim = [r for r in rows if "lod" in r]
     shards = [r for r in rows if "shards" in r]
