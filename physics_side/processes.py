@@ -37,6 +37,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import mujoco  # noqa: F401  (the physics extra: without it `sumoco physics` names the extra to install)
+
 from protocol.errors import ConfigError
 from runtime.errors import ExitCode
 
