@@ -56,9 +56,9 @@ SUMOCFG = f"""<configuration>
 """
 
 
-def _demo(tmp_path, run_id: str, scenario, sim_s: float) -> dict:
+def _run_demo(tmp_path, run_id: str, scenario, sim_s: float, *extra: str, timeout_s: float = 240) -> Path:
     """``sumoco demo`` on ``scenario`` with the default preset only, in lockstep, as a user runs
-    it; checks its exit codes and returns summary.json."""
+    it (``extra``: more flags); checks its exit code and returns its output folder."""
     cfg = tmp_path / "run.toml"
     cfg.write_text(f"""
 [run]
@@ -73,9 +73,15 @@ lad_sweep = false
 """)
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--sumocfg",
-                        str(scenario), "--out", str(out), "--duration", str(sim_s), "--quiet"],
-                       capture_output=True, text=True, timeout=240, cwd=ROOT)
+                        str(scenario), "--out", str(out), "--duration", str(sim_s), "--quiet", *extra],
+                       capture_output=True, text=True, timeout=timeout_s, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
+def _demo(tmp_path, run_id: str, scenario, sim_s: float) -> dict:
+    """``_run_demo`` with its exit codes checked; returns summary.json."""
+    out = _run_demo(tmp_path, run_id, scenario, sim_s)
     s = json.loads((out / "summary.json").read_text())
     assert s["daemons"]["exit_codes"] == {"sumo": 0, "physics-default": 0}
     return s
@@ -198,23 +204,7 @@ def test_two_way_on_an_unseen_network_loses_no_vehicle(mixed_scenario, tmp_path)
     """``sumoco demo --compare-authority`` on the mixed left-hand network: both modes finish
     with every daemon at 0; in two-way mode physics drives (not carries) the vehicles' time,
     SUMO's intent and the physical pose stay close, and no vehicle SUMO inserted is lost."""
-    cfg = tmp_path / "run.toml"
-    cfg.write_text("""
-[run]
-id = "unseen2way"
-timing = "lockstep"
-lockstep_timeout_s = 30.0
-[physics]
-preset = "default"
-[demo]
-presets = ["default"]
-lad_sweep = false
-""")
-    out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--sumocfg",
-                        str(mixed_scenario), "--out", str(out), "--duration", str(TWO_WAY_SIM_S), "--quiet",
-                        "--compare-authority"], capture_output=True, text=True, timeout=400, cwd=ROOT)
-    assert r.returncode == 0, r.stderr[-3000:]
+    out = _run_demo(tmp_path, "unseen2way", mixed_scenario, TWO_WAY_SIM_S, "--compare-authority", timeout_s=400)
     rows = {row["authority"]: row for row in json.loads((out / "modes.json").read_text())}
     assert set(rows) == {"sumo", "physics"}
     for row in rows.values():
