@@ -40,7 +40,7 @@ from typing import Callable
 import mujoco  # noqa: F401  (the physics extra: without it `sumoco physics` names the extra to install)
 
 from protocol.errors import ConfigError
-from runtime.errors import ExitCode
+from runtime.errors import ExitCode, exit_text
 
 log = logging.getLogger("physics.supervisor")
 
@@ -105,16 +105,6 @@ def child_endpoints(listen: list[str] | tuple[str, ...] | None, count: int,
         for i in range(1, count):
             out[i].append(f"{m['proto']}/{m['host']}:{free_port()}{m['rest'] or ''}")
     return out
-
-
-def exit_text(code: int) -> str:
-    """``exited with code 1`` / ``was killed by SIGKILL``."""
-    if code < 0:
-        try:
-            return f"was killed by {signal.Signals(-code).name}"
-        except ValueError:
-            return f"was killed by signal {-code}"
-    return f"exited with code {code}"
 
 
 # ---------------------------------------------------------------------- the supervisor
@@ -411,4 +401,4 @@ def _single(args) -> int:
 
 
 __all__ = ["MAX_PROCESSES", "SUMO_SIDE_CORES", "Child", "Supervisor", "auto_processes", "available_cores",
-           "child_argv", "child_endpoints", "cli_main", "exit_text", "parse_processes"]
+           "child_argv", "child_endpoints", "cli_main", "parse_processes"]

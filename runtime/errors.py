@@ -6,6 +6,7 @@ too); this module adds what a process does with them: its exit code.
 
 from __future__ import annotations
 
+import signal
 from enum import IntEnum
 
 from protocol.errors import ConfigError, ProtocolError, SumocoError
@@ -39,4 +40,15 @@ def exit_code_of(error: BaseException) -> ExitCode:
     return ExitCode.FAILURE
 
 
-__all__ = ["ConfigError", "ExitCode", "MissingExtraError", "ProtocolError", "SumocoError", "exit_code_of"]
+__all__ = ["exit_text", "ConfigError", "ExitCode", "MissingExtraError", "ProtocolError", "SumocoError", "exit_code_of"]
+
+
+def exit_text(code: int) -> str:
+    """How a child process ended, for one-line errors: ``exited with code 1`` / ``was
+    killed by SIGKILL`` (a negative code from ``subprocess`` is the signal)."""
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"

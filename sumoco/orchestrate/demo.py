@@ -24,7 +24,7 @@ import zenoh
 
 from protocol.errors import ConfigError, SumocoError
 from protocol.keys import Keys
-from runtime.errors import ExitCode
+from runtime.errors import ExitCode, exit_text
 from runtime.config import CommonConfig, ZenohConfig, apply_cli, load_common, replace, section
 from sumoco.recording.record import LiveRecorder, McapRecorder, RecordConfig
 from runtime.transport import free_tcp_port, open_session
@@ -183,22 +183,13 @@ def _sumo_error(log_file: Path) -> str:
     return errors[-1] if errors else ""
 
 
-def _exit_text(code: int) -> str:
-    if code < 0:
-        try:
-            return f"was killed by {signal.Signals(-code).name}"
-        except ValueError:
-            return f"was killed by signal {-code}"
-    return f"exited with code {code}"
-
-
 def daemon_failure(name: str, code: int, log_dir: Path) -> DaemonFailed:
     """One line naming the daemon, its signal or code and its own message; the demo's exit
     code: 2 for a crash (signal) or a broken configuration/scenario, 1 for a failed run (also
     a physics supervisor's 3: one of its shard processes kept failing)."""
     log_file = log_dir / f"{name}.log"
     own = _last_error_line(log_file, name)
-    text = f"{name} {_exit_text(code)}" + (f": {own}" if own else "") + f" (log: {log_file})"
+    text = f"{name} {exit_text(code)}" + (f": {own}" if own else "") + f" (log: {log_file})"
     return DaemonFailed(text, ExitCode.FAILURE if code in (ExitCode.FAILURE, ExitCode.PROCESS_FAILED)
                         else ExitCode.USAGE)
 
