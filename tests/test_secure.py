@@ -515,7 +515,9 @@ def test_oversized_ego_poses_are_refused_by_length_before_they_are_kept(run):
     attacker = run.client("renderer-ego")
     try:
         for _ in range(12):
-            attacker.put(run.keys.ego("ego"), padded)
+            # BLOCK: a put is dropped by default when the link is congested, and 4 MiB
+            # messages congest it on a loaded machine; the test needs all 12 on the wire
+            attacker.put(run.keys.ego("ego"), padded, congestion_control=zenoh.CongestionControl.BLOCK)
         wait_until(lambda: run.status().get("ego_oversized", 0) >= before.get("ego_oversized", 0) + 12, 30,
                    "the 12 padded poses refused by length", procs=[run.sumo])
     finally:
