@@ -137,29 +137,29 @@ class _WsClient(threading.Thread):
         self.frames = 0
         self.disconnects = 0
         self.connected = threading.Event()
-        self._stop = threading.Event()
+        self._halt = threading.Event()
 
     def run(self) -> None:
         from websockets.sync.client import connect
 
-        while not self._stop.is_set():
+        while not self._halt.is_set():
             try:
                 with connect(self.url, max_size=1 << 26, open_timeout=5) as ws:
                     self.connected.set()
-                    while not self._stop.is_set():
+                    while not self._halt.is_set():
                         try:
                             ws.recv(timeout=0.5)
                         except TimeoutError:
                             continue
                         self.frames += 1
             except Exception as e:  # refused while the viewer starts, or a lost connection
-                if self.connected.is_set() and not self._stop.is_set():
+                if self.connected.is_set() and not self._halt.is_set():
                     self.disconnects += 1
                     log.warning("viewer WebSocket lost: %s", e)
-                self._stop.wait(0.5)
+                self._halt.wait(0.5)
 
     def stop(self) -> None:
-        self._stop.set()
+        self._halt.set()
 
 
 def _log_errors(log_dir: Path) -> int:
