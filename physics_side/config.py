@@ -61,10 +61,13 @@ class PhysicsConfig:
     threads: int = 0  # worker threads for the shards, 0 = one per shard
     processes: int | str = 1  # shard processes of this instance under one supervisor (N or "auto"; --processes)
     process_restarts: int = 3  # [restarts] of one shard process within 300 s before its supervisor gives up (exit 3)
+    # Parked slots sleep but are not free: MuJoCo's step still walks every tree (300 parked
+    # car slots, none awake: 2.5 ms per tick, growing faster than linearly), so pools start
+    # small and grow by half their size; `expect` sizes a large run up front.
     initial_slots: dict[str, int] = field(
-        default_factory=lambda: {"passenger": 64, "taxi": 4, "bus": 4, "bicycle": 8, "pedestrian": 16}
+        default_factory=lambda: {"passenger": 16, "taxi": 4, "bus": 4, "bicycle": 4, "pedestrian": 8}
     )  # [slots per shard] pre-allocated parked slots per type (its default size bucket)
-    pool_chunk: int = 32  # [slots] a pool that runs out grows by at least this many per shard
+    pool_chunk: int = 8  # [slots] a pool that runs out grows by at least this many per shard
     lod_radius_m: float = 0.0  # [m] level of detail: full physics within this of every ego, kinematic beyond (0 = off)
     lod_regions: tuple[tuple[float, ...], ...] = ()  # [[x, y, r], ...] [m] regions that always run full physics
     shard_tile_m: float = 250.0  # [m] tile edge of the spatial partition between shard processes (--shard i/k)

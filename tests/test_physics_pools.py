@@ -166,3 +166,26 @@ def test_a_script_ending_right_after_a_pool_growth_exits_cleanly():
     for _ in range(3):
         r = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, (r.returncode, r.stderr[-500:])
+
+
+def test_default_pools_stay_small_for_a_small_world():
+    """Parked slots sleep but MuJoCo still steps their trees (cost growing faster than the
+    slot count), so a world of a few dozen agents must not carry hundreds: with the default
+    sizes and growth, 20 cars arriving one by one and 6 pedestrians leave at most twice
+    their number in slots (the old defaults, 64 car slots and growth by 32, had 80 + 16)."""
+    from dataclasses import replace
+
+    from physics_side.config import PhysicsConfig, PhysicsSettings
+    from physics_side.daemon import build_fleet
+
+    w = build_fleet(PhysicsSettings(physics=replace(PhysicsConfig(), shards=1, threads=1))).world
+    car, ped = _car_pool(w), w.pool_for(M.CLASS_FAMILY[AgentClass.PEDESTRIAN], *M.DEFAULT_SIZE[AgentClass.PEDESTRIAN])
+    for i in range(20):
+        s = w.allocate([f"v{i}"], np.array([car]), np.array([30.0 * i]), np.array([0.0]))
+        w.place(s, np.array([30.0 * i]), np.array([0.0]), np.array([0.0]), np.array([5.0]))
+        w.step()
+    w.allocate([f"p{i}" for i in range(6)], np.full(6, ped), np.arange(6) * 30.0, np.full(6, 40.0))
+    per_pool = {int(p): int(np.sum(w.tables.pool == p)) for p in (car, ped)}
+    assert per_pool[car] <= 2 * 20 and per_pool[ped] <= 2 * 6 + 4, per_pool
+    assert w.capacity <= 2 * 26 + 4 * 4, w.capacity  # (the other types' first small pools)
+    w.close()
