@@ -61,9 +61,9 @@ class PhysicsConfig:
     threads: int = 0  # worker threads for the shards, 0 = one per shard
     processes: int | str = 1  # shard processes of this instance under one supervisor (N or "auto"; --processes)
     process_restarts: int = 3  # [restarts] of one shard process within 300 s before its supervisor gives up (exit 3)
-    # Parked slots sleep but are not free: MuJoCo's step still walks every tree (300 parked
-    # car slots, none awake: 2.5 ms per tick, growing faster than linearly), so pools start
-    # small and grow by half their size; `expect` sizes a large run up front.
+    # Parked slots sleep but are not free: MuJoCo's step still walks every tree (~4 us per
+    # parked car slot per 20 ms tick), so pools start small and grow by half their size;
+    # `expect` sizes a large run up front.
     initial_slots: dict[str, int] = field(
         default_factory=lambda: {"passenger": 16, "taxi": 4, "bus": 4, "bicycle": 4, "pedestrian": 8}
     )  # [slots per shard] pre-allocated parked slots per type (its default size bucket)

@@ -169,8 +169,7 @@ def test_a_script_ending_right_after_a_pool_growth_exits_cleanly():
 
 
 def test_default_pools_stay_small_for_a_small_world():
-    """Parked slots sleep but MuJoCo still steps their trees (cost growing faster than the
-    slot count), so a world of a few dozen agents must not carry hundreds: with the default
+    """Parked slots sleep but MuJoCo still steps their trees (~4 us per slot per tick), so a world of a few dozen agents must not carry hundreds: with the default
     sizes and growth, 20 cars arriving one by one and 6 pedestrians leave at most twice
     their number in slots (the old defaults, 64 car slots and growth by 32, had 80 + 16)."""
     from dataclasses import replace
