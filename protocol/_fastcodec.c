@@ -256,8 +256,16 @@ static int rd_skip(rd_t *r, int depth) {
     if (t >= 0xc4 && t <= 0xc6) return rd_bin(r, &b, &n);
     if ((t & 0xf0) == 0x90 || t == 0xdc || t == 0xdd) {
         if (!rd_array(r, &n)) return 0;
-        for (size_t i = 0; i < n; i++)
-            if (!rd_skip(r, depth + 1)) return 0;
+        for (size_t i = 0; i < n; i++) {
+            uint8_t e;
+            if (!rd_peek(r, &e)) return 0;
+            if ((e & 0xe0) == 0xa0 && (size_t)(e & 0x1f) <= r->max_str_bytes) {  /* fixstr: ids */
+                if ((size_t)(e & 0x1f) >= r->len - r->pos) return 0;
+                r->pos += 1 + (size_t)(e & 0x1f);
+            } else if (!rd_skip(r, depth + 1)) {
+                return 0;
+            }
+        }
         return 1;
     }
     if ((t & 0xf0) == 0x80 || t == 0xde || t == 0xdf) {
@@ -279,23 +287,34 @@ static int rd_skip(rd_t *r, int depth) {
 
 #define ABSENT SIZE_MAX
 
+typedef struct {
+    const char *s;
+    size_t n;
+} name_t;
+#define NAME(s) {s, sizeof(s) - 1}
+
+/* Reads the value of key `j` in place when it is a map scanned with its own keys: 1 read,
+ * 0 failed, -1 not such a key (the caller skips the value). */
+typedef int (*nest_fn)(rd_t *r, int j, void *ctx);
+
 /* A map whose keys are all among `names` (each at most once): the position of each value
  * (ABSENT when missing). An unknown or repeated key fails (the Python decoder ignores
  * unknown keys and msgpack keeps the last of repeated ones: that is its business). */
-static int rd_keys(rd_t *r, const char *const *names, int count, size_t *pos) {
+static int rd_keys(rd_t *r, const name_t *names, int count, size_t *pos, nest_fn nest, void *ctx) {
     size_t n;
-    for (int j = 0; j < count; j++) pos[j] = ABSENT;
     if (!rd_map(r, &n)) return 0;
+    for (int j = 0; j < count; j++) pos[j] = ABSENT;
     for (size_t i = 0; i < n; i++) {
         const char *s;
         size_t len;
-        int j;
+        int j, k;
         if (!rd_str(r, &s, &len)) return 0;
         for (j = 0; j < count; j++)
-            if (strlen(names[j]) == len && memcmp(names[j], s, len) == 0) break;
+            if (names[j].n == len && memcmp(names[j].s, s, len) == 0) break;
         if (j == count || pos[j] != ABSENT) return 0;
         pos[j] = r->pos;
-        if (!rd_skip(r, 1)) return 0;
+        k = nest != NULL ? nest(r, j, ctx) : -1;
+        if (k == 0 || (k < 0 && !rd_skip(r, 1))) return 0;
     }
     return 1;
 }
@@ -324,53 +343,171 @@ static PyObject *mk_str(const char *s, size_t n, Py_ssize_t max_chars) {
     return u;
 }
 
-/* Open-addressing set of byte strings: UTF-8 is a unique encoding, so equal bytes are equal
- * strings and the ids need no Python hashing. */
-typedef struct {
-    const char *s;
-    size_t n;
-    uint64_t h;
-} slot_t;
-
-typedef struct {
-    slot_t *slots;
-    size_t mask;
-} strset_t;
-
-static uint64_t hash_bytes(const char *s, size_t n) {  /* FNV-1a, 64 bit */
-    uint64_t h = 1469598103934665603ULL;
-    for (size_t i = 0; i < n; i++) {
-        h ^= (uint8_t)s[i];
-        h *= 1099511628211ULL;
-    }
-    return h ^ (h >> 29);
-}
-
-static int strset_init(strset_t *t, size_t count) {
-    size_t cap = 8;
-    while (cap < 2 * count) {
-        if (cap > SIZE_MAX / 4 / sizeof(slot_t)) return 0;
-        cap <<= 1;
-    }
-    t->slots = (slot_t *)PyMem_Calloc(cap, sizeof(slot_t));
-    t->mask = cap - 1;
-    return t->slots != NULL;
-}
-
-/* 1: added, 0: already there. */
-static int strset_add(strset_t *t, const char *s, size_t n) {
-    uint64_t h = hash_bytes(s, n);
-    size_t i = (size_t)h & t->mask;
-    for (;;) {
-        slot_t *e = &t->slots[i];
-        if (e->s == NULL) {
-            e->s = s ? s : "";
-            e->n = n;
-            e->h = h;
-            return 1;
+/* Uniqueness of a list of str: open addressing over their hashes. PyObject_Hash caches the
+ * hash in each str, as the Python decoder's set() does, so the ids are as cheap to use as
+ * dict keys later. Slots hold list index + 1 (0: empty). */
+static int unique_strs(PyObject *list) {
+    Py_ssize_t n = PyList_GET_SIZE(list);
+    size_t cap = 8, mask;
+    uint32_t *slots;
+    int ok = 1;
+    if (n < 2) return 1;
+    if ((size_t)n > 0x7fffffffu) return 0;
+    while (cap < 2 * (size_t)n) cap <<= 1;
+    slots = (uint32_t *)PyMem_Calloc(cap, sizeof(uint32_t));
+    if (slots == NULL) return 0;
+    mask = cap - 1;
+    for (Py_ssize_t i = 0; i < n && ok; i++) {
+        PyObject *u = PyList_GET_ITEM(list, i);
+        Py_hash_t h = PyObject_Hash(u);
+        size_t k = (size_t)h & mask;
+        Py_ssize_t len = PyUnicode_GET_LENGTH(u);
+        int kind = PyUnicode_KIND(u);
+        if (h == -1) {
+            ok = 0;
+            break;
         }
-        if (e->h == h && e->n == n && memcmp(e->s, s, n) == 0) return 0;
-        i = (i + 1) & t->mask;
+        while (slots[k] != 0) {
+            PyObject *v = PyList_GET_ITEM(list, (Py_ssize_t)slots[k] - 1);
+            /* equal strings have the same canonical (compact) form: kind, length, bytes */
+            if (PyObject_Hash(v) == h && PyUnicode_GET_LENGTH(v) == len && PyUnicode_KIND(v) == kind &&
+                memcmp(PyUnicode_DATA(v), PyUnicode_DATA(u), (size_t)len * (size_t)kind) == 0) {
+                ok = 0;
+                break;
+            }
+            k = (k + 1) & mask;
+        }
+        slots[k] = (uint32_t)i + 1;
+    }
+    PyMem_Free(slots);
+    return ok;
+}
+
+/* mk_str for the common case of an ASCII string: no decoder call. */
+static PyObject *mk_str_fast(const char *s, size_t n, Py_ssize_t max_chars) {
+    PyObject *u;
+    size_t i;
+    for (i = 0; i < n; i++)
+        if ((uint8_t)s[i] & 0x80) return mk_str(s, n, max_chars);
+    if ((Py_ssize_t)n > max_chars) return NULL;
+    u = PyUnicode_New((Py_ssize_t)n, 127);
+    if (u == NULL) {
+        PyErr_Clear();
+        return NULL;
+    }
+    if (n) memcpy(PyUnicode_DATA(u), s, n);
+    return u;
+}
+
+/* The id cache: the str objects of recent ids, by their bytes. Vehicle ids repeat from step
+ * to step; a hit costs a hash of a few bytes instead of an allocation, a copy and a siphash
+ * (the cached str keeps its hash), and each entry's stamp of the last list it appeared in
+ * makes the uniqueness check free. ASCII ids of at most 31 bytes only (msgpack fixstr).
+ * Bounded: when a list would fill it over half, it is emptied first. */
+typedef struct {
+    uint64_t h;
+    PyObject *str;  /* owned; NULL: empty slot */
+    uint32_t len;
+    uint32_t stamp;
+} idslot_t;
+
+#define ID_CACHE_MIN 4096           /* slots */
+#define ID_CACHE_MAX ((size_t)1 << 20)  /* slots (24 MiB of slots at most, ~40 MiB with the strings) */
+#define ID_MAX_BYTES 31
+
+static idslot_t *g_ids = NULL;
+static size_t g_ids_cap = 0, g_ids_used = 0;
+static uint32_t g_stamp = 0;
+
+static void id_cache_clear(void) {
+    for (size_t i = 0; i < g_ids_cap; i++) Py_CLEAR(g_ids[i].str);
+    PyMem_Free(g_ids);
+    g_ids = NULL;
+    g_ids_cap = g_ids_used = 0;
+    g_stamp = 0;
+}
+
+/* Room for `n` new ids at under half load, and a fresh stamp; 0: no cache for this list. */
+static int id_cache_ready(size_t n) {
+    size_t cap = ID_CACHE_MIN;
+    if (n > ID_CACHE_MAX / 4) return 0;
+    while (cap < 4 * n) cap <<= 1;
+    if (g_ids == NULL || cap > g_ids_cap || 2 * (g_ids_used + n) > g_ids_cap || g_stamp == UINT32_MAX) {
+        if (g_ids != NULL && cap <= g_ids_cap) cap = g_ids_cap;  /* keep the size, drop the entries */
+        id_cache_clear();
+        g_ids = (idslot_t *)PyMem_Calloc(cap, sizeof(idslot_t));
+        if (g_ids == NULL) return 0;
+        g_ids_cap = cap;
+    }
+    g_stamp++;
+    return 1;
+}
+
+static uint64_t id_hash(const char *s, size_t n) {  /* a multiply-xor mix of 8-byte words */
+    uint64_t h = 0x9e3779b97f4a7c15ULL ^ (uint64_t)n, w;
+    for (; n >= 8; s += 8, n -= 8) {
+        memcpy(&w, s, 8);
+        h = (h ^ w) * 0xff51afd7ed558ccdULL;
+        h ^= h >> 32;
+    }
+    if (n > 0) {
+        w = 0;
+        for (size_t i = 0; i < n; i++) w |= (uint64_t)(uint8_t)s[i] << (8 * i);
+        h = (h ^ w) * 0xff51afd7ed558ccdULL;
+        h ^= h >> 32;
+    }
+    return h;
+}
+
+static int same_bytes(const char *a, const char *b, size_t n) {  /* short: no library call */
+    for (size_t i = 0; i < n; i++)
+        if (a[i] != b[i]) return 0;
+    return 1;
+}
+
+/* The cached str of ASCII bytes s[0:n] (a new reference), *dup set when it already appeared
+ * in this list; NULL with *dup = 0 when it cannot be cached (the caller makes it). */
+static PyObject *id_cached(const char *s, size_t n, int *dup) {
+    uint64_t h;
+    size_t k;
+    *dup = 0;
+    if (n > ID_MAX_BYTES) return NULL;
+    for (size_t i = 0; i < n; i++)
+        if ((uint8_t)s[i] & 0x80) return NULL;
+    h = id_hash(s, n);
+    k = (size_t)h & (g_ids_cap - 1);
+    for (;;) {
+        idslot_t *e = &g_ids[k];
+        if (e->str == NULL) {
+            PyObject *u = PyUnicode_New((Py_ssize_t)n, 127);
+            if (u == NULL) {
+                PyErr_Clear();
+                return NULL;
+            }
+            if (n) memcpy(PyUnicode_DATA(u), s, n);
+            if (PyObject_Hash(u) == -1) {  /* computed once, kept in the str */
+                PyErr_Clear();
+                Py_DECREF(u);
+                return NULL;
+            }
+            e->h = h;
+            e->str = u;
+            e->len = (uint32_t)n;
+            e->stamp = g_stamp;
+            g_ids_used++;
+            Py_INCREF(u);
+            return u;
+        }
+        if (e->h == h && e->len == n && same_bytes((const char *)PyUnicode_DATA(e->str), s, n)) {
+            if (e->stamp == g_stamp) {
+                *dup = 1;
+                return NULL;
+            }
+            e->stamp = g_stamp;
+            Py_INCREF(e->str);
+            return e->str;
+        }
+        k = (k + 1) & (g_ids_cap - 1);
     }
 }
 
@@ -378,30 +515,37 @@ static int strset_add(strset_t *t, const char *s, size_t n) {
  * unique when asked: a new list, or NULL with no exception set. */
 static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_chars) {
     size_t n;
-    strset_t set = {NULL, 0};
     PyObject *list;
+    int cache, all_cached = 1;
     if (!rd_array(r, &n) || (want >= 0 && n != (size_t)want)) return NULL;
     list = PyList_New((Py_ssize_t)n);
     if (list == NULL) {
         PyErr_Clear();
         return NULL;
     }
-    if (unique && n > 1 && !strset_init(&set, n)) goto fail;
+    cache = unique && max_chars >= ID_MAX_BYTES && id_cache_ready(n);
     for (size_t i = 0; i < n; i++) {
         const char *s;
         size_t len;
-        PyObject *u;
+        PyObject *u = NULL;
+        int dup = 0;
         if (!rd_str(r, &s, &len)) goto fail;
-        if (set.slots != NULL && !strset_add(&set, s, len)) goto fail;
-        u = mk_str(s, len, max_chars);
-        if (u == NULL) goto fail;
+        if (cache) {
+            u = id_cached(s, len, &dup);
+            if (dup) goto fail;
+        }
+        if (u == NULL) {
+            all_cached = 0;
+            u = mk_str_fast(s, len, max_chars);
+            if (u == NULL) goto fail;
+        }
         PyList_SET_ITEM(list, (Py_ssize_t)i, u);
     }
-    PyMem_Free(set.slots);
+    /* cached ids are unique by their stamps; any other id needs the full check */
+    if (unique && !(cache && all_cached) && !unique_strs(list)) goto fail;
     return list;
 fail:
     PyErr_Clear();
-    PyMem_Free(set.slots);
     Py_DECREF(list);
     return NULL;
 }
@@ -439,16 +583,25 @@ static int put_f4(float *dst, const uint8_t *src, size_t n, double lo, double hi
 }
 
 /* Copy an integer column; when bounded, every value within lo..hi. */
+#define INT_LOOP(T)                                                  \
+    do {                                                             \
+        const T *v = (const T *)dst;                                 \
+        for (size_t i = 0; i < n; i++)                               \
+            if (!((double)v[i] >= lo && (double)v[i] <= hi)) return 0; \
+    } while (0)
+
 static int put_int(void *dst, const uint8_t *src, size_t n, const column_t *c, double lo, double hi, int bounded) {
     if (n == 0) return 1;
     memcpy(dst, src, n * (size_t)c->size);
     if (!bounded) return 1;
-    for (size_t i = 0; i < n; i++) {
-        double v;
-        if (c->size == 1) v = c->kind == 'u' ? (double)((const uint8_t *)dst)[i] : (double)((const int8_t *)dst)[i];
-        else if (c->size == 2) v = c->kind == 'u' ? (double)((const uint16_t *)dst)[i] : (double)((const int16_t *)dst)[i];
-        else v = c->kind == 'u' ? (double)((const uint32_t *)dst)[i] : (double)((const int32_t *)dst)[i];
-        if (!(v >= lo && v <= hi)) return 0;
+    switch (c->size * (c->kind == 'u' ? 1 : -1)) {
+    case 1: INT_LOOP(uint8_t); break;
+    case -1: INT_LOOP(int8_t); break;
+    case 2: INT_LOOP(uint16_t); break;
+    case -2: INT_LOOP(int16_t); break;
+    case 4: INT_LOOP(uint32_t); break;
+    case -4: INT_LOOP(int32_t); break;
+    default: return 0;
     }
     return 1;
 }
@@ -473,10 +626,53 @@ typedef struct {
 
 /* ------------------------------------------------------------------ decode: common */
 
-static const char *const TOP_KEYS[] = {"v", "kind", "run", "step", "t", "dt", "sv", "final", "epoch",
-                                       "agents", "tls", "vtypes", "tick", "sumo_step", "counters"};
+static const name_t TOP_KEYS[] = {NAME("v"), NAME("kind"), NAME("run"), NAME("step"), NAME("t"), NAME("dt"),
+                                  NAME("sv"), NAME("final"), NAME("epoch"), NAME("agents"), NAME("tls"),
+                                  NAME("vtypes"), NAME("tick"), NAME("sumo_step"), NAME("counters")};
 enum { T_V, T_KIND, T_RUN, T_STEP, T_T, T_DT, T_SV, T_FINAL, T_EPOCH, T_AGENTS, T_TLS, T_VTYPES, T_TICK,
        T_SUMO_STEP, T_COUNTERS, N_TOP };
+
+/* The agents map of either kind: n, id, the step's columns in STEP_COLS order, path, then
+ * the physics-only columns. */
+static const name_t AGENT_KEYS[] = {
+    NAME("n"), NAME("id"), NAME("cls"), NAME("vtype"), NAME("x"), NAME("y"), NAME("angle"), NAME("speed"),
+    NAME("accel"), NAME("signals"), NAME("la_dx"), NAME("la_dy"), NAME("length"), NAME("width"), NAME("lane"),
+    NAME("flags"), NAME("path"), NAME("mode"), NAME("z"), NAME("heading"), NAME("roll"), NAME("pitch"),
+    NAME("steer"), NAME("drive"), NAME("brake"), NAME("err_lon"), NAME("err_lat")};
+#define A_N 0
+#define A_ID 1
+#define A_COL0 2
+#define A_PATH (A_COL0 + STEP_NCOL)
+#define N_AGENT_KEYS ((int)(sizeof AGENT_KEYS / sizeof AGENT_KEYS[0]))
+
+static const name_t PATH_KEYS[] = {NAME("off"), NAME("dxy")};
+static const name_t TLS_KEYS[] = {NAME("id"), NAME("state"), NAME("phase"), NAME("next"), NAME("program")};
+enum { L_ID, L_STATE, L_PHASE, L_NEXT, L_PROGRAM, N_TLS_KEYS };
+
+/* Where every value is: one pass over the message (the nested maps scanned in place). */
+typedef struct {
+    size_t top[N_TOP], ag[N_AGENT_KEYS], path[2], tls[N_TLS_KEYS];
+} scan_t;
+
+static int nest_agents(rd_t *r, int j, void *ctx) {
+    scan_t *sc = (scan_t *)ctx;
+    return j == A_PATH ? rd_keys(r, PATH_KEYS, 2, sc->path, NULL, NULL) : -1;
+}
+
+static int nest_top(rd_t *r, int j, void *ctx) {
+    scan_t *sc = (scan_t *)ctx;
+    if (j == T_AGENTS) return rd_keys(r, AGENT_KEYS, N_AGENT_KEYS, sc->ag, nest_agents, sc);
+    if (j == T_TLS) return rd_keys(r, TLS_KEYS, N_TLS_KEYS, sc->tls, NULL, NULL);
+    return -1;
+}
+
+static int scan(rd_t *r, scan_t *sc) {
+    size_t i;
+    for (i = 0; i < N_AGENT_KEYS; i++) sc->ag[i] = ABSENT;
+    for (i = 0; i < 2; i++) sc->path[i] = ABSENT;
+    for (i = 0; i < N_TLS_KEYS; i++) sc->tls[i] = ABSENT;
+    return rd_keys(r, TOP_KEYS, N_TOP, sc->top, nest_top, sc);
+}
 
 enum { KIND_STEP = 1, KIND_PHYSICS = 2 };
 
@@ -540,18 +736,6 @@ static void objs_clear(objs_t *o) {
 
 /* ------------------------------------------------------------------ decode: step */
 
-static const char *const STEP_AGENT_KEYS[] = {"n", "id", "cls", "vtype", "x", "y", "angle", "speed", "accel",
-                                              "signals", "la_dx", "la_dy", "length", "width", "lane", "flags",
-                                              "path"};
-#define A_N 0
-#define A_ID 1
-#define A_COL0 2
-#define A_PATH (A_COL0 + STEP_NCOL)
-#define N_STEP_AGENT_KEYS (A_PATH + 1)
-
-static const char *const PATH_KEYS[] = {"off", "dxy"};
-static const char *const TLS_KEYS[] = {"id", "state", "phase", "next", "program"};
-enum { L_ID, L_STATE, L_PHASE, L_NEXT, L_PROGRAM, N_TLS_KEYS };
 
 /* ``vtypes``: [[id, vclass], ...] string pairs; a list of 2-tuples (NULL: failed). */
 static PyObject *rd_vtypes(rd_t *r, size_t pos, Py_ssize_t max_str, size_t *count) {
@@ -594,9 +778,9 @@ fail:
  * each], tls next [k]; int32 lane [n], tls phase [k]; uint32 path offsets [n + 1 or 0];
  * uint16 vtype, signals [n each]; uint8 cls, flags [n each]. Each block starts aligned for
  * its type: the blocks before it are made of wider or equal items. */
-static PyObject *decode_step(rd_t *r, const size_t *top, const limits_t *lim) {
+static PyObject *decode_step(rd_t *r, const scan_t *sc, const limits_t *lim) {
     objs_t o = {0};
-    size_t ap[N_STEP_AGENT_KEYS], pp[2], tp[N_TLS_KEYS];
+    const size_t *top = sc->top, *ap = sc->ag, *pp = sc->path, *tp = sc->tls;
     bin_t col[STEP_NCOL], off_bin = {0}, dxy_bin = {0};
     int64_t n64, step, sv, epoch;
     double t, dt;
@@ -605,6 +789,8 @@ static PyObject *decode_step(rd_t *r, const size_t *top, const limits_t *lim) {
     PyObject *res = NULL;
 
     if (top[T_TICK] != ABSENT || top[T_SUMO_STEP] != ABSENT || top[T_COUNTERS] != ABSENT) return NULL;
+    for (int j = A_PATH + 1; j < N_AGENT_KEYS; j++)  /* physics columns */
+        if (ap[j] != ABSENT) return NULL;
     /* scalars (STEP_FIELDS) */
     if (!rd_run(r, top[T_RUN], lim->max_str, &o.run)) goto fail;
     if (!rd_at(r, top[T_STEP]) || !rd_int_in(r, 0, INT64_MAX, &step)) goto fail;
@@ -616,22 +802,19 @@ static PyObject *decode_step(rd_t *r, const size_t *top, const limits_t *lim) {
     if (top[T_VTYPES] != ABSENT && (o.vtypes = rd_vtypes(r, top[T_VTYPES], lim->max_str, &nvt)) == NULL) goto fail;
 
     /* agents: the count, the columns and the path's sizes */
-    if (!rd_at(r, top[T_AGENTS]) || !rd_keys(r, STEP_AGENT_KEYS, N_STEP_AGENT_KEYS, ap)) goto fail;
     if (!rd_at(r, ap[A_N]) || !rd_int_in(r, 0, lim->max_agents, &n64)) goto fail;
     n = (size_t)n64;
     for (int c = 0; c < STEP_NCOL; c++)
         if (!rd_column(r, ap[A_COL0 + c], n, STEP_COLS[c].size, &col[c])) goto fail;
     has_path = ap[A_PATH] != ABSENT;
     if (has_path) {
-        if (!rd_at(r, ap[A_PATH]) || !rd_keys(r, PATH_KEYS, 2, pp)) goto fail;
         if (n == SIZE_MAX || !rd_column(r, pp[0], n + 1, 4, &off_bin)) goto fail;
         if (!rd_at(r, pp[1]) || !rd_bin(r, &dxy_bin.p, &dxy_len) || dxy_len % 8) goto fail;
         m = dxy_len / 8;
         if (m > (size_t)lim->max_points) goto fail;
     }
     /* traffic lights: the count */
-    if (!rd_at(r, top[T_TLS]) || !rd_keys(r, TLS_KEYS, N_TLS_KEYS, tp)) goto fail;
-    if (tp[L_STATE] == ABSENT || tp[L_PHASE] == ABSENT || tp[L_NEXT] == ABSENT) goto fail;
+    if (top[T_TLS] == ABSENT || tp[L_STATE] == ABSENT || tp[L_PHASE] == ABSENT || tp[L_NEXT] == ABSENT) goto fail;
     if (!rd_at(r, tp[L_ID]) || (o.tls_ids = rd_strs(r, -1, 1, lim->max_str)) == NULL) goto fail;
     k = (size_t)PyList_GET_SIZE(o.tls_ids);
     if (!rd_at(r, tp[L_STATE]) || (o.tls_state = rd_strs(r, (Py_ssize_t)k, 0, lim->max_str)) == NULL) goto fail;
@@ -736,9 +919,8 @@ fail:
 
 /* ------------------------------------------------------------------ decode: physics */
 
-static const char *const PHYS_AGENT_KEYS[] = {"n", "id", "cls", "mode", "x", "y", "z", "heading", "roll", "pitch",
-                                              "speed", "steer", "drive", "brake", "err_lon", "err_lat"};
-#define N_PHYS_AGENT_KEYS (A_COL0 + PHYS_NCOL)
+/* Each physics column's place in AGENT_KEYS (set by configure). */
+static int PHYS_KEY[PHYS_NCOL];
 
 /* ``counters``: a map of counter name -> integer; a dict (NULL: failed). */
 static PyObject *rd_counters(rd_t *r, size_t pos) {
@@ -784,9 +966,10 @@ fail:
 }
 
 /* Output layout: float64 x, y [n each]; float32 z .. err_lat [10 n]; uint8 cls, mode [n each]. */
-static PyObject *decode_physics(rd_t *r, const size_t *top, const limits_t *lim) {
+static PyObject *decode_physics(rd_t *r, const scan_t *sc, const limits_t *lim) {
     objs_t o = {0};
-    size_t ap[N_PHYS_AGENT_KEYS];
+    const size_t *top = sc->top, *ap = sc->ag;
+    int used[N_AGENT_KEYS] = {0};
     bin_t col[PHYS_NCOL];
     int64_t n64, tick, sumo_step;
     double t;
@@ -797,17 +980,20 @@ static PyObject *decode_physics(rd_t *r, const size_t *top, const limits_t *lim)
     for (int j = T_DT; j <= T_VTYPES; j++)
         if (j != T_AGENTS && top[j] != ABSENT) return NULL;
     if (top[T_STEP] != ABSENT) return NULL;
+    used[A_N] = used[A_ID] = 1;
+    for (int c = 0; c < PHYS_NCOL; c++) used[PHYS_KEY[c]] = 1;
+    for (int j = 0; j < N_AGENT_KEYS; j++)  /* the step's columns */
+        if (!used[j] && ap[j] != ABSENT) return NULL;
     if (!rd_run(r, top[T_RUN], lim->max_str, &o.run)) goto fail;
     if (!rd_at(r, top[T_TICK]) || !rd_int_in(r, 0, INT64_MAX, &tick)) goto fail;
     if (!rd_number(r, top[T_T], -FINITE_MAX, FINITE_MAX, &t)) goto fail;
     if (!rd_at(r, top[T_SUMO_STEP]) || !rd_int_in(r, -1, INT64_MAX, &sumo_step)) goto fail;
     if ((o.counters = rd_counters(r, top[T_COUNTERS])) == NULL) goto fail;
 
-    if (!rd_at(r, top[T_AGENTS]) || !rd_keys(r, PHYS_AGENT_KEYS, N_PHYS_AGENT_KEYS, ap)) goto fail;
     if (!rd_at(r, ap[A_N]) || !rd_int_in(r, 0, lim->max_agents, &n64)) goto fail;
     n = (size_t)n64;
     for (int c = 0; c < PHYS_NCOL; c++)
-        if (!rd_column(r, ap[A_COL0 + c], n, C[c].size, &col[c])) goto fail;
+        if (!rd_column(r, ap[PHYS_KEY[c]], n, C[c].size, &col[c])) goto fail;
     if (!add_sz(&total, n, 2 * 8 + 10 * 4 + 2) || total > (size_t)PY_SSIZE_T_MAX) goto fail;
     o.buf = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)total);
     if (o.buf == NULL) goto fail;
@@ -857,7 +1043,7 @@ static PyObject *py_decode(PyObject *self, PyObject *const *args, Py_ssize_t nar
     Py_buffer view;
     rd_t r;
     limits_t lim;
-    size_t top[N_TOP], end;
+    scan_t sc;
     PyObject *res = NULL;
     (void)self;
     if (nargs != 2) {
@@ -876,12 +1062,12 @@ static PyObject *py_decode(PyObject *self, PyObject *const *args, Py_ssize_t nar
         r.len = (size_t)view.len;
         r.pos = 0;
         /* the whole document one map of known keys, nothing after it (msgpack: ExtraData) */
-        if (rd_keys(&r, TOP_KEYS, N_TOP, top) && (end = r.pos) == r.len && check_version(&r, top[T_V]) &&
-            rd_at(&r, top[T_KIND]) && rd_str(&r, &kind, &klen) && top[T_AGENTS] != ABSENT) {
-            if (klen == 4 && memcmp(kind, "step", 4) == 0 && top[T_TLS] != ABSENT)
-                res = decode_step(&r, top, &lim);
+        if (scan(&r, &sc) && r.pos == r.len && check_version(&r, sc.top[T_V]) && rd_at(&r, sc.top[T_KIND]) &&
+            rd_str(&r, &kind, &klen) && sc.top[T_AGENTS] != ABSENT) {
+            if (klen == 4 && memcmp(kind, "step", 4) == 0)
+                res = decode_step(&r, &sc, &lim);
             else if (klen == 7 && memcmp(kind, "physics", 7) == 0)
-                res = decode_physics(&r, top, &lim);
+                res = decode_physics(&r, &sc, &lim);
         }
     }
     PyBuffer_Release(&view);
@@ -993,6 +1179,10 @@ static void w_pystr(wr_t *w, PyObject *s) {
     Py_ssize_t n;
     const char *u;
     if (!PyUnicode_Check(s)) { w->bad = 1; return; }
+    if (PyUnicode_IS_COMPACT_ASCII(s)) {  /* its characters are its UTF-8 */
+        w_str(w, (const char *)PyUnicode_DATA(s), (size_t)PyUnicode_GET_LENGTH(s));
+        return;
+    }
     u = PyUnicode_AsUTF8AndSize(s, &n);
     if (u == NULL) {
         PyErr_Clear();
@@ -1104,15 +1294,57 @@ static void w_col(wr_t *w, const arr_t *a) {  /* a column: its bytes as one bin 
     w_raw(w, a->v.buf, (size_t)a->v.len);
 }
 
-/* float32(a - b) per item, float64 difference rounded once (numpy's subtract then cast). */
+static double load_f8(const uint8_t *p) {
+    double d;
+    memcpy(&d, p, 8);
+    return d;
+}
+
+/* float32(a - b) per item, float64 difference rounded once (numpy's subtract then cast);
+ * b is float64. */
 static void w_diff_f4(wr_t *w, const arr_t *a, const arr_t *b) {
     uint8_t *d;
+    const uint8_t *pa = (const uint8_t *)a->v.buf, *pb = (const uint8_t *)b->v.buf;
     w_bin_head(w, a->count * 4);
     d = w_room(w, a->count * 4);
     if (d == NULL) return;
-    for (size_t i = 0; i < a->count; i++) {
-        float f = (float)(arr_f(a, i) - arr_f(b, i));
-        memcpy(d + 4 * i, &f, 4);
+    if (a->size == 4) {
+        for (size_t i = 0; i < a->count; i++) {
+            float f = (float)((double)load_f4(pa + 4 * i) - load_f8(pb + 8 * i));
+            memcpy(d + 4 * i, &f, 4);
+        }
+    } else {
+        for (size_t i = 0; i < a->count; i++) {
+            float f = (float)(load_f8(pa + 8 * i) - load_f8(pb + 8 * i));
+            memcpy(d + 4 * i, &f, 4);
+        }
+    }
+}
+
+/* The anchored path: for each agent i, float32(vertex - (x_i, y_i)) of its vertices. */
+static void w_dxy(uint8_t *d, const arr_t *off, const arr_t *pxy, const arr_t *x, const arr_t *y, size_t first) {
+    const uint8_t *px = (const uint8_t *)x->v.buf, *py = (const uint8_t *)y->v.buf;
+    const uint8_t *pv = (const uint8_t *)pxy->v.buf;
+    size_t n = off->count - 1;
+    for (size_t i = 0; i < n; i++) {
+        size_t a = (size_t)arr_i(off, i), b = (size_t)arr_i(off, i + 1);
+        double xi = load_f8(px + 8 * i), yi = load_f8(py + 8 * i);
+        uint8_t *o = d + 8 * (a - first);
+        if (pxy->size == 4) {
+            for (size_t j = a; j < b; j++, o += 8) {
+                float f[2];
+                f[0] = (float)((double)load_f4(pv + 8 * j) - xi);
+                f[1] = (float)((double)load_f4(pv + 8 * j + 4) - yi);
+                memcpy(o, f, 8);
+            }
+        } else {
+            for (size_t j = a; j < b; j++, o += 8) {
+                float f[2];
+                f[0] = (float)(load_f8(pv + 16 * j) - xi);
+                f[1] = (float)(load_f8(pv + 16 * j + 8) - yi);
+                memcpy(o, f, 8);
+            }
+        }
     }
 }
 
@@ -1248,19 +1480,7 @@ static void emit_step(wr_t *w, void *ctx) {
         w_key(w, "dxy");
         w_bin_head(w, 8 * rows);
         d = w_room(w, 8 * rows);
-        if (d != NULL) {
-            const arr_t *x = s->col[S_X], *y = s->col[S_Y];
-            for (size_t i = 0; i < n; i++) {
-                size_t a = (size_t)arr_i(s->off, i), b = (size_t)arr_i(s->off, i + 1);
-                double xi = arr_f(x, i), yi = arr_f(y, i);
-                for (size_t j = a; j < b; j++) {
-                    float f[2];
-                    f[0] = (float)(arr_f(s->pxy, 2 * j) - xi);
-                    f[1] = (float)(arr_f(s->pxy, 2 * j + 1) - yi);
-                    memcpy(d + 8 * (j - s->first), f, 8);
-                }
-            }
-        }
+        if (d != NULL) w_dxy(d, s->off, s->pxy, s->col[S_X], s->col[S_Y], s->first);
     }
     w_key(w, "tls");
     w_map(w, 4 + (s->tls_program != NULL));
@@ -1531,13 +1751,43 @@ static PyObject *py_configure(PyObject *self, PyObject *args) {
         return NULL;
     }
     /* integer bounds must be integers within the column type (the checks compare as double) */
+    for (int c = 0; c < PHYS_NCOL; c++) {
+        int j;
+        for (j = A_COL0; j < N_AGENT_KEYS; j++)
+            if (strcmp(AGENT_KEYS[j].s, PHYS_COLS[c].name) == 0) break;
+        if (j == N_AGENT_KEYS) {
+            PyErr_Format(PyExc_ValueError, "no agent key %s", PHYS_COLS[c].name);
+            return NULL;
+        }
+        PHYS_KEY[c] = j;
+    }
+    for (int c = 0; c < STEP_NCOL; c++)
+        if (strcmp(AGENT_KEYS[A_COL0 + c].s, STEP_COLS[c].name) != 0) {
+            PyErr_Format(PyExc_ValueError, "agent key %d is not %s", A_COL0 + c, STEP_COLS[c].name);
+            return NULL;
+        }
     g_major = major;
     g_minor = minor;
     g_ready = host_is_little();
     return PyBool_FromLong(g_ready);
 }
 
+static PyObject *py_clear_cache(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    id_cache_clear();
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_cache_size(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+    return Py_BuildValue("(nn)", (Py_ssize_t)g_ids_used, (Py_ssize_t)g_ids_cap);
+}
+
 static PyMethodDef methods[] = {
+    {"clear_cache", py_clear_cache, METH_NOARGS, "clear_cache(): drop the cached id strings."},
+    {"cache_size", py_cache_size, METH_NOARGS, "cache_size() -> (ids cached, slots)."},
     {"configure", py_configure, METH_VARARGS,
      "configure(major, minor, float_bounds, int_bounds) -> bool: set the version and the column "
      "bounds; False when this host cannot use the fast path (big-endian)."},

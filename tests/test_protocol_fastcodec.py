@@ -558,3 +558,25 @@ def test_acks_and_others_are_untouched():
     for msg in (StepAck("r", 1, 2, True), StepAck("r", 0, 0)):
         assert encode(msg) == encode_python(msg)
         _same(decode(encode(msg)), msg)
+
+
+@needs_c
+def test_id_cache_stays_bounded_and_correct():
+    """Ids are shared between decodes through a bounded cache: correct across refills,
+    duplicates caught whether cached or not."""
+    codec._fast.clear_cache()
+    for step in range(40):  # 1,000 ids a step, 500 of them new each step: the cache refills
+        ids = [f"v{step * 500 + i}" for i in range(1000)]
+        msg = synthetic_step(1000, seed=step, step=step)
+        msg = dataclasses.replace(msg, agents=dataclasses.replace(msg.agents, ids=ids))
+        m = _both_decode(encode(msg), fast=True)
+        assert m.agents.ids == ids
+        used, slots = codec._fast.cache_size()
+        assert used <= slots // 2 + 1000 and slots <= 1 << 20
+    base = synthetic_step(3, seed=1)
+    for ids in (["a", "b", "a"], ["\u00e9", "b", "\u00e9"], ["x" * 40, "y", "x" * 40], ["a", "\u00e9", "a"]):
+        _both_decode(encode(dataclasses.replace(base, agents=dataclasses.replace(base.agents, ids=ids))), fast=False)
+    for ids in (["a", "b", "c"], ["\u00e9", "b", "c"], ["x" * 40, "y", "z"]):
+        _both_decode(encode(dataclasses.replace(base, agents=dataclasses.replace(base.agents, ids=ids))), fast=True)
+    codec._fast.clear_cache()
+    assert codec._fast.cache_size() == (0, 0)
