@@ -400,46 +400,59 @@ static PyObject *mk_str_fast(const char *s, size_t n, Py_ssize_t max_chars) {
 }
 
 /* The id cache: the str objects of recent ids, by their bytes. Vehicle ids repeat from step
- * to step; a hit costs a hash of a few bytes instead of an allocation, a copy and a siphash
- * (the cached str keeps its hash), and each entry's stamp of the last list it appeared in
- * makes the uniqueness check free. ASCII ids of at most 31 bytes only (msgpack fixstr).
- * Bounded: when a list would fill it over half, it is emptied first. */
+ * to step: a hit costs a hash of a few bytes instead of an allocation, a copy and a siphash
+ * (the cached str keeps its hash). ASCII ids of at most 31 bytes only (msgpack fixstr).
+ * Bounded: when a list would fill it over half, it is emptied first. Each cached str is
+ * the one object of its text, so ids from the cache are unique when their pointers are. */
 typedef struct {
     uint64_t h;
     PyObject *str;  /* owned; NULL: empty slot */
     uint32_t len;
-    uint32_t stamp;
 } idslot_t;
 
-#define ID_CACHE_MIN 4096           /* slots */
-#define ID_CACHE_MAX ((size_t)1 << 20)  /* slots (24 MiB of slots at most, ~40 MiB with the strings) */
+#define ID_CACHE_MIN 4096               /* slots */
+#define ID_CACHE_MAX ((size_t)1 << 20)  /* slots (16 MiB of slots at most, ~80 MiB with the strings) */
 #define ID_MAX_BYTES 31
 
 static idslot_t *g_ids = NULL;
 static size_t g_ids_cap = 0, g_ids_used = 0;
-static uint32_t g_stamp = 0;
+
+/* The previous id list of a step and of a physics state, in order: the next one is mostly the
+ * same ids in the same order, compared byte for byte here (sequential memory) instead of
+ * looked up. Pointers borrowed from the cache (dropped with it). */
+typedef struct {
+    PyObject **str;  /* NULL: that id was not cached */
+    uint8_t *len;
+    char *bytes;     /* ID_MAX_BYTES per id */
+    size_t n, cap;
+} prev_t;
+
+#define PREV_STEP 0
+#define PREV_PHYSICS 1
+#define PREV_NONE (-1)
+#define PREV_WINDOW 4  /* previous ids tried per id */
+static prev_t g_prev[2];
 
 static void id_cache_clear(void) {
     for (size_t i = 0; i < g_ids_cap; i++) Py_CLEAR(g_ids[i].str);
     PyMem_Free(g_ids);
     g_ids = NULL;
     g_ids_cap = g_ids_used = 0;
-    g_stamp = 0;
+    for (int k = 0; k < 2; k++) g_prev[k].n = 0;  /* their pointers were the cache's */
 }
 
-/* Room for `n` new ids at under half load, and a fresh stamp; 0: no cache for this list. */
+/* Room for `n` new ids at under half load; 0: no cache for this list. */
 static int id_cache_ready(size_t n) {
     size_t cap = ID_CACHE_MIN;
     if (n > ID_CACHE_MAX / 4) return 0;
     while (cap < 4 * n) cap <<= 1;
-    if (g_ids == NULL || cap > g_ids_cap || 2 * (g_ids_used + n) > g_ids_cap || g_stamp == UINT32_MAX) {
+    if (g_ids == NULL || cap > g_ids_cap || 2 * (g_ids_used + n) > g_ids_cap) {
         if (g_ids != NULL && cap <= g_ids_cap) cap = g_ids_cap;  /* keep the size, drop the entries */
         id_cache_clear();
         g_ids = (idslot_t *)PyMem_Calloc(cap, sizeof(idslot_t));
         if (g_ids == NULL) return 0;
         g_ids_cap = cap;
     }
-    g_stamp++;
     return 1;
 }
 
@@ -465,17 +478,17 @@ static int same_bytes(const char *a, const char *b, size_t n) {  /* short: no li
     return 1;
 }
 
-/* The cached str of ASCII bytes s[0:n] (a new reference), *dup set when it already appeared
- * in this list; NULL with *dup = 0 when it cannot be cached (the caller makes it). */
-static PyObject *id_cached(const char *s, size_t n, int *dup) {
-    uint64_t h;
-    size_t k;
-    *dup = 0;
-    if (n > ID_MAX_BYTES) return NULL;
+static int is_ascii(const char *s, size_t n) {
     for (size_t i = 0; i < n; i++)
-        if ((uint8_t)s[i] & 0x80) return NULL;
-    h = id_hash(s, n);
-    k = (size_t)h & (g_ids_cap - 1);
+        if ((uint8_t)s[i] & 0x80) return 0;
+    return 1;
+}
+
+/* The cached str of ASCII bytes s[0:n] (n <= ID_MAX_BYTES; a borrowed reference), made and
+ * cached when new; NULL when it cannot be made. */
+static PyObject *id_cached(const char *s, size_t n) {
+    uint64_t h = id_hash(s, n);
+    size_t k = (size_t)h & (g_ids_cap - 1);
     for (;;) {
         idslot_t *e = &g_ids[k];
         if (e->str == NULL) {
@@ -493,46 +506,93 @@ static PyObject *id_cached(const char *s, size_t n, int *dup) {
             e->h = h;
             e->str = u;
             e->len = (uint32_t)n;
-            e->stamp = g_stamp;
             g_ids_used++;
-            Py_INCREF(u);
             return u;
         }
-        if (e->h == h && e->len == n && same_bytes((const char *)PyUnicode_DATA(e->str), s, n)) {
-            if (e->stamp == g_stamp) {
-                *dup = 1;
-                return NULL;
-            }
-            e->stamp = g_stamp;
-            Py_INCREF(e->str);
-            return e->str;
-        }
+        if (e->h == h && e->len == n && same_bytes((const char *)PyUnicode_DATA(e->str), s, n)) return e->str;
         k = (k + 1) & (g_ids_cap - 1);
     }
 }
 
+static int prev_reserve(prev_t *p, size_t n) {
+    if (n <= p->cap) return 1;
+    PyMem_Free(p->str);
+    PyMem_Free(p->len);
+    PyMem_Free(p->bytes);
+    p->cap = p->n = 0;
+    p->str = (PyObject **)PyMem_Calloc(n, sizeof(PyObject *));
+    p->len = (uint8_t *)PyMem_Calloc(n, 1);
+    p->bytes = (char *)PyMem_Calloc(n, ID_MAX_BYTES);
+    if (p->str == NULL || p->len == NULL || p->bytes == NULL) return 0;
+    p->cap = n;
+    return 1;
+}
+
+/* Set of pointers (open addressing, 0 = empty): distinct cached strs are distinct ids. */
+static int ptrset_add(uintptr_t *t, size_t mask, uintptr_t v) {
+    size_t k = (size_t)(((uint64_t)v * 0x9e3779b97f4a7c15ULL) >> 32) & mask;
+    while (t[k] != 0) {
+        if (t[k] == v) return 0;
+        k = (k + 1) & mask;
+    }
+    t[k] = v;
+    return 1;
+}
+
 /* An array of `want` strings (any count when want < 0) of at most max_chars characters,
- * unique when asked: a new list, or NULL with no exception set. */
-static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_chars) {
-    size_t n;
+ * unique when asked: a new list, or NULL with no exception set. Unique lists (ids) go
+ * through the id cache; `prev` names the previous list of the same kind (PREV_NONE). */
+static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_chars, int prev) {
+    size_t n, j = 0, mask = 0;
     PyObject *list;
-    int cache, all_cached = 1;
+    prev_t *p = NULL, *rec = NULL;
+    uintptr_t *seen = NULL;
+    int cache, all_cached = 1, cache_failed = 0;
     if (!rd_array(r, &n) || (want >= 0 && n != (size_t)want)) return NULL;
     list = PyList_New((Py_ssize_t)n);
     if (list == NULL) {
         PyErr_Clear();
         return NULL;
     }
-    cache = unique && max_chars >= ID_MAX_BYTES && id_cache_ready(n);
+    cache = unique && n > 0 && max_chars >= ID_MAX_BYTES && id_cache_ready(n);
+    if (cache) {
+        size_t cap = 8;
+        while (cap < 2 * n) cap <<= 1;
+        seen = (uintptr_t *)PyMem_Calloc(cap, sizeof(uintptr_t));
+        if (seen == NULL) goto fail;
+        mask = cap - 1;
+        if (prev != PREV_NONE) {
+            p = &g_prev[prev];
+            /* the new list is recorded as it goes, in arrays of its own when the old are read */
+            rec = p;
+        }
+    }
     for (size_t i = 0; i < n; i++) {
         const char *s;
         size_t len;
         PyObject *u = NULL;
-        int dup = 0;
         if (!rd_str(r, &s, &len)) goto fail;
-        if (cache) {
-            u = id_cached(s, len, &dup);
-            if (dup) goto fail;
+        if (cache && len <= ID_MAX_BYTES) {
+            /* the same id as the previous list's next one, or one of the few after it (vehicles
+             * left); else (a vehicle arrived, or another order) the cache */
+            if (p != NULL)
+                for (size_t k = j; k < p->n && k < j + PREV_WINDOW; k++)
+                    if (p->len[k] == len && same_bytes(p->bytes + k * ID_MAX_BYTES, s, len)) {
+                        u = p->str[k];
+                        j = k + 1;
+                        break;
+                    }
+            if (u == NULL && is_ascii(s, len)) {
+                u = id_cached(s, len);
+                cache_failed |= u == NULL;
+            }
+#if defined(__GNUC__)
+            if (p != NULL && j + 8 < p->n && p->str[j + 8] != NULL) __builtin_prefetch(p->str[j + 8], 1);
+#endif
+            if (u != NULL) {
+                if (!ptrset_add(seen, mask, (uintptr_t)u)) goto fail;  /* an id twice */
+                Py_INCREF(u);
+            }
         }
         if (u == NULL) {
             all_cached = 0;
@@ -541,11 +601,28 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
         }
         PyList_SET_ITEM(list, (Py_ssize_t)i, u);
     }
-    /* cached ids are unique by their stamps; any other id needs the full check */
+    /* cached ids are unique by their pointers; any other id needs the full check */
     if (unique && !(cache && all_cached) && !unique_strs(list)) goto fail;
+    if (rec != NULL) {  /* this list is the next one's previous (its short ASCII ids all cached) */
+        if (cache_failed || !prev_reserve(rec, n)) {
+            rec->n = 0;
+        } else {
+            for (size_t i = 0; i < n; i++) {
+                PyObject *u = PyList_GET_ITEM(list, (Py_ssize_t)i);
+                Py_ssize_t len = PyUnicode_GET_LENGTH(u);
+                int cached = PyUnicode_IS_COMPACT_ASCII(u) && len <= ID_MAX_BYTES;
+                rec->str[i] = cached ? u : NULL;
+                rec->len[i] = cached ? (uint8_t)len : UINT8_MAX;  /* never equal to an id's length */
+                if (cached && len) memcpy(rec->bytes + i * ID_MAX_BYTES, PyUnicode_DATA(u), (size_t)len);
+            }
+            rec->n = n;
+        }
+    }
+    PyMem_Free(seen);
     return list;
 fail:
     PyErr_Clear();
+    PyMem_Free(seen);
     Py_DECREF(list);
     return NULL;
 }
@@ -815,11 +892,11 @@ static PyObject *decode_step(rd_t *r, const scan_t *sc, const limits_t *lim) {
     }
     /* traffic lights: the count */
     if (top[T_TLS] == ABSENT || tp[L_STATE] == ABSENT || tp[L_PHASE] == ABSENT || tp[L_NEXT] == ABSENT) goto fail;
-    if (!rd_at(r, tp[L_ID]) || (o.tls_ids = rd_strs(r, -1, 1, lim->max_str)) == NULL) goto fail;
+    if (!rd_at(r, tp[L_ID]) || (o.tls_ids = rd_strs(r, -1, 1, lim->max_str, PREV_NONE)) == NULL) goto fail;
     k = (size_t)PyList_GET_SIZE(o.tls_ids);
-    if (!rd_at(r, tp[L_STATE]) || (o.tls_state = rd_strs(r, (Py_ssize_t)k, 0, lim->max_str)) == NULL) goto fail;
+    if (!rd_at(r, tp[L_STATE]) || (o.tls_state = rd_strs(r, (Py_ssize_t)k, 0, lim->max_str, PREV_NONE)) == NULL) goto fail;
     if (tp[L_PROGRAM] != ABSENT &&
-        (!rd_at(r, tp[L_PROGRAM]) || (o.tls_program = rd_strs(r, (Py_ssize_t)k, 0, lim->max_str)) == NULL))
+        (!rd_at(r, tp[L_PROGRAM]) || (o.tls_program = rd_strs(r, (Py_ssize_t)k, 0, lim->max_str, PREV_NONE)) == NULL))
         goto fail;
 
     /* one buffer for every array */
@@ -905,7 +982,7 @@ static PyObject *decode_step(rd_t *r, const scan_t *sc, const limits_t *lim) {
         }
     }
     /* ids last: the most Python objects, built only for a message that passed the rest */
-    if (!rd_at(r, ap[A_ID]) || (o.ids = rd_strs(r, (Py_ssize_t)n, 1, lim->max_str)) == NULL) goto fail;
+    if (!rd_at(r, ap[A_ID]) || (o.ids = rd_strs(r, (Py_ssize_t)n, 1, lim->max_str, PREV_STEP)) == NULL) goto fail;
 
     res = Py_BuildValue("(iOLddLOLOOOnnOOOOn)", KIND_STEP, o.run, (long long)step, t, dt, (long long)sv,
                         final ? Py_True : Py_False, (long long)epoch, o.vtypes ? o.vtypes : Py_None, o.ids,
@@ -1009,7 +1086,7 @@ static PyObject *decode_physics(rd_t *r, const scan_t *sc, const limits_t *lim) 
         for (int c = 0; c < 2; c++)
             if (!put_int(u1 + (size_t)c * n, col[c].p, n, &C[c], C[c].lo, C[c].hi, C[c].bounded)) goto fail;
     }
-    if (!rd_at(r, ap[A_ID]) || (o.ids = rd_strs(r, (Py_ssize_t)n, 1, lim->max_str)) == NULL) goto fail;
+    if (!rd_at(r, ap[A_ID]) || (o.ids = rd_strs(r, (Py_ssize_t)n, 1, lim->max_str, PREV_PHYSICS)) == NULL) goto fail;
     res = Py_BuildValue("(iOLdLOOOn)", KIND_PHYSICS, o.run, (long long)tick, t, (long long)sumo_step, o.counters,
                         o.ids, o.buf, (Py_ssize_t)n);
     if (res == NULL) PyErr_Clear();

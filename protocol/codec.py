@@ -1070,24 +1070,25 @@ _DECODERS = {
 
 def _fast_step(p: tuple) -> StepMessage:
     """A StepMessage from the C decoder's parts: one buffer, laid out as decode_step in
-    _fastcodec.c writes it (float64, float32, int32, uint32, uint16, uint8 blocks)."""
+    _fastcodec.c writes it (float64, float32, int32, uint32, uint16, uint8 blocks). One
+    array per block and slices of it: each numpy call counts, with cold caches."""
     _, run, step, t, dt, sv, final, epoch, vt, ids, buf, n, m, has_path, tls_ids, tls_state, program, k = p
-    x, y, la_x, la_y = np.frombuffer(buf, np.float64, 4 * n).reshape(4, n)
-    o = 32 * n
-    path_xy = np.frombuffer(buf, np.float64, 2 * m, o).reshape(m, 2)
-    o += 16 * m
+    f8 = np.frombuffer(buf, np.float64, 4 * n + 2 * m)
+    o = 32 * n + 16 * m
     f4 = np.frombuffer(buf, np.float32, 5 * n + k, o)
-    angle, speed, accel, length, width = f4[:5 * n].reshape(5, n)
     o += 4 * (5 * n + k)
     i4 = np.frombuffer(buf, np.int32, n + k, o)
     o += 4 * (n + k)
-    path_offsets = np.frombuffer(buf, np.uint32, n + 1, o) if has_path else np.zeros(0, np.uint32)
-    o += 4 * (n + 1) if has_path else 0
-    vtype, signals = np.frombuffer(buf, np.uint16, 2 * n, o).reshape(2, n)
-    cls, flags = np.frombuffer(buf, np.uint8, 2 * n, o + 4 * n).reshape(2, n)
-    agents = AgentBatch(ids=ids, cls=cls, vtype=vtype, x=x, y=y, angle=angle, speed=speed, accel=accel,
-                        signals=signals, la_x=la_x, la_y=la_y, length=length, width=width, lane=i4[:n],
-                        flags=flags, path_offsets=path_offsets, path_xy=path_xy)
+    m_off = n + 1 if has_path else 0  # no path: empty offsets and (0, 2) points, as the Python decoder
+    u4 = np.frombuffer(buf, np.uint32, m_off, o)
+    o += 4 * m_off
+    u2 = np.frombuffer(buf, np.uint16, 2 * n, o)
+    u1 = np.frombuffer(buf, np.uint8, 2 * n, o + 4 * n)
+    n2, n3, n4 = 2 * n, 3 * n, 4 * n
+    agents = AgentBatch(ids=ids, cls=u1[:n], vtype=u2[:n], x=f8[:n], y=f8[n:n2], angle=f4[:n], speed=f4[n:n2],
+                        accel=f4[n2:n3], signals=u2[n:], la_x=f8[n2:n3], la_y=f8[n3:n4], length=f4[n3:n4],
+                        width=f4[n4:5 * n], lane=i4[:n], flags=u1[n:], path_offsets=u4,
+                        path_xy=f8[n4:].reshape(m, 2))
     tls = TrafficLights(ids=tls_ids, state=tls_state, phase=i4[n:], next_switch=f4[5 * n:], program=program)
     return StepMessage(run=run, step=step, time=t, step_length=dt, agents=agents, tls=tls,
                        vtypes=None if vt is None else [VType(i, c) for i, c in vt],
@@ -1097,11 +1098,14 @@ def _fast_step(p: tuple) -> StepMessage:
 def _fast_physics(p: tuple) -> PhysicsState:
     """A PhysicsState from the C decoder's parts (float64 x, y; float32 z .. err_lat; uint8 cls, mode)."""
     _, run, tick, t, sumo_step, counters, ids, buf, n = p
-    x, y = np.frombuffer(buf, np.float64, 2 * n).reshape(2, n)
-    f4 = np.frombuffer(buf, np.float32, 10 * n, 16 * n).reshape(10, n)
-    cls, mode = np.frombuffer(buf, np.uint8, 2 * n, 56 * n).reshape(2, n)
-    return PhysicsState(run=run, tick=tick, time=t, sumo_step=sumo_step, counters=counters,
-                        agents=PhysicsAgents(ids, cls, mode, x, y, *f4))
+    f8 = np.frombuffer(buf, np.float64, 2 * n)
+    f4 = np.frombuffer(buf, np.float32, 10 * n, 16 * n)
+    u1 = np.frombuffer(buf, np.uint8, 2 * n, 56 * n)
+    z, heading, roll, pitch, speed, steer, drive, brake, err_lon, err_lat = (f4[i * n:(i + 1) * n] for i in range(10))
+    agents = PhysicsAgents(ids=ids, cls=u1[:n], mode=u1[n:], x=f8[:n], y=f8[n:], z=z, heading=heading, roll=roll,
+                           pitch=pitch, speed=speed, steer=steer, drive=drive, brake=brake, err_lon=err_lon,
+                           err_lat=err_lat)
+    return PhysicsState(run=run, tick=tick, time=t, sumo_step=sumo_step, agents=agents, counters=counters)
 
 
 #: The C decoder's first part says which message its parts make.

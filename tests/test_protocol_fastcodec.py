@@ -580,3 +580,38 @@ def test_id_cache_stays_bounded_and_correct():
         _both_decode(encode(dataclasses.replace(base, agents=dataclasses.replace(base.agents, ids=ids))), fast=True)
     codec._fast.clear_cache()
     assert codec._fast.cache_size() == (0, 0)
+
+
+@needs_c
+@pytest.mark.parametrize("seed", range(3))
+def test_ids_evolving_from_step_to_step(seed):
+    """The decoder reuses the previous step's ids in order: arrivals, departures, reorders,
+    repeated and non-ASCII ids, all as the Python decoder sees them."""
+    rng = random.Random(seed)
+    codec._fast.clear_cache()
+    ids = [f"veh{i}" for i in range(300)]
+    fresh = iter(range(300, 10**6))
+    for step in range(120):
+        ids = [i for i in ids if rng.random() > 0.02]  # departures
+        for _ in range(rng.randrange(8)):  # arrivals, anywhere
+            ids.insert(rng.randrange(len(ids) + 1), rng.choice([f"veh{next(fresh)}", f"v\u00e9h{next(fresh)}",
+                                                                 "x" * 40 + str(next(fresh))]))
+        if rng.random() < 0.2 and len(ids) > 2:  # a reorder
+            a, b = rng.randrange(len(ids)), rng.randrange(len(ids))
+            ids[a], ids[b] = ids[b], ids[a]
+        sent = list(ids)
+        if rng.random() < 0.25 and len(ids) > 2:  # a hostile repeat (refused, the Python way)
+            sent[rng.randrange(len(sent))] = sent[rng.randrange(len(sent))]
+        kind = rng.random()
+        if kind < 0.7:
+            msg = synthetic_step(len(sent), seed=step, step=step)
+            msg = dataclasses.replace(msg, agents=dataclasses.replace(msg.agents, ids=sent))
+        else:
+            p = _physics(len(sent), step)
+            msg = dataclasses.replace(p, agents=dataclasses.replace(p.agents, ids=sent))
+        got = _both_decode(encode(msg), fast=len(set(sent)) == len(sent))
+        if len(set(sent)) == len(sent):
+            assert got is not None and got.agents.ids == sent
+        else:
+            assert got is None
+    codec._fast.clear_cache()
