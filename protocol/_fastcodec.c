@@ -905,7 +905,8 @@ static PyObject *decode_step(rd_t *r, const scan_t *sc, const limits_t *lim) {
         !add_sz(&total, has_path ? n + 1 : 0, 4) || !add_sz(&total, n, 2 * 2) || !add_sz(&total, n, 2) ||
         total > (size_t)PY_SSIZE_T_MAX)
         goto fail;
-    o.buf = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)total);
+    /* never empty: an empty bytearray's storage is a static string, not aligned for doubles */
+    o.buf = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(total ? total : 8));
     if (o.buf == NULL) goto fail;
     {
         uint8_t *base = (uint8_t *)PyByteArray_AS_STRING(o.buf);
@@ -945,7 +946,7 @@ static PyObject *decode_step(rd_t *r, const scan_t *sc, const limits_t *lim) {
             if (off[0] != 0 || off[n] != m) goto fail;
             for (size_t i = 0; i < n; i++) {
                 size_t a = off[i], b = off[i + 1];
-                if (b < a) goto fail;
+                if (b < a || b > m) goto fail;  /* every vertex read and written within the m */
                 for (size_t j = a; j < b; j++) {
                     double dx = (double)load_f4(dxy_bin.p + 8 * j), dy = (double)load_f4(dxy_bin.p + 8 * j + 4);
                     if (!(dx >= -C[S_LADX].hi && dx <= C[S_LADX].hi && dy >= -C[S_LADX].hi && dy <= C[S_LADX].hi))
@@ -1072,7 +1073,7 @@ static PyObject *decode_physics(rd_t *r, const scan_t *sc, const limits_t *lim) 
     for (int c = 0; c < PHYS_NCOL; c++)
         if (!rd_column(r, ap[PHYS_KEY[c]], n, C[c].size, &col[c])) goto fail;
     if (!add_sz(&total, n, 2 * 8 + 10 * 4 + 2) || total > (size_t)PY_SSIZE_T_MAX) goto fail;
-    o.buf = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)total);
+    o.buf = PyByteArray_FromStringAndSize(NULL, (Py_ssize_t)(total ? total : 8));  /* as in decode_step */
     if (o.buf == NULL) goto fail;
     {
         uint8_t *base = (uint8_t *)PyByteArray_AS_STRING(o.buf);

@@ -395,6 +395,15 @@ def test_corrupt_and_hostile_steps():
     dup = _pack(w)[1:]  # the same map with "run" twice (msgpack keeps the last)
     head = bytes([0x80 | (len(w) + 1)]) + _pack("run") + _pack("other")
     _both_decode(head + dup)
+    for bad in ([0, 100, 5], [0, 2**32 - 1, 3], [0, 3, 1], [1, 2, 3], [0, 0, 4]):  # rising late, or beyond the points
+        d = copy.deepcopy(w)
+        d["agents"]["n"] = 2
+        for k, dt in codec.STEP_AGENT_COLUMNS:
+            d["agents"][k] = d["agents"][k][:2 * np.dtype(dt).itemsize]
+        d["agents"]["id"] = d["agents"]["id"][:2]
+        d["agents"]["path"] = {"off": np.array(bad, "<u4").tobytes(), "dxy": np.ones(10, "<f4").tobytes()}
+        d["agents"] = d.pop("agents")  # the points last in the message: nothing after them to read
+        _both_decode(_pack(d), fast=False)
     bad_utf8 = data.replace(b"\xa5veh39", b"\xa5veh\xff9")
     assert bad_utf8 != data
     _both_decode(bad_utf8, fast=False)
