@@ -217,10 +217,11 @@ def _load_fast() -> Any:
     if os.environ.get("SUMOCO_PURE_CODEC", "") not in ("", "0") or sys.byteorder != "little":
         return None
     try:
-        from protocol import _fastcodec
+        # (the submodule by name: importing it from the package would read as a cycle codec -> protocol)
+        from protocol._fastcodec import configure
     except ImportError:
         return None
-    return _fastcodec if _fastcodec.configure(*SCHEMA_VERSION, FLOAT_BOUNDS, INT_BOUNDS) else None
+    return sys.modules["protocol._fastcodec"] if configure(*SCHEMA_VERSION, FLOAT_BOUNDS, INT_BOUNDS) else None
 
 
 _fast = _load_fast()
