@@ -410,8 +410,10 @@ typedef struct {
     uint32_t len;
 } idslot_t;
 
+/* Bounds: 2^18 slots of 24 bytes (6 MiB) holding at most 2^17 strings (~7 MiB), whatever a
+ * peer sends; a list of more than 2^16 ids goes without the cache. */
 #define ID_CACHE_MIN 4096               /* slots */
-#define ID_CACHE_MAX ((size_t)1 << 20)  /* slots (16 MiB of slots at most, ~80 MiB with the strings) */
+#define ID_CACHE_MAX ((size_t)1 << 18)  /* slots */
 #define ID_MAX_BYTES 31
 
 static idslot_t *g_ids = NULL;
