@@ -17,7 +17,8 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-$(STAMP): pyproject.toml | $(BIN)/python
+# setup.py and the C source: the editable install compiles protocol._fastcodec in place
+$(STAMP): pyproject.toml setup.py protocol/_fastcodec.c | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[all,test]'
 	touch $(STAMP)
 
@@ -45,4 +46,4 @@ fuzz: $(STAMP)
 	$(BIN)/python tests/fuzz_protocol.py --seconds $(FUZZ_SECONDS) --corpus build/fuzz-corpus
 
 clean:
-	rm -rf $(VENV) runs build *.egg-info node_modules
+	rm -rf $(VENV) runs build *.egg-info node_modules protocol/_fastcodec*.so

@@ -9,12 +9,21 @@ Decoding validates structure, types, sizes and finiteness and raises ``ProtocolE
 naming the field, the value and the expectation; no other exception escapes ``decode``.
 The expectations live in tables: ``*_COLUMNS`` with ``FLOAT_BOUNDS`` and ``INT_BOUNDS`` for
 the agent columns, ``*_FIELDS`` for the scalar fields of each message.
+
+Step and physics messages, the hot ones, take a C fast path (``protocol._fastcodec``) when
+it is built: the same bytes out of ``encode``, the same message out of ``decode``. On
+anything it does not accept it steps aside and the Python code below runs, so every error
+is raised (and worded) here. ``SUMOCO_PURE_CODEC=1`` in the environment forces the Python
+path; ``FAST_CODEC`` tells which is active.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import sys
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any, NamedTuple, Union
 
 import msgpack
@@ -201,6 +210,24 @@ INT_BOUNDS: dict[str, tuple[int, int]] = {
     "cls": (0, len(AgentClass) - 1), "mode": (0, len(AgentMode) - 1), "lane": (-1, 2**31 - 1), "contact": (0, 1),
 }
 
+
+def _load_fast() -> Any:
+    """The C fast path, configured with this module's version and bounds; None when it is
+    not built (no compiler at install), on a big-endian host, or SUMOCO_PURE_CODEC is set."""
+    if os.environ.get("SUMOCO_PURE_CODEC", "") not in ("", "0") or sys.byteorder != "little":
+        return None
+    try:
+        # (the submodule by name: importing it from the package would read as a cycle codec -> protocol)
+        from protocol._fastcodec import configure
+    except ImportError:
+        return None
+    return sys.modules["protocol._fastcodec"] if configure(*SCHEMA_VERSION, FLOAT_BOUNDS, INT_BOUNDS) else None
+
+
+_fast = _load_fast()
+#: True when step and physics messages go through the C fast path (``protocol._fastcodec``).
+FAST_CODEC: bool = _fast is not None
+
 #: The bounds of a float column without an entry in FLOAT_BOUNDS: any finite value.
 _FINITE = (-float(np.finfo(np.float64).max), float(np.finfo(np.float64).max))
 _MISSING: Any = object()  # a field's value when it is absent
@@ -289,6 +316,18 @@ def _anchored_path(offsets: np.ndarray, xy: np.ndarray, x: np.ndarray, y: np.nda
 
 def encode(msg: Message) -> bytes:
     """Encode any protocol message to msgpack bytes."""
+    if _fast is not None:
+        fast = _FAST_ENCODERS.get(type(msg))
+        if fast is not None:
+            data = fast(msg)
+            if data is not None:
+                return data
+    return encode_python(msg)
+
+
+def encode_python(msg: Message) -> bytes:
+    """``encode`` in Python only: the reference the fast path reproduces byte for byte
+    (tests and benchmarks compare the two)."""
     enc = _ENCODERS.get(type(msg))
     if enc is None:  # a subclass of a message type
         enc = next((f for cls, f in _ENCODERS.items() if isinstance(msg, cls)), None)
@@ -416,6 +455,46 @@ def _encode_static(msg: StaticData) -> dict[str, Any]:
     }
 
 
+def _fast_encode_step(msg: StepMessage) -> bytes | None:
+    """The C encoder; when an array is not of the dtype it reads (or not an array), it gets
+    the arrays cast as the Python encoder casts them. None: the Python encoder's turn."""
+    try:
+        return _fast.encode_step(msg, msg.agents, msg.tls) or _fast.encode_step(
+            msg, _step_arrays(msg.agents), _tls_arrays(msg.tls))
+    except Exception:  # an input the Python encoder will reject in its own words
+        return None
+
+
+def _step_arrays(a: AgentBatch) -> SimpleNamespace:
+    cols = {name: np.ascontiguousarray(getattr(a, name), dt) for name, dt in STEP_AGENT_COLUMNS
+            if name not in ("la_dx", "la_dy")}
+    return SimpleNamespace(
+        n=a.n, ids=list(a.ids), la_x=np.ascontiguousarray(a.la_x, np.float64),
+        la_y=np.ascontiguousarray(a.la_y, np.float64), path_offsets=np.asarray(a.path_offsets, np.int64),
+        path_xy=np.ascontiguousarray(a.path_xy, np.float64), **cols)
+
+
+def _tls_arrays(t: TrafficLights) -> SimpleNamespace:
+    return SimpleNamespace(ids=list(t.ids), state=list(t.state), phase=np.asarray(t.phase, np.int64),
+                           next_switch=np.asarray(t.next_switch, np.float64),
+                           program=None if t.program is None else list(t.program))
+
+
+def _fast_encode_physics(msg: PhysicsState) -> bytes | None:
+    """As ``_fast_encode_step``, for a physics state."""
+    try:
+        return _fast.encode_physics(msg, msg.agents) or _fast.encode_physics(msg, _physics_arrays(msg.agents))
+    except Exception:
+        return None
+
+
+def _physics_arrays(a: PhysicsAgents) -> SimpleNamespace:
+    return SimpleNamespace(n=a.n, ids=list(a.ids),
+                           **{name: np.ascontiguousarray(getattr(a, name), dt) for name, dt in PHYSICS_AGENT_COLUMNS})
+
+
+_FAST_ENCODERS: dict[type, Any] = {StepMessage: _fast_encode_step, PhysicsState: _fast_encode_physics}
+
 _ENCODERS: dict[type, Any] = {
     StepMessage: _encode_step,
     EgoPose: _encode_ego,
@@ -512,6 +591,10 @@ class _Reader:
         self.lim = lim
         self.unpack_kw = lim._unpack_kw()
         self._counts: dict[int, tuple[Field]] = {}
+        kw = self.unpack_kw
+        #: what the C decoder needs: the decoder's limits, then msgpack's (DecodeLimits._limits_kw)
+        self.fast_limits = (lim.max_agents, lim.max_points, lim.max_str, kw["max_str_len"], kw["max_bin_len"],
+                            kw["max_array_len"])
 
     def strs(self, d: dict, key: str, where: str, n: int | None = None, unique: bool = False) -> list[str]:
         v = d.get(key, _MISSING)
@@ -728,6 +811,24 @@ def decode(data: bytes | bytearray | memoryview, limits: DecodeLimits = DEFAULT_
     if len(data) > limits.max_bytes:
         raise ProtocolError(f"message of {len(data)} bytes exceeds {limits.max_bytes}")
     r = limits._reader()
+    if _fast is not None:
+        parts = _fast.decode(data, r.fast_limits)
+        if parts is not None:
+            return _FAST_BUILD[parts[0]](parts)
+    return _decode_py(data, r)
+
+
+def decode_python(data: bytes | bytearray | memoryview, limits: DecodeLimits = DEFAULT_LIMITS) -> Message:
+    """``decode`` in Python only: the reference the fast path reproduces, and the code
+    that words every error (tests and benchmarks compare the two)."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError(f"expected bytes, got {type(data).__name__}")
+    if len(data) > limits.max_bytes:
+        raise ProtocolError(f"message of {len(data)} bytes exceeds {limits.max_bytes}")
+    return _decode_py(data, limits._reader())
+
+
+def _decode_py(data: bytes | bytearray | memoryview, r: "_Reader") -> Message:
     try:
         d = msgpack.unpackb(data, **r.unpack_kw)
     except Exception as e:  # msgpack raises a zoo of types for corrupt input
@@ -966,6 +1067,50 @@ _DECODERS = {
     "static": _decode_static,
     "status": _decode_status,
 }
+
+
+def _fast_step(p: tuple) -> StepMessage:
+    """A StepMessage from the C decoder's parts: one buffer, laid out as decode_step in
+    _fastcodec.c writes it (float64, float32, int32, uint32, uint16, uint8 blocks). One
+    array per block and slices of it: each numpy call counts, with cold caches."""
+    _, run, step, t, dt, sv, final, epoch, vt, ids, buf, n, m, has_path, tls_ids, tls_state, program, k = p
+    f8 = np.frombuffer(buf, np.float64, 4 * n + 2 * m)
+    o = 32 * n + 16 * m
+    f4 = np.frombuffer(buf, np.float32, 5 * n + k, o)
+    o += 4 * (5 * n + k)
+    i4 = np.frombuffer(buf, np.int32, n + k, o)
+    o += 4 * (n + k)
+    m_off = n + 1 if has_path else 0  # no path: empty offsets and (0, 2) points, as the Python decoder
+    u4 = np.frombuffer(buf, np.uint32, m_off, o)
+    o += 4 * m_off
+    u2 = np.frombuffer(buf, np.uint16, 2 * n, o)
+    u1 = np.frombuffer(buf, np.uint8, 2 * n, o + 4 * n)
+    n2, n3, n4 = 2 * n, 3 * n, 4 * n
+    agents = AgentBatch(ids=ids, cls=u1[:n], vtype=u2[:n], x=f8[:n], y=f8[n:n2], angle=f4[:n], speed=f4[n:n2],
+                        accel=f4[n2:n3], signals=u2[n:], la_x=f8[n2:n3], la_y=f8[n3:n4], length=f4[n3:n4],
+                        width=f4[n4:5 * n], lane=i4[:n], flags=u1[n:], path_offsets=u4,
+                        path_xy=f8[n4:].reshape(m, 2))
+    tls = TrafficLights(ids=tls_ids, state=tls_state, phase=i4[n:], next_switch=f4[5 * n:], program=program)
+    return StepMessage(run=run, step=step, time=t, step_length=dt, agents=agents, tls=tls,
+                       vtypes=None if vt is None else [VType(i, c) for i, c in vt],
+                       static_version=sv, final=final, epoch=epoch)
+
+
+def _fast_physics(p: tuple) -> PhysicsState:
+    """A PhysicsState from the C decoder's parts (float64 x, y; float32 z .. err_lat; uint8 cls, mode)."""
+    _, run, tick, t, sumo_step, counters, ids, buf, n = p
+    f8 = np.frombuffer(buf, np.float64, 2 * n)
+    f4 = np.frombuffer(buf, np.float32, 10 * n, 16 * n)
+    u1 = np.frombuffer(buf, np.uint8, 2 * n, 56 * n)
+    z, heading, roll, pitch, speed, steer, drive, brake, err_lon, err_lat = (f4[i * n:(i + 1) * n] for i in range(10))
+    agents = PhysicsAgents(ids=ids, cls=u1[:n], mode=u1[n:], x=f8[:n], y=f8[n:], z=z, heading=heading, roll=roll,
+                           pitch=pitch, speed=speed, steer=steer, drive=drive, brake=brake, err_lon=err_lon,
+                           err_lat=err_lat)
+    return PhysicsState(run=run, tick=tick, time=t, sumo_step=sumo_step, agents=agents, counters=counters)
+
+
+#: The C decoder's first part says which message its parts make.
+_FAST_BUILD = {1: _fast_step, 2: _fast_physics}
 
 
 def decode_as(data: bytes, cls: type, limits: DecodeLimits = DEFAULT_LIMITS) -> Any:

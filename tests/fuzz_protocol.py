@@ -12,6 +12,9 @@ Each input is read by ``atheris.FuzzedDataProvider`` as one of three cases:
 
 The properties: ``decode`` returns a message or raises ``ProtocolError`` and nothing else;
 a message it accepts encodes again and decodes to the same kind, ids and agent count.
+When the C fast path is built (``protocol.codec.FAST_CODEC``), ``decode`` and ``encode`` go
+through it for steps and physics states: they must agree with ``decode_python`` and
+``encode_python`` exactly (the same message, the same error, the same bytes).
 libFuzzer's ``-rss_limit_mb`` turns unbounded memory growth into a failure. Exit code 0
 means no input broke a property within the budget.
 """
@@ -29,7 +32,9 @@ import atheris
 with atheris.instrument_imports(include=["protocol"]):
     import msgpack
 
-    from protocol.codec import DecodeLimits, decode, encode
+    import numpy as np
+
+    from protocol.codec import DEFAULT_LIMITS, DecodeLimits, decode, decode_python, encode, encode_python
     from protocol.errors import ProtocolError
     from protocol.golden_vectors import GOLDEN_DIR, valid_messages
 
@@ -84,11 +89,34 @@ def _mutate(doc, fdp: atheris.FuzzedDataProvider) -> None:
         return
 
 
+def _same(a, b) -> bool:
+    """Equal down to the bits (dtypes, shapes, array bytes, value types)."""
+    if type(a) is not type(b):
+        return False
+    if hasattr(a, "__dataclass_fields__"):
+        return all(_same(getattr(a, k), getattr(b, k)) for k in a.__dataclass_fields__)
+    if isinstance(a, np.ndarray):
+        return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict):
+        return list(a) == list(b) and all(_same(a[k], b[k]) for k in a)
+    return a == b or (a != a and b != b)
+
+
 def _check(data: bytes, limits: DecodeLimits | None = None) -> None:
+    lim = DEFAULT_LIMITS if limits is None else limits
     try:
-        msg = decode(data) if limits is None else decode(data, limits)
-    except ProtocolError:
-        return
+        msg = decode(data, lim)
+    except ProtocolError as e:
+        try:  # the fast path steps aside on what it refuses: the Python decoder's own error
+            decode_python(data, lim)
+        except ProtocolError as ref:
+            assert (str(e), e.field) == (str(ref), ref.field), (str(e), str(ref))
+            return
+        raise AssertionError(f"decode refused what decode_python accepts: {e}") from None
+    assert _same(msg, decode_python(data, lim)), "decode and decode_python disagree"
+    assert encode(msg) == encode_python(msg), "encode and encode_python disagree"
     again = decode(encode(msg))  # an accepted message must survive its own round trip
     assert type(again) is type(msg), (type(again), type(msg))
     agents = getattr(msg, "agents", None)

@@ -13,6 +13,7 @@ import sys
 
 import pytest
 
+from protocol.codec import FAST_CODEC
 from tests.harness import ROOT
 
 pytestmark = pytest.mark.integration
@@ -103,6 +104,8 @@ def test_scale_bench_quick_rows():
 def test_e2e_bench_quick_rows():
     rows = _bench("e2e", 180)
     assert {(r["shm"], r["path_points_per_agent"]) for r in rows} == {(False, 0), (False, 12), (True, 0), (True, 12)}
+    # both codecs in the same run when the C fast path is built, the Python one alone otherwise
+    assert {r["codec"] for r in rows} == ({"c", "python"} if FAST_CODEC else {"python"})
     for r in rows:
         _count(r, "agents")
         _count(r, "bytes")

@@ -13,26 +13,33 @@ import sys
 import msgpack
 import numpy as np
 
-from protocol.codec import decode, encode
+from protocol.codec import FAST_CODEC, decode, decode_python, encode, encode_python
 from sumoco.bench.timing import median_ms
 from synthetic.traffic import circle_traffic, synthetic_step
 
 
 def run_codec_bench(sizes=(250, 1000, 2500), repeat: int = 200) -> list[dict]:
+    """Hot-loop encode and decode of synthetic steps, with the C fast path (``codec`` ``c``,
+    when built) and the Python codec (``python``)."""
+    codecs = {"python": (encode_python, decode_python)}
+    if FAST_CODEC:
+        codecs = {"c": (encode, decode), **codecs}
     rows = []
     for n in sizes:
         for pts in (0, 12):
             msg = synthetic_step(n, path_points=pts)
             data = encode(msg)
-            rows.append({
-                "case": "synthetic",
-                "agents": n,
-                "path_points_per_agent": pts,
-                "bytes": len(data),
-                "bytes_per_agent": round(len(data) / n, 2),
-                "encode_ms": round(median_ms(lambda: encode(msg), repeat), 4),
-                "decode_ms": round(median_ms(lambda: decode(data), repeat), 4),
-            })
+            for name, (enc, dec) in codecs.items():
+                rows.append({
+                    "case": "synthetic",
+                    "codec": name,
+                    "agents": n,
+                    "path_points_per_agent": pts,
+                    "bytes": len(data),
+                    "bytes_per_agent": round(len(data) / n, 2),
+                    "encode_ms": round(median_ms(lambda: enc(msg), repeat), 4),
+                    "decode_ms": round(median_ms(lambda: dec(data), repeat), 4),
+                })
     return rows + run_position_encoding_bench(repeat=repeat)
 
 

@@ -13,6 +13,11 @@ keys with the SUMO daemon's publisher settings (``STEP_PUT``):
   main loop (``runtime.transport.Wake``) -> ``decode_as`` with the daemon's limits
   (``physics_side.daemon``).
 
+Each row names its ``codec``: ``c`` (the C fast path of ``protocol.codec``) or ``python``
+(``SUMOCO_PURE_CODEC=1``: the publisher calls ``encode_python``, the subscriber process is
+started with the variable set); ``run_e2e_bench`` measures both in one run when the C path
+is built.
+
 Both processes run with the daemons' process settings (``runtime.hotpath``). CLOCK_MONOTONIC is shared by all processes of one host, so the difference of
 two stamps is the one-way latency. Messages alternate raw / e2e half a period apart, so
 machine load hits both streams alike; the row carries both and their ratio.
@@ -33,7 +38,7 @@ from typing import NamedTuple
 import numpy as np
 import zenoh
 
-from protocol.codec import DecodeLimits, decode_as, encode
+from protocol.codec import FAST_CODEC, DecodeLimits, decode_as, encode, encode_python
 from protocol.keys import Keys
 from protocol.messages import StepMessage
 from runtime.config import ZenohConfig
@@ -113,7 +118,7 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
         for sub in subs:
             sub.undeclare()
     json.dump({"raw": raw_at, "e2e": e2e_at, "decode_ns": decode_ns, "decode_cpu_ns": decode_cpu_ns,
-               "handoff_ns": handoff_ns}, sys.stdout)
+               "handoff_ns": handoff_ns, "codec": "c" if FAST_CODEC else "python"}, sys.stdout)
 
 
 class _Sent(NamedTuple):
@@ -125,11 +130,13 @@ class _Sent(NamedTuple):
     encode_cpu_ns: list[int]
 
 
-def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: int, period_s: float
-              ) -> tuple[_Sent, dict]:
+def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: int, period_s: float,
+              codec: str = "c") -> tuple[_Sent, dict]:
     """Start the subscriber process, then send ``steps`` of both streams half a period apart;
     the subscriber's receive stamps and costs (its JSON) with our send stamps."""
     sent = _Sent([], [], [], [])
+    enc = encode if codec == "c" else encode_python
+    env = dict(os.environ, SUMOCO_PURE_CODEC="0" if codec == "c" else "1")
     with open_session(cfg) as s:
         pub_raw = s.declare_publisher(RAW_KEY, **STEP_PUT)
         pub = s.declare_publisher(KEYS.step, **STEP_PUT)
@@ -137,7 +144,7 @@ def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: i
         proc = subprocess.Popen(
             [sys.executable, "-m", "sumoco.bench.e2e", "--sub", ep, "--count", str(steps),
              "--timeout", str(steps * period_s + 30), "--max-agents", str(agents)] + (["--shm"] if shm else []),
-            stdout=subprocess.PIPE,
+            stdout=subprocess.PIPE, env=env,
         )
         try:
             if alive.recv() is None:  # blocks until the subscriber's token arrives
@@ -160,7 +167,7 @@ def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: i
                 t0 = time.monotonic_ns()
                 sent.e2e.append(t0)
                 c0 = time.thread_time_ns()
-                data = encode(msg)
+                data = enc(msg)
                 sent.encode_cpu_ns.append(time.thread_time_ns() - c0)
                 sent.encode_ns.append(time.monotonic_ns() - t0)
                 pub.put(data)
@@ -174,8 +181,11 @@ def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: i
 
 
 def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
-            path_points: int = 12) -> dict:
-    """One row: raw and end-to-end latency at ``agents``, measured in the same run."""
+            path_points: int = 12, codec: str = "c") -> dict:
+    """One row: raw and end-to-end latency at ``agents``, measured in the same run, with the
+    ``codec`` ``c`` or ``python`` on both sides."""
+    if codec not in ("c", "python") or (codec == "c" and not FAST_CODEC):
+        raise ValueError(f"codec {codec!r} not available (the C fast path is {'on' if FAST_CODEC else 'off'})")
     load_before = os.getloadavg()[0]
     port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
@@ -188,7 +198,9 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
     nbytes = len(encode(build(0)))
     tune_allocator()
     freeze_startup_objects()
-    sent, got = _exchange(cfg, ep, build, agents, shm, steps, period_s)
+    sent, got = _exchange(cfg, ep, build, agents, shm, steps, period_s, codec)
+    if got.get("codec", codec) != codec:
+        raise RuntimeError(f"subscriber decoded with {got['codec']}, not {codec}")
     raw_at = got.get("raw", [])
     e2e_at = {int(k): v for k, v in got.get("e2e", {}).items()}
     raw = np.array([(raw_at[i] - sent.raw[i]) / 1e6 for i in range(warmup, min(steps, len(raw_at)))])
@@ -201,6 +213,7 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
     return {
         "agents": agents,
         "path_points_per_agent": path_points,
+        "codec": codec,
         "shm": shm,
         "bytes": nbytes,
         "sent": steps,
@@ -224,9 +237,11 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
 
 def run_e2e_bench(sizes=(100, 1000), quick: bool = False) -> list[dict]:
     """Rows for steps without paths and with the SUMO side's 12 path points per agent,
-    over TCP and shared memory."""
+    over TCP and shared memory, with the C codec and the Python one (when the C one is built)."""
     steps = 60 if quick else 300
-    return [measure(n, shm, steps=steps, path_points=pts) for n in sizes for pts in (0, 12) for shm in (False, True)]
+    codecs = ("c", "python") if FAST_CODEC else ("python",)
+    return [measure(n, shm, steps=steps, path_points=pts, codec=c)
+            for n in sizes for pts in (0, 12) for shm in (False, True) for c in codecs]
 
 
 if __name__ == "__main__":
