@@ -259,14 +259,14 @@ class _Soak:
             if now >= next_row or now >= t_end:
                 # a SUMO side still loading its scenario would show a partial RSS
                 sumo_up = now - self.sumo_started > 5.0
-                rows.append(self.row(len(rows) + 1, now - t_first, hub, ws, sumo_up))
+                rows.append(self.row(round((now - t_first) / 60.0, 1), now - t_first, hub, ws, sumo_up))
                 emit(rows[-1])
                 next_row += self.cfg.sample_period_s
             if now >= t_end:
                 return rows
             time.sleep(0.2)
 
-    def row(self, minute: int, elapsed: float, hub: _Hub, ws: _WsClient, sumo_up: bool) -> dict:
+    def row(self, minute: float, elapsed: float, hub: _Hub, ws: _WsClient, sumo_up: bool) -> dict:
         rss, heap = {}, {}
         for name, p in self.procs.procs.items():
             if name.startswith("sumo-"):
