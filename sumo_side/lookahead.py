@@ -40,6 +40,7 @@ _EPS = 1e-6
 #: Gap in the global coordinate between two stored sequences [m] (any value > 0 works:
 #: queries are clamped into their own sequence before the search).
 _GAP = 1.0
+_SEQ_CAPACITY = 1024  # [polylines] first capacity of the per-polyline arrays (doubled when full)
 #: A lane walk never takes more lanes than this (guards against cycles in odd nets).
 MAX_WALK_LANES = 64
 #: [m/s] lane walks cover the extra path (speed x reach) of agents up to this speed.
@@ -73,19 +74,37 @@ class PolylineStore:
         self._xy = np.zeros((capacity, 2), np.float64)
         self._g = np.zeros(capacity, np.float64)
         self._m = 0
-        self._base: list[float] = []
-        self._length: list[float] = []
-        self._first: list[int] = []
-        self._last: list[int] = []
-        self._arrays_dirty = True
-        self.base = np.zeros(0)
-        self.length = np.zeros(0)
-        self.first = np.zeros(0, np.int64)
-        self.last = np.zeros(0, np.int64)
+        # per polyline, in arrays grown by doubling: a step that adds one reads them without
+        # rebuilding them from lists (at 10,000 vehicles that took 1.3 ms per step)
+        self._n = 0
+        self._base = np.zeros(_SEQ_CAPACITY)
+        self._length = np.zeros(_SEQ_CAPACITY)
+        self._first = np.zeros(_SEQ_CAPACITY, np.int64)
+        self._last = np.zeros(_SEQ_CAPACITY, np.int64)
 
     @property
     def n(self) -> int:
-        return len(self._base)
+        return self._n
+
+    @property
+    def base(self) -> np.ndarray:
+        """Start of each polyline on the store's one arc-length axis [m]."""
+        return self._base[: self._n]
+
+    @property
+    def length(self) -> np.ndarray:
+        """Length of each polyline [m]."""
+        return self._length[: self._n]
+
+    @property
+    def first(self) -> np.ndarray:
+        """Index of each polyline's first point in ``xy``."""
+        return self._first[: self._n]
+
+    @property
+    def last(self) -> np.ndarray:
+        """Index of each polyline's last point in ``xy``."""
+        return self._last[: self._n]
 
     @property
     def xy(self) -> np.ndarray:
@@ -102,7 +121,8 @@ class PolylineStore:
             raise ValueError("a polyline needs at least one point")
         seg = np.hypot(*np.diff(xy, axis=0).T) if len(xy) > 1 else np.zeros(0)
         s = np.concatenate(([0.0], np.cumsum(seg)))
-        base = (self._base[-1] + self._length[-1] + _GAP) if self._base else 0.0
+        i = self._n
+        base = float(self._base[i - 1] + self._length[i - 1] + _GAP) if i else 0.0
         k = len(xy)
         if self._m + k > len(self._g):
             cap = max(2 * len(self._g), self._m + k)
@@ -110,21 +130,17 @@ class PolylineStore:
             self._g = np.resize(self._g, cap)
         self._xy[self._m : self._m + k] = xy
         self._g[self._m : self._m + k] = base + s
-        self._base.append(base)
-        self._length.append(float(s[-1]))
-        self._first.append(self._m)
-        self._last.append(self._m + k - 1)
+        if i == len(self._base):
+            cap = 2 * i
+            self._base, self._length = np.resize(self._base, cap), np.resize(self._length, cap)
+            self._first, self._last = np.resize(self._first, cap), np.resize(self._last, cap)
+        self._base[i] = base
+        self._length[i] = float(s[-1])
+        self._first[i] = self._m
+        self._last[i] = self._m + k - 1
         self._m += k
-        self._arrays_dirty = True
-        return len(self._base) - 1
-
-    def refresh(self) -> None:
-        if self._arrays_dirty:
-            self.base = np.asarray(self._base, np.float64)
-            self.length = np.asarray(self._length, np.float64)
-            self.first = np.asarray(self._first, np.int64)
-            self.last = np.asarray(self._last, np.int64)
-            self._arrays_dirty = False
+        self._n = i + 1
+        return i
 
     def locate(self, seq: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Segment index ``i`` (into the store) and fraction ``t`` in [0, 1] of the points at
@@ -133,7 +149,6 @@ class PolylineStore:
         One ``searchsorted`` for all queries; it is fastest when the queries come sorted
         by global coordinate (``PathPlanner.compute`` orders them so).
         """
-        self.refresh()
         seq = np.asarray(seq, np.int64)
         s = np.clip(np.asarray(s, np.float64), 0.0, self.length[seq])
         g = self.base[seq] + s
@@ -428,7 +443,6 @@ class PathPlanner:
         on = np.flatnonzero(mode == MODE_LANES)
         st = np.flatnonzero(mode == MODE_STRAIGHT)
         store = self.store
-        store.refresh()
         if len(on):
             ln = lane[on]
             sq = seq[on]

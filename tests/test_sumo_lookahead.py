@@ -229,3 +229,20 @@ def test_polyline_store_many_sequences_vectorised():
     counts, xy = store.pieces(seq[:2], np.array([5.0, 0.0]), np.array([12.0, 20.0]))
     assert list(counts) == [3, 3]
     np.testing.assert_allclose(xy, [[5, 0], [10, 0], [10, 2], [0, 1], [10, 1], [10, 11]])
+
+
+def test_polyline_store_grows_past_its_polyline_capacity_between_queries():
+    """The per-polyline arrays grow by doubling (from 1,024): queries between adds see every
+    polyline added so far, before and after each growth."""
+    store = PolylineStore()
+    for k in range(2_100):
+        store.add(np.array([[0.0, k], [10.0, k], [10.0, k + 10.0]]))
+        if k in (0, 1_023, 1_024, 2_047, 2_048, 2_099):
+            seq = np.arange(k + 1)
+            pts = store.point_at(seq, np.full(k + 1, 15.0))
+            np.testing.assert_allclose(pts[:, 0], 10.0)
+            np.testing.assert_allclose(pts[:, 1], np.arange(k + 1) + 5.0)
+    assert store.n == 2_100 and len(store.base) == len(store.first) == 2_100
+    np.testing.assert_array_equal(store.first, np.arange(2_100) * 3)
+    np.testing.assert_array_equal(store.last, np.arange(2_100) * 3 + 2)
+    np.testing.assert_allclose(store.length, 20.0)
