@@ -81,30 +81,18 @@ class PolylineStore:
         self._length = np.zeros(_SEQ_CAPACITY)
         self._first = np.zeros(_SEQ_CAPACITY, np.int64)
         self._last = np.zeros(_SEQ_CAPACITY, np.int64)
+        self._expose()
+
+    def _expose(self) -> None:
+        """``base`` (start on the store's one arc-length axis [m]), ``length`` [m], ``first``
+        and ``last`` (point indexes in ``xy``) of every polyline so far: views, no copies."""
+        n = self._n
+        self.base, self.length = self._base[:n], self._length[:n]
+        self.first, self.last = self._first[:n], self._last[:n]
 
     @property
     def n(self) -> int:
         return self._n
-
-    @property
-    def base(self) -> np.ndarray:
-        """Start of each polyline on the store's one arc-length axis [m]."""
-        return self._base[: self._n]
-
-    @property
-    def length(self) -> np.ndarray:
-        """Length of each polyline [m]."""
-        return self._length[: self._n]
-
-    @property
-    def first(self) -> np.ndarray:
-        """Index of each polyline's first point in ``xy``."""
-        return self._first[: self._n]
-
-    @property
-    def last(self) -> np.ndarray:
-        """Index of each polyline's last point in ``xy``."""
-        return self._last[: self._n]
 
     @property
     def xy(self) -> np.ndarray:
@@ -140,6 +128,7 @@ class PolylineStore:
         self._last[i] = self._m + k - 1
         self._m += k
         self._n = i + 1
+        self._expose()
         return i
 
     def locate(self, seq: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -226,3 +226,15 @@ class Probe:
             except Exception:
                 pass
         self.session.close()
+
+
+def paths_in(d, pre=()):
+    """Every path (a tuple of keys and indexes) into a nested msgpack document of dicts and
+    lists, the document's own ``()`` first: where a mutation test may edit it."""
+    yield pre
+    if isinstance(d, dict):
+        for k, v in d.items():
+            yield from paths_in(v, pre + (k,))
+    elif isinstance(d, list):
+        for i, v in enumerate(d):
+            yield from paths_in(v, pre + (i,))

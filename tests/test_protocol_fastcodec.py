@@ -36,6 +36,7 @@ from protocol.messages import (
     AgentBatch, PhysicsAgents, PhysicsState, StepAck, StepMessage, TrafficLights, VType,
 )
 from synthetic.traffic import circle_traffic, synthetic_step
+from tests.harness import paths_in
 
 needs_c = pytest.mark.skipif(not FAST_CODEC, reason="protocol._fastcodec not built (or SUMOCO_PURE_CODEC set)")
 
@@ -431,16 +432,6 @@ def test_corrupt_and_hostile_physics():
     _both_decode(_pack(_edit(w, "counters", {b"raw": 1})))
 
 
-def _paths(d, pre=()):
-    yield pre
-    if isinstance(d, dict):
-        for k, v in d.items():
-            yield from _paths(v, pre + (k,))
-    elif isinstance(d, list):
-        for i, v in enumerate(d):
-            yield from _paths(v, pre + (i,))
-
-
 VALUES = [None, True, False, 0, -1, 1, 5, 6, 2**31, 2**63 - 1, 2**64 - 1, 1.5, 1e-6, float("nan"), float("inf"),
           -1e9, 1e10, "", "x" * 1025, "a", "step", b"", b"\x00" * 8, b"\xff" * 8, b"\x00" * 16, [], ["a", "a"],
           ["a", "b"], {}, [1, 2], [["a", "b"]], [1, 4], [2, 0]]
@@ -449,7 +440,7 @@ VALUES = [None, True, False, 0, -1, 1, 5, 6, 2**31, 2**63 - 1, 2**64 - 1, 1.5, 1
 def _mutated(docs: list[dict], rng: random.Random) -> bytes:
     d = copy.deepcopy(rng.choice(docs))
     for _ in range(rng.choice((1, 1, 2, 3))):
-        p = rng.choice(list(_paths(d))[1:])
+        p = rng.choice(list(paths_in(d))[1:])
         target = d
         for k in p[:-1]:
             target = target[k]

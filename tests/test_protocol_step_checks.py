@@ -18,6 +18,7 @@ from protocol import AgentClass, ProtocolError, StepMessage, decode, encode
 from protocol.codec import DEFAULT_LIMITS, FLOAT_BOUNDS, STEP_AGENT_COLUMNS
 from protocol.messages import TrafficLights
 from synthetic.traffic import synthetic_step
+from tests.harness import paths_in
 
 
 def _equal(a, b) -> None:
@@ -56,19 +57,9 @@ VALUES = [None, True, 0, -1, 1, 2**31, 2**63 - 1, 1.5, float("nan"), float("inf"
           "x" * 1025, "a", b"", b"\x00" * 8, b"\xff" * 8, [], ["a", "a"], ["a", "b"], {}, [1, 2], [["a", "b"]]]
 
 
-def _paths(d, pre=()):
-    yield pre
-    if isinstance(d, dict):
-        for k, v in d.items():
-            yield from _paths(v, pre + (k,))
-    elif isinstance(d, list):
-        for i, v in enumerate(d):
-            yield from _paths(v, pre + (i,))
-
-
 def _mutate(d: dict, rng: random.Random) -> None:
     for _ in range(rng.choice((1, 1, 2))):
-        p = rng.choice(list(_paths(d))[1:])
+        p = rng.choice(list(paths_in(d))[1:])
         target = d
         for k in p[:-1]:
             target = target[k]
