@@ -44,3 +44,26 @@ def test_scene_publisher_thins_by_simulated_time_and_survives_bad_payloads():
     assert not pub.feed(keys.step, b"\x93garbage") and pub.errors == 1
     assert not pub.feed(keys.ack, b"")  # not a scene key: ignored, not an error
     assert pub.errors == 1
+
+
+def test_offer_thins_physics_states_before_they_are_queued_and_feed_agrees():
+    ctx = foxglove.Context()
+    fake = FakeRun(grid=1, n=10, run="s")
+    keys = Keys("sumoco", "s", "paper")
+    pub = ScenePublisher(ctx, min_period_s=0.5)
+    offered = fed = 0
+    for k in range(20):  # 2 s at 10 Hz: 20 steps and 20 physics states
+        step = encode(fake.step(k))
+        state = encode(fake.physics(k, fake.step(k).time, k))
+        assert pub.offer(keys.step, step)  # steps always pass: the sizes come from each one
+        pub.feed(keys.step, step)
+        if pub.offer(keys.physics_state, state):
+            offered += 1
+            fed += pub.feed(keys.physics_state, state)
+    # 4 physics states reach the worker instead of 20, and every one of them is drawn.
+    assert offered == 4 and fed == 4
+    assert pub.offer(keys.physics_state, b"\x93garbage")  # undecodable: feed counts the error
+    assert not pub.feed(keys.physics_state, b"\x93garbage") and pub.errors == 1
+    # A run that starts again (time back by more than 1 s) is drawn at once.
+    assert pub.offer(keys.physics_state, encode(fake.physics(0, 0.0, 0)))
+    assert ScenePublisher(ctx, min_period_s=0.0).offer(keys.physics_state, b"")  # no thinning: all pass

@@ -324,7 +324,7 @@ class LiveRecorder:
                     raise
                 self.written += 1
                 self._track_static_version(topic, payload)
-                if self._scene_worker is not None:
+                if self._scene_worker is not None and self._scene.offer(topic, payload):
                     self._scene_worker.put(topic, payload, stamp)
             except Exception:  # a write problem is logged and counted; recording goes on
                 self.write_errors += 1

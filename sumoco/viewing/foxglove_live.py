@@ -48,7 +48,9 @@ class LiveScene:
         self._thread = threading.Thread(target=self._network_loop, name="foxglove-network", daemon=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self.worker.put(str(sample.key_expr), sample.payload.to_bytes())
+        topic, payload = str(sample.key_expr), sample.payload.to_bytes()
+        if self.scene.offer(topic, payload):
+            self.worker.put(topic, payload)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT and str(sample.key_expr) == self.keys.sumo_alive:
