@@ -65,6 +65,18 @@ def test_expected_agents_fit_without_a_recompile():
     w.close()
 
 
+def test_a_world_holding_the_agents_it_was_sized_for_does_not_start_growing():
+    from physics_side.pools import HEADROOM, LOW_WATER_PARTS
+
+    assert HEADROOM > 1.0 / (1.0 - 1.0 / LOW_WATER_PARTS)
+    for n in (150, 165, 600):
+        w = PhysicsWorld(0.005, 4, shards=1, threads=1, initial={}, expect={AgentClass.PASSENGER: n})
+        p = _car_pool(w)
+        w.allocate([f"v{i}" for i in range(n)], np.full(n, p), np.arange(n) * 30.0, np.zeros(n))
+        assert not w.growing, n  # no model compiled on a second thread for agents that were expected
+        w.close()
+
+
 def test_growth_is_compiled_in_the_background_and_keeps_live_agents():
     w = PhysicsWorld(0.005, 4, shards=1, initial={AgentClass.PASSENGER: 40}, pool_chunk=8)
     p = _car_pool(w)
