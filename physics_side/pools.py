@@ -140,7 +140,10 @@ class SlotPools:
         self.shards = max(int(shards), math.ceil(sum(demand.values()) / SLOTS_PER_SIM))
         for cls in demand:
             if demand[cls] > 0:
-                self._add_pool(M.default_key(cls), max(initial.get(cls, 0), math.ceil(demand[cls] / self.shards)))
+                # the demand spread over the simulations there are: with more simulations than
+                # ``shards`` (SLOTS_PER_SIM) ``initial`` per simulation would multiply it (measured:
+                # 508 per simulation for 2 shards became 4 x 508 slots for 1,016)
+                self._add_pool(M.default_key(cls), math.ceil(demand[cls] / self.shards))
         self.generation = 0
         self.agent_slot: dict[str, int] = {}
         self.slot_agent: list[str | None] = []

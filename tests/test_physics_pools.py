@@ -77,6 +77,16 @@ def test_a_world_holding_the_agents_it_was_sized_for_does_not_start_growing():
         w.close()
 
 
+def test_initial_slots_beyond_one_simulation_are_spread_not_multiplied():
+    # 508 per simulation x 2 shards = 1,016 slots, more than two simulations hold: four of 254
+    w = PhysicsWorld(0.005, 4, shards=2, threads=1, initial={AgentClass.PASSENGER: 508})
+    assert w.shards == 4 and w.capacity == 1016
+    w.close()
+    w = PhysicsWorld(0.005, 4, shards=2, threads=1, initial={AgentClass.PASSENGER: 40})
+    assert w.shards == 2 and w.capacity == 80  # within SLOTS_PER_SIM: per simulation, as configured
+    w.close()
+
+
 def test_growth_is_compiled_in_the_background_and_keeps_live_agents():
     w = PhysicsWorld(0.005, 4, shards=1, initial={AgentClass.PASSENGER: 40}, pool_chunk=8)
     p = _car_pool(w)
