@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from itertools import repeat
 from types import MappingProxyType
 from typing import NamedTuple
 
@@ -244,7 +245,7 @@ class Fleet:
         rows = np.flatnonzero((a.flags & AgentFlag.INSIDE_VEHICLE) == 0)
         st.skipped = a.n - len(rows)
         self.counters["skipped_inside_vehicle"] += st.skipped
-        ids = [a.ids[i] for i in rows]
+        ids = list(a.ids) if len(rows) == a.n else [a.ids[i] for i in rows]  # (usually nobody rides)
         if msg.vtypes is not None:  # a step carries the table only when it changed (SPEC 3.1)
             self._vtypes = list(msg.vtypes)
         prev, old = self._membership(msg, rows, ids, resync, st)
@@ -258,12 +259,15 @@ class Fleet:
         """Park agents that left or changed type; each agent's row in the previous step (-1:
         none) and the previous sample (None after a resync or a stale one: ``sync.stale``)."""
         w, a = self.world, msg.agents
-        new_set = set(ids)
-        gone = [aid for aid in self.ids if aid not in new_set]
-        if gone:
-            w.park(w.slot_of(gone))
-            st.parked = len(gone)
-        prev = np.fromiter((self._index.get(aid, -1) for aid in ids), np.int64, len(ids))
+        if ids == self.ids:  # the same agents in the same order (a C-level compare): nothing to look up
+            prev = np.arange(len(ids))
+        else:
+            new_set = set(ids)
+            gone = [aid for aid in self.ids if aid not in new_set]
+            if gone:
+                w.park(w.slot_of(gone))
+                st.parked = len(gone)
+            prev = np.fromiter(map(self._index.get, ids, repeat(-1)), np.int64, len(ids))
         retyped = sync.retyped(prev, self.wire_vtype, self.wire_cls, len(self._index), a.vtype[rows], a.cls[rows])
         if len(retyped):
             w.park(w.slot_of([ids[i] for i in retyped]))
@@ -305,7 +309,7 @@ class Fleet:
         cls, flags = a.cls[rows], a.flags[rows]
         self.preset = preset = self._preset_lut[cls]
         self.ids = ids
-        self._index = {aid: i for i, aid in enumerate(ids)}
+        self._index = dict(zip(ids, range(len(ids))))
         self.wire_vtype = a.vtype[rows].astype(np.uint16)
         self.wire_cls = cls.astype(np.uint8)
         self.kind = self.world.tables.kind[self.slots].astype(np.int8)

@@ -21,6 +21,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from itertools import repeat
 
 import mujoco
 import numpy as np
@@ -168,8 +169,7 @@ class SlotPools:
 
     def slot_of(self, ids: list[str]) -> np.ndarray:
         """Current slot of each agent id, -1 when not in the world."""
-        get = self.agent_slot.get
-        return np.fromiter((get(a, -1) for a in ids), np.int64, len(ids))
+        return np.fromiter(map(self.agent_slot.get, ids, repeat(-1)), np.int64, len(ids))
 
     # ------------------------------------------------------------------ pools / compile
 

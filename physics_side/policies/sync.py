@@ -15,6 +15,7 @@ placed, and a standing one SUMO slides sideways is carried along the slide (slid
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import repeat
 from types import SimpleNamespace
 from typing import NamedTuple
 
@@ -240,7 +241,7 @@ class Samples:
             ref = self._interpolation(msg, rows, ids, a.flags[rows], cur, yaw_rate, old is not None, hop | ped_hop)
         self.newest = cur
         self._batch, self._time = a, msg.time
-        self._rows = {aid: int(r) for aid, r in zip(ids, rows)}
+        self._rows = dict(zip(ids, rows.tolist()))
         return Sample(x, y, speed, yaw_rate, ref, side_rate, slow, hop, ped_hop)
 
     def _interpolation(self, msg: StepMessage, rows: np.ndarray, ids: list[str], flags: np.ndarray, cur: Reference,
@@ -251,7 +252,7 @@ class Samples:
         step back."""
         L = float(msg.step_length)
         pb = self._batch if have_prev else None
-        src = np.fromiter((self._rows.get(i, -1) for i in ids), np.int64, len(ids)) if pb is not None \
+        src = np.fromiter(map(self._rows.get, ids, repeat(-1)), np.int64, len(ids)) if pb is not None \
             else np.full(len(ids), -1, np.int64)
         known = (src >= 0) & ((flags & AgentFlag.JUMPED) == 0) & ~hop
         n_prev = pb.n if pb is not None else 0
