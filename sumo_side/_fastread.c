@@ -89,18 +89,13 @@ static int lookup(PyObject *table, PyObject *key, int64_t *out) {
     return small_int(v, out);
 }
 
-/* One result dict into row i of the columns. 1 ok, 0 decline, -1 error. */
-static int take_row(PyObject *r, Py_ssize_t i, Py_ssize_t n, double *f, int64_t *c, PyObject *lanes,
-                    PyObject *types, pending_t *pending, PyObject *routes) {
-    PyObject *v[NKEYS], *x, *y;
+/* Row i of the columns from the variables v of one result. 1 ok, 0 decline, -1 error. */
+static int take_values(PyObject **v, Py_ssize_t i, Py_ssize_t n, double *f, int64_t *c, PyObject *lanes,
+                       PyObject *types, pending_t *pending, PyObject *routes) {
+    PyObject *x, *y;
     int overflow = 0, rc;
     long long sig;
     int64_t idx;
-    if (!PyDict_CheckExact(r)) return 0;
-    for (int k = 0; k < NKEYS; k++) {
-        v[k] = PyDict_GetItemWithError(r, g_keys[k]);  /* borrowed, alive while r is */
-        if (v[k] == NULL) return PyErr_Occurred() ? -1 : 0;
-    }
     /* position: exactly two floats (the Python path flattens whatever it gets) */
     if (!PyTuple_CheckExact(v[K_POS]) || PyTuple_GET_SIZE(v[K_POS]) != 2) return 0;
     x = PyTuple_GET_ITEM(v[K_POS], 0);
@@ -138,6 +133,23 @@ static int take_row(PyObject *r, Py_ssize_t i, Py_ssize_t n, double *f, int64_t 
     Py_INCREF(v[K_ROUTE]);
     PyList_SET_ITEM(routes, i, v[K_ROUTE]);
     return 1;
+}
+
+/* One result dict into row i of the columns. 1 ok, 0 decline, -1 error. The values are held
+ * while they are read (a lookup in the caller's dicts may run Python code). */
+static int take_row(PyObject *r, Py_ssize_t i, Py_ssize_t n, double *f, int64_t *c, PyObject *lanes,
+                    PyObject *types, pending_t *pending, PyObject *routes) {
+    PyObject *v[NKEYS];
+    int k, rc;
+    if (!PyDict_CheckExact(r)) return 0;
+    for (k = 0; k < NKEYS; k++) {
+        v[k] = PyDict_GetItemWithError(r, g_keys[k]);  /* borrowed */
+        if (v[k] == NULL) break;
+        Py_INCREF(v[k]);
+    }
+    rc = k < NKEYS ? (PyErr_Occurred() ? -1 : 0) : take_values(v, i, n, f, c, lanes, types, pending, routes);
+    while (k-- > 0) Py_DECREF(v[k]);
+    return rc;
 }
 
 /* A writable C-contiguous buffer of exactly `bytes` bytes with 8-byte items. */
