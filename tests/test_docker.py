@@ -37,6 +37,8 @@ def test_dockerfile_copies_what_exists_and_runs_our_command(name):
             for src in line.split()[1:-1]:
                 assert (ROOT / src).exists(), f"{name}: COPY source {src} missing"
     assert 'ENTRYPOINT ["sumoco",' in text
+    # setup.py builds the C fast paths: without it (or a compiler) the image runs the slow ones
+    assert "setup.py" in text and "gcc" in text
 
 
 def test_compose_file_parses_and_wires_router():
