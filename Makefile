@@ -22,6 +22,9 @@ $(STAMP): pyproject.toml setup.py protocol/_fastcodec.c | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[all,test]'
 	touch $(STAMP)
 
+# and physics_side._pathkernel (PathSet.at), also compiled in place
+$(STAMP): physics_side/_pathkernel.c
+
 $(NODE_STAMP): package.json package-lock.json
 	npm ci --no-audit --no-fund --ignore-scripts --loglevel=error
 	touch $(NODE_STAMP)

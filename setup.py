@@ -6,4 +6,7 @@ its pure-Python path.
 
 from setuptools import Extension, setup
 
-setup(ext_modules=[Extension("protocol._fastcodec", ["protocol/_fastcodec.c"], optional=True)])
+setup(ext_modules=[
+    Extension("protocol._fastcodec", ["protocol/_fastcodec.c"], optional=True),
+    Extension("physics_side._pathkernel", ["physics_side/_pathkernel.c"], optional=True),
+])
