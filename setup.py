@@ -1,8 +1,9 @@
-"""The C fast paths: the wire codec's (protocol/_fastcodec.c) and the SUMO side's vehicle
-read (sumo_side/_fastread.c); everything else is in pyproject.toml.
+"""The C fast paths: the wire codec's (protocol/_fastcodec.c), the SUMO side's vehicle read
+(sumo_side/_fastread.c) and the physics side's path evaluation (physics_side/_pathkernel.c);
+everything else is in pyproject.toml.
 
-``optional=True``: without a compiler the install still succeeds and protocol.codec and
-sumo_side.simulation run their pure-Python paths.
+``optional=True``: without a compiler the install still succeeds and protocol.codec,
+sumo_side.simulation and physics_side.reference run their pure-Python paths.
 """
 
 from setuptools import Extension, setup
@@ -10,4 +11,5 @@ from setuptools import Extension, setup
 setup(ext_modules=[
     Extension("protocol._fastcodec", ["protocol/_fastcodec.c"], optional=True),
     Extension("sumo_side._fastread", ["sumo_side/_fastread.c"], optional=True),
+    Extension("physics_side._pathkernel", ["physics_side/_pathkernel.c"], optional=True),
 ])

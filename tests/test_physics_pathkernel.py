@@ -1,0 +1,267 @@
+"""The C fast path of ``PathSet.at`` (physics_side._pathkernel) against its Python body.
+
+Every output bit for bit (the sign of a zero included; NaN at the same places) on recorded
+SUMO paths, synthetic traffic and random ragged polylines (repeated vertices, one-segment
+paths, sampled curves), at arc lengths before the start, past the end, on the vertices
+(and one ulp either side), on the blend boundaries, NaN and infinite, in shapes (n,),
+(k, n) and more, contiguous or not.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from physics_side import reference
+from physics_side.reference import FAST_PATHS, MIN_SEG_M, PathSet, Reference
+from synthetic.traffic import circle_traffic
+
+needs_c = pytest.mark.skipif(not FAST_PATHS, reason="physics_side._pathkernel not built (or SUMOCO_PURE_PHYSICS set)")
+FIELDS = ("x", "y", "heading", "curvature")
+
+
+def _built() -> bool:
+    return importlib.util.find_spec("physics_side._pathkernel") is not None
+
+
+def test_ci_builds_the_extension():
+    """CI installs with a compiler: losing the extension there must not go unnoticed (a CI
+    job may still run the Python path on purpose, with SUMOCO_PURE_PHYSICS=1)."""
+    if not os.environ.get("CI"):
+        pytest.skip("CI not set")
+    assert _built(), "physics_side._pathkernel was not built"
+    assert FAST_PATHS is (os.environ.get("SUMOCO_PURE_PHYSICS", "") in ("", "0"))
+
+
+def test_pure_physics_variable_turns_the_fast_path_off():
+    code = "from physics_side.reference import FAST_PATHS; print(FAST_PATHS)"
+    env = dict(os.environ, SUMOCO_PURE_PHYSICS="1")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+    env["SUMOCO_PURE_PHYSICS"] = "0"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == str(_built())
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _bits_equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """Same shape, NaN at the same places, every other value with the same bits."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape or a.dtype != np.float64 or b.dtype != np.float64:
+        return False
+    na, nb = np.isnan(a), np.isnan(b)
+    return bool(np.array_equal(na, nb) and np.array_equal(a[~na].view(np.uint64), b[~nb].view(np.uint64)))
+
+
+def _same(ps: PathSet, s) -> None:
+    """``at`` (the C path when built) and the Python body agree bit for bit on ``s``."""
+    with np.errstate(invalid="ignore", over="ignore"):  # inf * 0 on purpose (the non-finite queries)
+        c = ps.at(s)
+        p = ps._at_python(np.asarray(s, np.float64))
+    for f in FIELDS:
+        assert _bits_equal(getattr(c, f), getattr(p, f)), f
+
+
+def _queries(ps: PathSet, rng: np.random.Generator) -> list[np.ndarray]:
+    """Arc lengths that probe every branch: random ones around [0, total], each agent's
+    vertices (exactly and one ulp either side), its blend boundaries, the ends, and the
+    non-finite values."""
+    n = ps.n
+    total = ps.total
+    qs = [rng.uniform(-10.0, 1.2 * total + 10.0), np.zeros(n), -np.zeros(n), total.copy(),
+          np.nextafter(total, np.inf), np.nextafter(total, -np.inf), np.full(n, -1e-300), total + 1e9]
+    # every vertex's arc length and the blend boundaries of its segment, one vertex of each agent per row
+    counts = np.diff(ps.offsets)
+    for r in range(int(counts.max())):
+        v = np.minimum(ps.offsets[:-1] + r, ps.offsets[1:] - 1)
+        c = ps.cum[v]
+        qs += [c, np.nextafter(c, np.inf), np.nextafter(c, -np.inf)]
+        j = np.minimum(v, ps.last_seg)
+        c0, L, bs, be = ps._seg[4, j], ps._seg[5, j], ps._seg[6, j], ps._seg[7, j]
+        qs += [c0 + bs, c0 + L - be, np.nextafter(c0 + bs, -np.inf), np.nextafter(c0 + L - be, np.inf)]
+    special = np.array([np.nan, np.inf, -np.inf, -0.0, 0.0, -1e308, 1e308, 5e-324])
+    qs.append(np.resize(special, n))
+    qs.append(np.resize(special[::-1], n))
+    return qs
+
+
+def _check_everything(ps: PathSet, seed: int = 0) -> None:
+    rng = np.random.default_rng(seed)
+    qs = _queries(ps, rng)
+    for q in qs:
+        _same(ps, q)
+    _same(ps, np.stack(qs))  # (k, n) in one call
+    _same(ps, np.stack(qs[:6]).reshape(2, 3, ps.n))  # more leading dimensions
+
+
+def _random_paths(rng: np.random.Generator, n: int, max_vertices: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """n ragged random-walk polylines with every kind of segment: long and short, sampled
+    curves, exactly repeated vertices (zero length, floored at MIN_SEG_M), 1-segment paths."""
+    counts = rng.integers(2, max_vertices + 1, n)
+    counts[rng.random(n) < 0.2] = 2  # one segment
+    off = np.concatenate(([0], np.cumsum(counts)))
+    parts = []
+    for c in counts:
+        kind = rng.integers(4)
+        if kind == 0:  # a random walk, steps from mm to 100 m
+            steps = rng.normal(size=(c - 1, 2)) * 10.0 ** rng.uniform(-3, 2, (c - 1, 1))
+        elif kind == 1:  # a sampled arc (SUMO's internal junction lanes)
+            th = np.cumsum(np.full(c - 1, rng.uniform(-0.6, 0.6)))
+            steps = rng.uniform(0.5, 3.0) * np.c_[np.cos(th), np.sin(th)]
+        elif kind == 2:  # straight lane segments with sharp corners
+            th = rng.choice([0.0, np.pi / 2, -np.pi / 2, np.pi], c - 1)
+            steps = rng.uniform(5.0, 80.0, (c - 1, 1)) * np.c_[np.cos(th), np.sin(th)]
+        else:  # a walk around the +-pi seam of the heading
+            th = np.pi + rng.normal(0, 0.3, c - 1)
+            steps = rng.uniform(0.1, 10.0, (c - 1, 1)) * np.c_[np.cos(th), np.sin(th)]
+        steps[rng.random(c - 1) < 0.15] = 0.0  # a repeated vertex
+        start = rng.uniform(-3000.0, 3000.0, 2)
+        parts.append(np.vstack([start, start + np.cumsum(steps, axis=0)]))
+    return off, np.vstack(parts)
+
+
+# --------------------------------------------------------------------------- equality
+
+
+@needs_c
+def test_recorded_sumo_paths():
+    """240 steps' paths of a bicycle in a SUMO grid scenario (tests/data), as 240 agents, both
+    as they come (repeated junction points) and deduplicated like a step's paths."""
+    d = np.load(Path(__file__).parent / "data" / "bicycle_waiting_beside_a_zigzag_lane.npz")
+    off = np.asarray(d["path_offsets"], np.int64)
+    xy = np.asarray(d["path_xy"], np.float64)
+    keep = np.flatnonzero(np.diff(off) >= 2)
+    counts = np.diff(off)[keep]
+    src = np.concatenate([np.arange(off[k], off[k + 1]) for k in keep])
+    off2 = np.concatenate(([0], np.cumsum(counts)))
+    _check_everything(PathSet(off2, xy[src]))
+    n = len(off) - 1
+    ps = PathSet.concat_fallback(off, xy, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+    _check_everything(ps, seed=1)
+
+
+@needs_c
+@pytest.mark.parametrize("n", [1, 30, 1000])
+def test_synthetic_traffic_paths(n):
+    msg = circle_traffic(n, 7)
+    ps = Reference.from_batch(msg.time, msg.agents).path
+    assert ps.n == n
+    _check_everything(ps, seed=n)
+
+
+@needs_c
+@pytest.mark.parametrize("seed", range(12))
+def test_random_ragged_polylines(seed):
+    rng = np.random.default_rng(seed)
+    off, xy = _random_paths(rng, int(rng.integers(1, 80)))
+    ps = PathSet(off, xy)
+    assert (ps.seglen >= MIN_SEG_M).all()
+    _check_everything(ps, seed)
+
+
+@needs_c
+def test_synthesised_arcs_and_a_single_segment():
+    n = 5
+    ps = PathSet.concat_fallback(np.zeros(0), np.zeros((0, 2)), np.arange(n, dtype=float), np.zeros(n),
+                                 np.linspace(-3, 3, n), np.array([0.0, 0.1, -0.5, 1e-9, 2.0]))
+    _check_everything(ps)
+    ps = PathSet(np.array([0, 2]), np.array([[1.0, 2.0], [1.0, 2.0]]))  # one zero-length segment
+    _check_everything(ps)
+    ps = PathSet(np.array([0, 3]), np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]))  # only repeats
+    _check_everything(ps)
+
+
+@needs_c
+def test_shapes_layouts_and_empty():
+    rng = np.random.default_rng(3)
+    off, xy = _random_paths(rng, 17)
+    ps = PathSet(off, xy)
+    s = rng.uniform(-5, 100, (4, 17))
+    _same(ps, np.asfortranarray(s))  # not C-contiguous
+    _same(ps, s[:, ::-1][:, ::-1][::2])  # strided rows
+    _same(ps, np.broadcast_to(np.linspace(0, 50, 6)[:, None], (6, 17)))  # zero strides (policies/carry.py)
+    _same(ps, s[0].astype(np.float32))  # converted to float64 first
+    _same(ps, list(s[1]))
+    _same(ps, np.zeros((0, 17)))
+    _same(ps, 3.0)  # a scalar: broadcast by the Python body
+    p = ps.at(s)
+    assert all(getattr(p, f).shape == (4, 17) and getattr(p, f).dtype == np.float64 for f in FIELDS)
+    empty = PathSet(np.zeros(1, np.int64), np.zeros((0, 2)))
+    for shape in [(0,), (3, 0)]:
+        p = empty.at(np.zeros(shape))
+        assert all(getattr(p, f).shape == shape for f in FIELDS)
+
+
+@needs_c
+def test_reference_evaluations_go_through_the_kernel(monkeypatch):
+    """The control tick's calls (Reference.at / at_and_project / point_at) reach the C path
+    and give what the Python body gives."""
+    msg = circle_traffic(40, 3)
+    ref = Reference.from_batch(msg.time, msg.agents)
+    calls = []
+    kernel = reference._kernel
+
+    class Spy:
+        @staticmethod
+        def at(*args):
+            calls.append(args[4].shape)
+            return kernel.at(*args)
+
+    monkeypatch.setattr(reference, "_kernel", Spy)
+    r, (s, lat, g) = ref.at_and_project(0.1, msg.agents.x + 0.2, msg.agents.y, np.zeros(40))
+    assert calls == [(2, 40)]
+    monkeypatch.setattr(reference, "_kernel", None)
+    ref2 = Reference.from_batch(msg.time, msg.agents)
+    r2, (s2, lat2, g2) = ref2.at_and_project(0.1, msg.agents.x + 0.2, msg.agents.y, np.zeros(40))
+    for a, b in [(r.x, r2.x), (r.y, r2.y), (r.yaw, r2.yaw), (r.curvature, r2.curvature), (s, s2), (lat, lat2),
+                 (g.x, g2.x), (g.heading, g2.heading)]:
+        assert _bits_equal(a, b)
+
+
+# --------------------------------------------------------------------------- errors
+
+
+@needs_c
+def test_kernel_rejects_what_it_cannot_read():
+    """Wrong dtypes, shapes, layouts and segment ranges raise a clear error (never a wrong
+    answer or a crash)."""
+    ps = PathSet(np.array([0, 3, 5]), np.array([[0.0, 0], [1, 0], [2, 1], [5, 5], [6, 6]]))
+    k = reference._kernel
+    s = np.array([0.5, 0.5])
+    out = np.empty((4, 2))
+    args = [ps._seg, ps.key, ps._agents_f, ps._agents_i, s, out]
+    k.at(*args)
+    assert _bits_equal(out[0], ps._at_python(s).x)
+
+    def fails(i, value, exc, match):
+        a = list(args)
+        a[i] = value
+        with pytest.raises(exc, match=match):
+            k.at(*a)
+
+    fails(0, ps._seg.astype(np.float32), TypeError, "seg: needs float64")
+    fails(0, np.asfortranarray(ps._seg), TypeError, "seg: needs a C-contiguous")
+    fails(0, ps._seg[:14], ValueError, r"seg: needs shape \(15, 4\)")
+    fails(1, ps.key[:-1], ValueError, r"key: needs shape \(5,\)")
+    fails(2, ps._agents_f[:, :1], TypeError, "agents_f: needs a C-contiguous")
+    fails(3, ps._agents_i.astype(np.int32), TypeError, "agents_i: needs int64")
+    fails(3, np.array([[0, 3], [1, 4]]), ValueError, "outside seg")  # last_seg 4 of 4 segments
+    fails(3, np.array([[0, 3], [1, 2]]), ValueError, "outside seg")  # last_seg < first
+    fails(4, s.astype(np.int64), TypeError, "s: needs float64")
+    fails(4, np.float64(1.0), ValueError, "s: needs 1 to 8 dimensions")
+    fails(5, np.empty((4, 3)), ValueError, r"out: needs shape \(4, \*s.shape\)")
+    fails(5, np.empty((2, 4)).T, TypeError, "out: needs a writable C-contiguous")
+    ro = np.empty((4, 2))
+    ro.flags.writeable = False
+    fails(5, ro, TypeError, "out: needs a writable")
+    fails(5, b"x" * 64, TypeError, "out: needs a writable")
+    with pytest.raises(TypeError, match="takes 6 arguments"):
+        k.at(*args[:5])
