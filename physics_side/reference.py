@@ -20,14 +20,13 @@ Angles here are MuJoCo yaw [rad, ccw from east]; positions are SUMO/MuJoCo x, y 
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from physics_side.kinematics import concat_ranges
 from protocol.frames import sumo_angle_to_yaw, wrap_pi
+from runtime.native import optional_extension
 
 _BIG = 1.0e6  # [m] arc-length gap between agents in the global search key (> any path)
 _SEG_ROWS = 15  # rows of the per-segment table (``PathSet._segment_table``, unpacked in ``at``)
@@ -57,19 +56,8 @@ DECEL_CARRY = 0.5  # [1]
 DECEL_CARRY_STEPS_S = (0.5, 1.0)  # [s]
 
 
-def _load_kernel() -> Any:
-    """The C fast path of ``PathSet.at`` (``physics_side._pathkernel``); None when it is not
-    built (no compiler at install) or SUMOCO_PURE_PHYSICS is set."""
-    if os.environ.get("SUMOCO_PURE_PHYSICS", "") not in ("", "0"):
-        return None
-    try:
-        from physics_side import _pathkernel
-    except ImportError:
-        return None
-    return _pathkernel
-
-
-_kernel = _load_kernel()
+# The C fast path of ``PathSet.at``; None when it is not built or SUMOCO_PURE_PHYSICS is set.
+_kernel = optional_extension("physics_side._pathkernel", "SUMOCO_PURE_PHYSICS")
 #: True when ``PathSet.at`` runs in C (``physics_side._pathkernel``, bit-identical to its
 #: Python body, which runs otherwise).
 FAST_PATHS: bool = _kernel is not None

@@ -34,6 +34,7 @@ from protocol.messages import (
     TrafficLights,
     VType,
 )
+from runtime.native import optional_extension
 from sumo_side.config import SumoConfig
 from sumo_side.lanes import LaneGraph, build_static, tls_link_table
 from sumo_side.tables import TlsTable, VTypeTable
@@ -66,20 +67,11 @@ _PERSON_ROW = operator.itemgetter(V_POS, V_ANGLE, V_SPEED, V_LANEPOS, V_LANE, V_
 TLS_VARS = (TL_STATE, TL_PHASE, TL_NEXT, TL_PROGRAM)
 
 
-def _load_fast():
-    """The C vehicle read, configured with ``_VEHICLE_ROW``'s variables; None when it is not
-    built (no compiler at install) or SUMOCO_PURE_READ is set."""
-    if os.environ.get("SUMOCO_PURE_READ", "") not in ("", "0"):
-        return None
-    try:
-        from sumo_side import _fastread
-    except ImportError:
-        return None
-    _fastread.configure((V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS, V_LANE, V_TYPE, V_ROUTE))
-    return _fastread
-
-
-_fast = _load_fast()
+# The C vehicle read, configured with ``_VEHICLE_ROW``'s variables; None when it is not
+# built or SUMOCO_PURE_READ is set.
+_fast = optional_extension("sumo_side._fastread", "SUMOCO_PURE_READ")
+if _fast is not None:
+    _fast.configure((V_POS, V_ANGLE, V_SPEED, V_SIGNALS, V_LANEPOS, V_LANE, V_TYPE, V_ROUTE))
 #: True when the vehicles are read through the C fast path (``sumo_side._fastread``).
 FAST_READ: bool = _fast is not None
 #: [m] beyond speed x step length, a position change this large is a jump (flag JUMPED);

@@ -170,21 +170,17 @@ class ScenePublisher:
             t = peek(payload, ("t",), self.limits).get("t")
         except Exception:  # feed decodes it, counts the error and says why
             return True
-        if not isinstance(t, float):
-            return True
-        last = self._offered_t.get(topic)
-        if last is not None and last - 1.0 <= t < last + self.min_period_s - 1e-6:  # back > 1 s: restart
-            self.thinned += 1
-            return False
-        self._offered_t[topic] = t
-        return True
+        return not isinstance(t, float) or self._due(topic, t, self._offered_t)
 
-    def _due(self, key: str, t: float) -> bool:
-        last = self._last_t.get(key)
+    def _due(self, key: str, t: float, book: dict[str, float] | None = None) -> bool:
+        """Whether ``key``'s message at ``t`` is drawn, by the last drawn time in ``book``
+        (``feed``'s unless given)."""
+        book = self._last_t if book is None else book
+        last = book.get(key)
         if last is not None and last - 1.0 <= t < last + self.min_period_s - 1e-6:  # back > 1 s: restart
             self.thinned += 1
             return False
-        self._last_t[key] = t
+        book[key] = t
         return True
 
     def feed(self, topic: str, payload: bytes, stamp_ns: int | None = None) -> bool:
