@@ -9,10 +9,6 @@ paths, sampled curves), at arc lengths before the start, past the end, on the ve
 
 from __future__ import annotations
 
-import importlib.util
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,29 +20,6 @@ from synthetic.traffic import circle_traffic
 
 needs_c = pytest.mark.skipif(not FAST_PATHS, reason="physics_side._pathkernel not built (or SUMOCO_PURE_PHYSICS set)")
 FIELDS = ("x", "y", "heading", "curvature")
-
-
-def _built() -> bool:
-    return importlib.util.find_spec("physics_side._pathkernel") is not None
-
-
-def test_ci_builds_the_extension():
-    """CI installs with a compiler: losing the extension there must not go unnoticed (a CI
-    job may still run the Python path on purpose, with SUMOCO_PURE_PHYSICS=1)."""
-    if not os.environ.get("CI"):
-        pytest.skip("CI not set")
-    assert _built(), "physics_side._pathkernel was not built"
-    assert FAST_PATHS is (os.environ.get("SUMOCO_PURE_PHYSICS", "") in ("", "0"))
-
-
-def test_pure_physics_variable_turns_the_fast_path_off():
-    code = "from physics_side.reference import FAST_PATHS; print(FAST_PATHS)"
-    env = dict(os.environ, SUMOCO_PURE_PHYSICS="1")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
-    env["SUMOCO_PURE_PHYSICS"] = "0"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == str(_built())
 
 
 # --------------------------------------------------------------------------- helpers

@@ -1,0 +1,45 @@
+"""The optional C fast paths (built by setup.py): present in CI, and each one's environment
+variable turns it off. Each path's own tests compare it with its Python path."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import subprocess
+import sys
+
+import pytest
+
+# (extension, module and flag that say whether it runs, variable that forces Python, extra condition)
+EXTENSIONS = [
+    ("protocol._fastcodec", "protocol.codec", "FAST_CODEC", "SUMOCO_PURE_CODEC", sys.byteorder == "little"),
+    ("sumo_side._fastread", "sumo_side.simulation", "FAST_READ", "SUMOCO_PURE_READ", True),
+    ("physics_side._pathkernel", "physics_side.reference", "FAST_PATHS", "SUMOCO_PURE_PHYSICS", True),
+]
+IDS = [e[0] for e in EXTENSIONS]
+
+
+def _built(ext: str, usable: bool) -> bool:
+    return importlib.util.find_spec(ext) is not None and usable
+
+
+@pytest.mark.parametrize("ext, module, flag, env, usable", EXTENSIONS, ids=IDS)
+def test_ci_builds_the_extension(ext, module, flag, env, usable):
+    """CI installs with a compiler: losing an extension there must not go unnoticed (a CI
+    job may still run the Python path on purpose, with the variable set)."""
+    if not os.environ.get("CI"):
+        pytest.skip("CI not set")
+    assert _built(ext, usable), f"{ext} was not built"
+    assert getattr(importlib.import_module(module), flag) is (os.environ.get(env, "") in ("", "0"))
+
+
+@pytest.mark.parametrize("ext, module, flag, env, usable", EXTENSIONS, ids=IDS)
+def test_the_variable_turns_the_fast_path_off(ext, module, flag, env, usable):
+    code = f"from {module} import {flag}; print({flag})"
+    environ = dict(os.environ, **{env: "1"})
+    out = subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+    environ[env] = "0"
+    out = subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == str(_built(ext, usable))
