@@ -20,7 +20,7 @@ is over its share, else to the least-loaded shard.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cached_property
 from typing import NamedTuple
 
@@ -33,6 +33,7 @@ from physics_side.layout import FREE_NQ, FREE_NV, FREE_POS, FREE_QUAT, FREE_WZ, 
 from physics_side.pools import HEADROOM, SLEEP_NEVER, SlotPools
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
+from runtime.native import optional_extension
 
 MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
 # [1] tan of the steepest lean a placed two-wheeler takes (31 deg): the bicycles' stabiliser
@@ -49,6 +50,11 @@ TCS_MARGIN_MPS = 5.0  # [m/s] ... plus this is spinning: braked by up to its dri
 TCS_BAND_MPS = 5.0  # [m/s] ... this much more spin
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
 PLAN_CACHE = 8  # [slot arrays] plans kept (a fleet uses a few slot arrays per step)
+
+# The C path of ``observe`` for vehicles (bit-identical; ``SUMOCO_PURE_PHYSICS=1`` or no
+# compiler: the numpy body). ``FAST_OBSERVE`` says which one runs.
+_kernel = optional_extension("physics_side._worldkernel", "SUMOCO_PURE_PHYSICS")
+FAST_OBSERVE: bool = _kernel is not None
 
 
 @dataclass(frozen=True)
@@ -87,6 +93,9 @@ class Observation:
     """Front-bumper velocity x [m/s] (body velocity plus yaw rate x lever)."""
     fvy: np.ndarray
     """Front-bumper velocity y [m/s]."""
+
+
+OBSERVATION_ROWS = tuple(f.name for f in fields(Observation))  # (the C path's output rows, in this order)
 
 
 class _SlotPlan:
@@ -326,6 +335,10 @@ class PhysicsWorld:
         slots = np.asarray(slots, np.int64)
         plan = self._plan(slots)
         st = self._state
+        if plan.all_veh and _kernel is not None:  # the usual case, in one C pass
+            out = np.empty((len(OBSERVATION_ROWS), len(slots)))
+            _kernel.observe(st, plan.veh_state, plan.front, out)
+            return Observation(*out)
         if plan.all_veh:  # the usual case: one gather, no scatter
             cx, cy, z, yaw, roll, pitch, vx, vy, wz, wx, steer = _vehicle_state(st[plan.veh_state])
         else:
