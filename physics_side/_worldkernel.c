@@ -1,10 +1,13 @@
-/* Fast path of physics_side.world.PhysicsWorld.observe for a set of vehicles: the gather of
- * their freejoint and steering coordinates out of the batch state and the observation
- * derived from them, in one pass.
+/* Fast paths of physics_side.world.PhysicsWorld's per-tick reads and writes of vehicles:
  *
- * The Python body runs ~40 numpy calls over (15, n) gathered rows: ~200 us per control tick
- * at 1,000 cars. This loop evaluates each of its expressions operation for operation in
- * numpy's order, with the libm functions numpy calls (atan2, asin, cos, sin) and numpy's
+ * - observe: the gather of their freejoint and steering coordinates out of the batch state
+ *   and the observation derived from them, in one pass (the numpy body runs ~40 calls over
+ *   (15, n) gathered rows: ~200 us per control tick at 1,000 cars);
+ * - command: the Ackermann split of the steering and the scatter of steering, drive and
+ *   brake columns into the batch state and the brakes' frictionloss.
+ *
+ * Each loop evaluates the numpy body's expressions operation for operation in numpy's order,
+ * with the libm functions numpy calls (atan2, asin, tan, cos, sin) and numpy's
  * NaN-propagating minimum / maximum, so the results are bit-identical
  * (tests/test_physics_worldkernel.py compares them).
  *
@@ -136,7 +139,98 @@ done:
     return result;
 }
 
+/* a float64 / int64 argument of ``n`` rows, ``cols`` columns (0: 1-d) */
+static int get_n(PyObject *o, Buf *b, const char *name, const char *fmt, Py_ssize_t n, Py_ssize_t cols) {
+    if (!get(o, b, name, fmt, 8, cols ? 2 : 1, 0)) return 0;
+    if (b->v.shape[0] != n || (cols && b->v.shape[1] != cols)) {
+        PyErr_Format(PyExc_ValueError, "command: %s has %zd rows, expected %zd", name, b->v.shape[0], n);
+        return 0;
+    }
+    return 1;
+}
+
+static int in_range(const int64_t *ix, Py_ssize_t count, Py_ssize_t m, const char *name) {
+    for (Py_ssize_t k = 0; k < count; k++) {
+        if (ix[k] < 0 || ix[k] >= m) {
+            PyErr_Format(PyExc_IndexError, "command: %s index %lld out of range [0, %zd)", name, (long long)ix[k], m);
+            return 0;
+        }
+    }
+    return 1;
+}
+
+#define N_BRAKE 4 /* layout: a vehicle's brake columns (a two-wheeler's wheel in two each) */
+
+static PyObject *py_command(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    Buf st = {0}, fl = {0}, sl = {0}, sr = {0}, du = {0}, sf = {0}, wb = {0}, tr = {0}, bs = {0}, str = {0}, dr = {0},
+        br = {0};
+    PyObject *result = NULL;
+    (void)self;
+    if (nargs != 12) {
+        PyErr_SetString(PyExc_TypeError, "command(state, frictionloss, steer_l, steer_r, drive_u, spin_fl, wheelbase, "
+                                         "track, brake_share, steer, drive, brake) takes 12 arguments");
+        return NULL;
+    }
+    if (!get(args[0], &st, "state", "d", 8, 1, 1) || !get(args[1], &fl, "frictionloss", "d", 8, 1, 1) ||
+        !get(args[2], &sl, "steer_l", "lq", 8, 1, 0))
+        goto done;
+    const Py_ssize_t n = sl.v.shape[0], m = st.v.shape[0], mf = fl.v.shape[0];
+    if (!get_n(args[3], &sr, "steer_r", "lq", n, 0) || !get_n(args[4], &du, "drive_u", "lq", n, 0) ||
+        !get_n(args[5], &sf, "spin_fl", "lq", n, N_BRAKE) || !get_n(args[6], &wb, "wheelbase", "d", n, 0) ||
+        !get_n(args[7], &tr, "track", "d", n, 0) || !get_n(args[8], &bs, "brake_share", "d", n, N_BRAKE) ||
+        !get_n(args[9], &str, "steer", "d", n, 0) || !get_n(args[10], &dr, "drive", "d", n, 0) ||
+        !get_n(args[11], &br, "brake", "d", n, 0))
+        goto done;
+    const int64_t *il = (const int64_t *)sl.v.buf, *ir = (const int64_t *)sr.v.buf, *id = (const int64_t *)du.v.buf,
+                  *ib = (const int64_t *)sf.v.buf;
+    if (!in_range(il, n, m, "steer_l") || !in_range(ir, n, m, "steer_r") || !in_range(id, n, m, "drive_u") ||
+        !in_range(ib, N_BRAKE * n, mf, "spin_fl"))
+        goto done;
+    double *s = (double *)st.v.buf, *f = (double *)fl.v.buf;
+    const double *w = (const double *)wb.v.buf, *t = (const double *)tr.v.buf, *share = (const double *)bs.v.buf,
+                 *d = (const double *)str.v.buf, *drive = (const double *)dr.v.buf, *brake = (const double *)br.v.buf;
+    /* numpy writes every left angle, then every right one, drive, brakes: where two columns
+     * share an index (none do) the later array would win; the same order of arrays here */
+    double *right = PyMem_Malloc((n ? n : 1) * sizeof(double));
+    if (!right) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        /* kinematics.ackermann */
+        const double tt = tan(d[i]);
+        const double half = 0.5 * t[i] * tt, lt = w[i] * tt;
+        s[il[i]] = atan2(lt, w[i] - half);
+        right[i] = atan2(lt, w[i] + half);
+    }
+    for (Py_ssize_t i = 0; i < n; i++) s[ir[i]] = right[i];
+    PyMem_Free(right);
+    for (Py_ssize_t i = 0; i < n; i++) s[id[i]] = drive[i];
+    for (Py_ssize_t k = 0; k < N_BRAKE * n; k++) f[ib[k]] = brake[k / N_BRAKE] * share[k];
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    release(&st);
+    release(&fl);
+    release(&sl);
+    release(&sr);
+    release(&du);
+    release(&sf);
+    release(&wb);
+    release(&tr);
+    release(&bs);
+    release(&str);
+    release(&dr);
+    release(&br);
+    return result;
+}
+
 static PyMethodDef methods[] = {
+    {"command", (PyCFunction)(void (*)(void))py_command, METH_FASTCALL,
+     "command(state, frictionloss, steer_l, steer_r, drive_u, spin_fl, wheelbase, track, brake_share, steer, drive, "
+     "brake) -> None: every vehicle's Ackermann-split steering, drive and brake torques written into the batch "
+     "state and the brakes' frictionloss (world.PhysicsWorld.command_vehicles without rear steering, traction "
+     "control and stabiliser)."},
     {"observe", (PyCFunction)(void (*)(void))py_observe, METH_FASTCALL,
      "observe(state, idx, front, out) -> None: the vehicles' Observation into out (16, n), rows in "
      "world.OBSERVATION_ROWS order. state: the flat float64 batch state; idx: (15, n) int64 flat indices "
@@ -146,7 +240,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "physics_side._worldkernel",
-    "C fast path of physics_side.world.PhysicsWorld.observe (bit-identical to its Python body).", -1, methods,
+    "C fast paths of physics_side.world.PhysicsWorld.observe and command_vehicles (bit-identical to their numpy bodies).", -1, methods,
     NULL, NULL, NULL, NULL,
 };
 

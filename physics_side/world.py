@@ -51,8 +51,8 @@ TCS_BAND_MPS = 5.0  # [m/s] ... this much more spin
 CONTACT_GAP_S = 1.0  # [s] apart this long before a new touch counts as a new collision
 PLAN_CACHE = 8  # [slot arrays] plans kept (a fleet uses a few slot arrays per step)
 
-# The C path of ``observe`` for vehicles (bit-identical; ``SUMOCO_PURE_PHYSICS=1`` or no
-# compiler: the numpy body). ``FAST_OBSERVE`` says which one runs.
+# The C paths of ``observe`` and ``command_vehicles`` for vehicles (bit-identical;
+# ``SUMOCO_PURE_PHYSICS=1`` or no compiler: the numpy bodies). ``FAST_OBSERVE`` says which run.
 _kernel = optional_extension("physics_side._worldkernel", "SUMOCO_PURE_PHYSICS")
 FAST_OBSERVE: bool = _kernel is not None
 
@@ -493,6 +493,9 @@ class PhysicsWorld:
         if len(slots) == 0:
             return
         plan = self._plan(slots)
+        if _kernel is not None and all(getattr(a, "dtype", None) == np.float64 for a in (steer, drive, brake)):
+            self._command_fast(plan, steer, drive, brake, stab, rear, speed)
+            return
         wheelbase, track, steer_l, steer_r, drive_u, spin_fl, brake_share = plan.command
         st = self._state
         left, right = ackermann(steer, wheelbase, track)
@@ -511,6 +514,31 @@ class PhysicsWorld:
             fl[rows] = traction_control(fl[rows], np.asarray(drive)[rows, None] * share, st[spin_v] * r,
                                         np.asarray(speed)[rows, None])
         self._fl[spin_fl] = fl
+        if stab is not None:
+            au, ok = plan.stab
+            st[au] = np.asarray(stab)[ok]
+
+    def _command_fast(self, plan: _SlotPlan, steer, drive, brake, stab, rear, speed) -> None:
+        """``command_vehicles`` of float64 commands (the numpy body computes float32 ones in
+        float32) with every vehicle's columns written in C, then what only some have (rear
+        steering, traction control, stabiliser) written over them as the numpy body does: the
+        same values land."""
+        wheelbase, track, steer_l, steer_r, drive_u, spin_fl, brake_share = plan.command
+        st = self._state
+        steer, drive, brake = (np.ascontiguousarray(a) for a in (steer, drive, brake))
+        _kernel.command(st, self._fl, steer_l, steer_r, drive_u, spin_fl, wheelbase, track, brake_share,
+                        steer, drive, brake)
+        r4 = plan.rear
+        if r4 is not None:
+            ok, ru = r4
+            rr = np.zeros(len(ok)) if rear is None else np.asarray(rear)[ok]
+            st[steer_l[ok]], st[steer_r[ok]], st[ru[:, 0]], st[ru[:, 1]] = ackermann_4ws(
+                steer[ok], rr, wheelbase[ok], track[ok])
+        tc = plan.traction
+        if speed is not None and tc is not None:
+            rows, spin_v, r, share = tc
+            self._fl[spin_fl[rows]] = traction_control(brake[rows, None] * brake_share[rows], drive[rows, None] * share,
+                                                       st[spin_v] * r, np.asarray(speed)[rows, None])
         if stab is not None:
             au, ok = plan.stab
             st[au] = np.asarray(stab)[ok]

@@ -128,3 +128,68 @@ def test_kernel_rejects_what_it_cannot_read():
         k.observe(st, idx, front, ro)
     with pytest.raises(TypeError, match="C-contiguous"):
         k.observe(st, np.zeros((3, 15), np.int64).T, front, out)
+
+
+def _commanded(w: PhysicsWorld, s: np.ndarray, args: tuple, monkeypatch) -> tuple[np.ndarray, np.ndarray]:
+    """Batch state and brake frictionloss after ``command_vehicles(s, *args)`` from the same start."""
+    st0, fl0 = w._state.copy(), w._fl.copy()
+    w.command_vehicles(s, *args)
+    out = w._state.copy(), w._fl.copy()
+    w._state[:], w._fl[:] = st0, fl0
+    return out
+
+
+@needs_c
+def test_commands_of_every_family(monkeypatch):
+    """Steering (Ackermann, rear-axle steering), drive, brakes, traction control and the
+    bicycles' stabiliser land in the same state bits either way."""
+    w, s = _fleet(per_class=3)
+    rng = np.random.default_rng(5)
+    n = len(s)
+    for trial in range(12):
+        steer = rng.uniform(-0.7, 0.7, n)
+        if trial % 4 == 3:  # beyond any lock, exactly zero, negative zero
+            steer[: 3] = [1.5, 0.0, -0.0]
+        drive = rng.uniform(-3000.0, 8000.0, n)
+        brake = rng.uniform(0.0, 9000.0, n) * (rng.random(n) < 0.5)
+        stab = rng.normal(0.0, 50.0, n) if trial % 2 else None
+        rear = rng.uniform(-0.3, 0.3, n) if trial % 3 else None
+        speed = rng.uniform(-2.0, 30.0, n) if trial % 2 == 0 else None
+        sub = s if trial % 5 else s[::-1].copy()
+        k = len(sub)
+        args = (steer[:k], drive[:k], brake[:k], None if stab is None else stab[:k], None if rear is None else rear[:k],
+                None if speed is None else speed[:k])
+        if trial % 6 == 1:  # float32 commands (the numpy body converts them as it writes)
+            args = tuple(None if a is None else a.astype(np.float32) for a in args)
+        c = _commanded(w, sub, args, monkeypatch)
+        with monkeypatch.context() as m:
+            m.setattr(W, "_kernel", None)
+            p = _commanded(w, sub, args, monkeypatch)
+        assert _bits_equal(c[0], p[0]) and _bits_equal(c[1], p[1]), trial
+        # and the commands really moved the state (the test is not comparing two no-ops)
+        assert not _bits_equal(c[0], w._state)
+    # a spinning driven wheel of a heavy vehicle: traction control brakes it
+    assert w._plan(np.asarray(s, np.int64)).traction is not None
+    assert w._plan(np.asarray(s, np.int64)).rear is not None
+
+
+def test_command_kernel_rejects_what_it_cannot_read():
+    if not FAST_OBSERVE:
+        pytest.skip("physics_side._worldkernel not built (or SUMOCO_PURE_PHYSICS set)")
+    k = W._kernel
+    st, fl = np.zeros(50), np.zeros(20)
+    i1 = np.arange(3, dtype=np.int64)
+    i4 = np.arange(12, dtype=np.int64).reshape(3, 4)
+    f1, f4 = np.ones(3), np.ones((3, 4))
+    k.command(st, fl, i1, i1 + 3, i1 + 6, i4, f1, f1, f4, f1, f1, f1)
+    assert st[6:9].tolist() == [1.0, 1.0, 1.0] and fl[:12].tolist() == [1.0] * 12
+    with pytest.raises(IndexError, match="spin_fl index 20"):
+        k.command(st, fl, i1, i1, i1, i4 + 10, f1, f1, f4, f1, f1, f1)
+    with pytest.raises(IndexError, match="steer_l index 50"):
+        k.command(st, fl, i1 + 48, i1, i1, i4, f1, f1, f4, f1, f1, f1)
+    with pytest.raises(ValueError, match="drive has 2 rows"):
+        k.command(st, fl, i1, i1, i1, i4, f1, f1, f4, f1, np.ones(2), f1)
+    with pytest.raises(TypeError, match="writable|C-contiguous"):
+        ro = np.zeros(50)
+        ro.flags.writeable = False
+        k.command(ro, fl, i1, i1, i1, i4, f1, f1, f4, f1, f1, f1)
