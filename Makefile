@@ -17,9 +17,10 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# setup.py and the C sources: the editable install compiles protocol._fastcodec,
-# sumo_side._fastread, physics_side._pathkernel and physics_side._worldkernel in place
-$(STAMP): pyproject.toml setup.py protocol/_fastcodec.c sumo_side/_fastread.c physics_side/_pathkernel.c physics_side/_worldkernel.c | $(BIN)/python
+# setup.py and the C sources: the editable install compiles the optional C fast paths
+# (setup.py's list) in place
+C_SOURCES := $(wildcard protocol/*.c sumo_side/*.c physics_side/*.c physics_side/policies/*.c)
+$(STAMP): pyproject.toml setup.py $(C_SOURCES) | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[all,test]'
 	touch $(STAMP)
 
@@ -47,4 +48,4 @@ fuzz: $(STAMP)
 	$(BIN)/python tests/fuzz_protocol.py --seconds $(FUZZ_SECONDS) --corpus build/fuzz-corpus
 
 clean:
-	rm -rf $(VENV) runs build *.egg-info node_modules protocol/_fastcodec*.so sumo_side/_fastread*.so physics_side/_pathkernel*.so physics_side/_worldkernel*.so
+	rm -rf $(VENV) runs build *.egg-info node_modules $(C_SOURCES:.c=*.so)

@@ -40,9 +40,11 @@
 #define OBS_ROWS 16   /* world.OBSERVATION_ROWS, in that order */
 enum { O_CX, O_CY, O_Z, O_FX, O_FY, O_YAW, O_ROLL, O_PITCH, O_SPEED, O_VX, O_VY, O_WZ, O_WX, O_STEER, O_FVX, O_FVY };
 
-/* numpy's maximum / minimum on float64: a NaN in either argument is the result */
-static inline double np_max(double a, double b) { return (a >= b || a != a) ? a : b; }
-static inline double np_min(double a, double b) { return (a <= b || a != a) ? a : b; }
+/* numpy's maximum / minimum on float64: a NaN in either argument is the result, and of two
+ * equal values the second (as the SIMD max / min instructions it uses: maximum(-0.0, 0.0) is
+ * 0.0, maximum(0.0, -0.0) is -0.0) */
+static inline double np_max(double a, double b) { return (a > b || a != a) ? a : b; }
+static inline double np_min(double a, double b) { return (a < b || a != a) ? a : b; }
 
 typedef struct {
     Py_buffer v;

@@ -22,6 +22,12 @@ from physics_side.policies.footprints import footprints_overlap
 from physics_side.reference import Reference
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
+from runtime.native import optional_extension
+
+# The C path of ``path_tightness`` after its path evaluation (bit-identical;
+# ``SUMOCO_PURE_PHYSICS=1`` or no compiler: the numpy body). ``FAST_TIGHTNESS`` says which runs.
+_kernel = optional_extension("physics_side.policies._policykernel", "SUMOCO_PURE_PHYSICS")
+FAST_TIGHTNESS: bool = _kernel is not None
 
 # Seen on the path ahead: the heading change over INFEASIBLE_WINDOW_M (shorter windows take
 # the corners of coarse lane shapes for curves no car can follow), for windows starting up to
@@ -102,25 +108,43 @@ def path_tightness(ref: Reference, interpolating: bool, reach: np.ndarray, a_lat
     k = int(round(INFEASIBLE_WINDOW_M / INFEASIBLE_GRID_M))
     grid = np.arange(0.0, INFEASIBLE_AHEAD_M[1] + INFEASIBLE_WINDOW_M + GRID_END_M, INFEASIBLE_GRID_M)[:, None]
     h = ref.path.at(np.broadcast_to(grid, (len(grid), ref.n))).heading
-    kappa = np.abs(wrap_pi(h[k:] - h[:-k])) / INFEASIBLE_WINDOW_M
     v = np.maximum(ref.speed, 0.0)
     if interpolating:
         v = np.maximum(v, ref.step_speed)
     ahead = np.clip(v, *INFEASIBLE_AHEAD_M)
+    with_grip = interpolating or bool(np.any(share > 0))
+    bike = kind == models.KIND_BIKE
+    with_lean = with_grip and not interpolating and roll is not None and bool(np.any(bike))
+    if _kernel is not None and ref.n:
+        f8 = np.float64
+        tight, sustained = np.empty(ref.n), np.empty(ref.n)
+        _kernel.tightness(
+            np.ascontiguousarray(h, f8), np.ascontiguousarray(grid[:, 0]), *(np.ascontiguousarray(a, f8) for a in (
+                v, ahead, np.broadcast_to(reach, v.shape), np.broadcast_to(a_lat, v.shape), share, brake)),
+            np.ascontiguousarray(roll, f8) if with_lean else None, np.ascontiguousarray(bike), tight, sustained,
+            (float(interpolating), float(with_grip), float(with_lean), k, GRIP_WINDOW_K, INFEASIBLE_WINDOW_M,
+             GRIP_WINDOW_K * INFEASIBLE_GRID_M, control.G, LEAN_READ_MAX_RAD, CAR_GRIP_SHARE, SHARE_FLOOR))
+        return tight, sustained
+    return _tightness_numpy(h, grid, k, v, ahead, interpolating, with_grip, with_lean, reach, a_lat, bike, share, brake,
+                            roll)
+
+
+def _tightness_numpy(h, grid, k, v, ahead, interpolating, with_grip, with_lean, reach, a_lat, bike, share, brake, roll):
+    """``path_tightness`` after the path evaluation, in numpy (the C path's reference)."""
+    kappa = np.abs(wrap_pi(h[k:] - h[:-k])) / INFEASIBLE_WINDOW_M
     tight = np.where(grid[:-k] <= ahead, kappa, 0.0).max(axis=0) / reach
     # over the 8 m windows, at short steps at the least speed SUMO can brake a car to by
     # each window (a lane shape's 15 deg corner within 4 m asked 12.6 m/s^2 at 14 m/s:
     # carried for 0.3 s, a van was handed back steering into it and spun)
     v2 = v * v - (0.0 if interpolating else 2.0 * brake * grid[:-k])
     sustained = np.where(grid[:-k] <= ahead, kappa * np.maximum(v2, 0.0), 0.0).max(axis=0)
-    if not (interpolating or bool(np.any(share > 0))):
+    if not with_grip:
         return tight, sustained
     kg = GRIP_WINDOW_K
     kap = wrap_pi(h[kg:] - h[:-kg]) / (kg * INFEASIBLE_GRID_M)  # (+ left)
     demand = np.where(grid[:-kg] <= ahead, kap, 0.0) * v * v  # [m/s^2] + left
     grip = np.abs(demand).max(axis=0) / a_lat
-    bike = kind == models.KIND_BIKE
-    if not interpolating and roll is not None and bool(np.any(bike)):
+    if with_lean:
         # a two-wheeler leaning one way into a turn the other way swings its lean across both:
         # SUMO's S through a junction (left at 4 m/s, then right at 8-9 m/s^2 at 8 m/s)
         # flipped a motorcycle still leaning 28 deg into the left part
