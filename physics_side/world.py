@@ -96,6 +96,7 @@ class Observation:
 
 
 OBSERVATION_ROWS = tuple(f.name for f in fields(Observation))  # (the C path's output rows, in this order)
+_OBS_ROW = {name: i for i, name in enumerate(OBSERVATION_ROWS)}
 
 
 class _SlotPlan:
@@ -115,6 +116,10 @@ class _SlotPlan:
         self.any_veh = bool(self.veh.any())
         self.any_ped = bool(self.ped.any())
         self.front = t.front[slots]
+
+    @cached_property
+    def veh_front(self) -> np.ndarray:
+        return np.ascontiguousarray(self.front[self.veh])
 
     @cached_property
     def veh_state(self) -> np.ndarray:
@@ -339,6 +344,8 @@ class PhysicsWorld:
             out = np.empty((len(OBSERVATION_ROWS), len(slots)))
             _kernel.observe(st, plan.veh_state, plan.front, out)
             return Observation(*out)
+        if _kernel is not None:
+            return self._observe_mixed(plan)
         if plan.all_veh:  # the usual case: one gather, no scatter
             cx, cy, z, yaw, roll, pitch, vx, vy, wz, wx, steer = _vehicle_state(st[plan.veh_state])
         else:
@@ -365,6 +372,30 @@ class PhysicsWorld:
             speed=vx * c + vy * s, vx=vx, vy=vy, yaw_rate=wz, roll_rate=wx, steer=steer,
             fvx=vx - wf * s, fvy=vy + wf * c,
         )
+
+    def _observe_mixed(self, plan: "_SlotPlan") -> Observation:
+        """``observe`` of vehicles and pedestrians: the vehicles' rows in C, the pedestrians'
+        in numpy (elementwise, the same values as the numpy body over all of them)."""
+        st = self._state
+        n = len(plan.slots)
+        out = np.zeros((len(OBSERVATION_ROWS), n))  # (what pedestrians have not stays 0)
+        if plan.any_veh:
+            vout = np.empty((len(OBSERVATION_ROWS), int(plan.veh.sum())))
+            _kernel.observe(st, plan.veh_state, plan.veh_front, vout)
+            out[:, plan.veh] = vout
+        if plan.any_ped:
+            g = st[plan.ped_state]
+            px, py = plan.ped_park
+            cx, cy, yaw, vx, vy, wz = px + g[0], py + g[1], wrap_pi(g[2]), g[3], g[4], g[5]
+            c, s = np.cos(yaw), np.sin(yaw)
+            front = plan.front[plan.ped]
+            wf = wz * front
+            rows = {"cx": cx, "cy": cy, "fx": cx + front * c, "fy": cy + front * s, "yaw": yaw,
+                    "speed": vx * c + vy * s, "vx": vx, "vy": vy, "yaw_rate": wz, "fvx": vx - wf * s,
+                    "fvy": vy + wf * c}
+            for name, val in rows.items():
+                out[_OBS_ROW[name], plan.ped] = val
+        return Observation(*out)
 
     def vehicle_pose(self, slots: np.ndarray) -> np.ndarray:
         """(n, 7) freejoint coordinates of vehicles: body origin x, y, z [m] and orientation as

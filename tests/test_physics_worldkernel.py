@@ -44,11 +44,11 @@ def _same(w: PhysicsWorld, slots: np.ndarray, monkeypatch) -> None:
         assert _bits_equal(getattr(c, f.name), getattr(p, f.name)), f.name
 
 
-def _fleet(per_class: int = 3) -> tuple[PhysicsWorld, np.ndarray]:
-    """Every vehicle family, moving and turning under real MuJoCo."""
+def _fleet(per_class: int = 3, pedestrians: bool = False) -> tuple[PhysicsWorld, np.ndarray]:
+    """Every vehicle family (and pedestrians), moving and turning under real MuJoCo."""
     w = PhysicsWorld(0.005, 4, shards=2, initial={AgentClass.PASSENGER: per_class})
     slots = []
-    for k, (family, length, width) in enumerate(FAMILIES):
+    for k, (family, length, width) in enumerate(FAMILIES + ((("pedestrian", 0.215, 0.478),) if pedestrians else ())):
         pool = w.pool_for(family, length, width)
         ids = [f"{family}{i}" for i in range(per_class)]
         x = np.arange(per_class) * 30.0
@@ -71,6 +71,28 @@ def test_driven_vehicles_of_every_family(monkeypatch):
             _same(w, s, monkeypatch)
             _same(w, s[::-1].copy(), monkeypatch)  # any order, any subset
             _same(w, s[1::3].copy(), monkeypatch)
+
+
+@needs_c
+def test_vehicles_among_pedestrians(monkeypatch):
+    """The mixed path: the vehicles' rows from C, the pedestrians' from numpy, in any order."""
+    w, s = _fleet(pedestrians=True)
+    n = len(s)
+    kind = w.tables.kind[s]
+    veh = s[kind != M.KIND_PED]
+    ped = s[kind == M.KIND_PED]
+    assert len(veh) and len(ped)
+    for k in range(30):
+        w.command_vehicles(veh, np.full(len(veh), 0.3 * np.sin(0.3 * k)), np.full(len(veh), 900.0),
+                           np.zeros(len(veh)), np.zeros(len(veh)))
+        w.command_pedestrians(ped, np.full(len(ped), 40.0), np.full(len(ped), -20.0), np.full(len(ped), 1.0))
+        w.step()
+        if k % 6 == 0:
+            _same(w, s, monkeypatch)
+            rng = np.random.default_rng(k)
+            _same(w, rng.permutation(s), monkeypatch)
+            _same(w, ped.copy(), monkeypatch)  # pedestrians only
+    assert n == len(veh) + len(ped)
 
 
 @needs_c
