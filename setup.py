@@ -1,7 +1,7 @@
 """The C fast paths: the wire codec's (protocol/_fastcodec.c), the SUMO side's vehicle read
 (sumo_side/_fastread.c), the physics side's path evaluation (physics_side/_pathkernel.c), its
 vehicles' observation and commands (physics_side/_worldkernel.c) and its per-step policies
-(physics_side/policies/_policykernel.c); everything else is in pyproject.toml.
+(physics_side/policies/_policykernel.c, _footprintkernel.c); everything else is in pyproject.toml.
 
 ``optional=True``: without a compiler the install still succeeds and protocol.codec,
 sumo_side.simulation and the physics side run their pure-Python paths.
@@ -15,4 +15,5 @@ setup(ext_modules=[
     Extension("physics_side._pathkernel", ["physics_side/_pathkernel.c"], optional=True),
     Extension("physics_side._worldkernel", ["physics_side/_worldkernel.c"], optional=True),
     Extension("physics_side.policies._policykernel", ["physics_side/policies/_policykernel.c"], optional=True),
+    Extension("physics_side.policies._footprintkernel", ["physics_side/policies/_footprintkernel.c"], optional=True),
 ])

@@ -19,6 +19,8 @@ EXTENSIONS = [
     ("physics_side._worldkernel", "physics_side.world", "FAST_OBSERVE", "SUMOCO_PURE_PHYSICS", True),
     ("physics_side.policies._policykernel", "physics_side.policies.carry", "FAST_TIGHTNESS", "SUMOCO_PURE_PHYSICS",
      True),
+    ("physics_side.policies._footprintkernel", "physics_side.policies.footprints", "FAST_FOOTPRINTS",
+     "SUMOCO_PURE_PHYSICS", True),
 ]
 IDS = [e[0] for e in EXTENSIONS]
 

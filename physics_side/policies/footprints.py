@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from runtime.native import optional_extension
+
 CELL_MIN_M = 1e-3  # [m] smallest grid cell of ``near_pairs`` (every disc of radius 0)
 # neighbour cells (dx, dy) each disc is checked against: its own and four of its eight
 # neighbours (the other four see it from theirs)
@@ -32,6 +34,23 @@ def footprint_gap(ax, ay, ah, al, aw, bx, by, bh, bl, bw) -> np.ndarray:
     """Separation [m] of rectangles a and b (centre x, y [m], heading [rad], length, width
     [m]) along the separating axis that parts them most: their distance where an edge faces the
     other (a lower bound corner to corner), negative where they overlap. Vectorised."""
+    args = (ax, ay, ah, al, aw, bx, by, bh, bl, bw)
+    if _kernel is not None and _same_1d(args):
+        out = np.empty(len(ax))
+        _kernel.footprint_gap(*(np.ascontiguousarray(a) for a in args), out)
+        return out
+    return _footprint_gap_numpy(*args)
+
+
+def _same_1d(args) -> bool:
+    """All float64 arrays of one dimension and one length (the C paths' input; else numpy,
+    which broadcasts)."""
+    n = len(args[0]) if isinstance(args[0], np.ndarray) and args[0].ndim == 1 else -1
+    return n >= 0 and all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (n,) for a in args)
+
+
+def _footprint_gap_numpy(ax, ay, ah, al, aw, bx, by, bh, bl, bw) -> np.ndarray:
+    """``footprint_gap`` in numpy (the C path's reference, and any broadcast)."""
     ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)
     dx, dy = np.asarray(bx) - ax, np.asarray(by) - ay
     hal, haw, hbl, hbw = 0.5 * np.asarray(al), 0.5 * np.asarray(aw), 0.5 * np.asarray(bl), 0.5 * np.asarray(bw)
@@ -50,6 +69,19 @@ def gap_floor(x: np.ndarray, y: np.ndarray, i: np.ndarray, j: np.ndarray, half_l
     the diagonal [m]): on one of a's two axes the centres are at least |d| / sqrt(2) apart, a
     reaches at most half its longer side along it and b at most its half diagonal, so the
     separating-axis gap is at least that. Cheap: prunes pairs before the exact test."""
+    if _kernel is not None and _same_1d((x, y, half_long, half_diag)) and _int64_1d(i, j):
+        out = np.empty(len(i))
+        if _kernel.gap_floor(*(np.ascontiguousarray(a) for a in (x, y, i, j, half_long, half_diag)), out):
+            return out
+    return _gap_floor_numpy(x, y, i, j, half_long, half_diag)
+
+
+def _int64_1d(i, j) -> bool:
+    return all(isinstance(a, np.ndarray) and a.dtype == np.int64 and a.ndim == 1 for a in (i, j)) and i.shape == j.shape
+
+
+def _gap_floor_numpy(x, y, i, j, half_long, half_diag) -> np.ndarray:
+    """``gap_floor`` in numpy (the C path's reference; out-of-range indexes raise here)."""
     d = np.hypot(x[i] - x[j], y[i] - y[j]) * INV_SQRT2
     return np.maximum(d - half_long[i] - half_diag[j], d - half_long[j] - half_diag[i])
 
@@ -62,6 +94,16 @@ def near_pairs(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> tuple[np.ndarray,
     as wide as the largest disc: every disc against the discs of its own cell and of four of
     its eight neighbours (the other four see it), O(n log n + candidates); a sweep along x
     alone took every car of a north-south street as a candidate of every other."""
+    if _kernel is not None and _same_1d((x, y, r)):
+        got = _kernel.near_pairs(*(np.ascontiguousarray(a) for a in (x, y, r)))
+        if got is not None:  # (None: non-finite input or a grid beyond int64: numpy decides)
+            ij = np.frombuffer(got, np.int64).reshape(2, -1)
+            return ij[0], ij[1]
+    return _near_pairs_numpy(x, y, r)
+
+
+def _near_pairs_numpy(x: np.ndarray, y: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``near_pairs`` in numpy (the C path's reference)."""
     n = len(x)
     if n < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -99,5 +141,22 @@ def overlaps_any(i: int, cx, cy, yaw, length, width, other: np.ndarray, margin: 
         cx[i], cy[i], yaw[i], length[i], width[i], cx[other], cy[other], yaw[other], length[other], width[other],
         margin).any())
 
+
+def _libm_is_numpy(kernel) -> bool:
+    """Does libm's cos / sin (the C path's) give numpy's bits here? Not where numpy uses its
+    own SIMD versions (some AVX-512 builds): then the C path stays off."""
+    x = np.concatenate([np.linspace(-7.0, 7.0, 4001), np.random.default_rng(0).uniform(-1e4, 1e4, 2000)])
+    out = np.empty(2 * len(x))
+    kernel.cos_sin(x, out)
+    return bool(np.array_equal(out[:len(x)], np.cos(x)) and np.array_equal(out[len(x):], np.sin(x)))
+
+
+# The C paths of ``footprint_gap``, ``gap_floor`` and ``near_pairs`` (bit-identical; no
+# compiler, ``SUMOCO_PURE_PHYSICS=1`` or a numpy whose cos / sin are not libm's: the numpy
+# bodies). ``FAST_FOOTPRINTS`` says which run.
+_kernel = optional_extension("physics_side.policies._footprintkernel", "SUMOCO_PURE_PHYSICS")
+if _kernel is not None and not _libm_is_numpy(_kernel):
+    _kernel = None
+FAST_FOOTPRINTS: bool = _kernel is not None
 
 __all__ = ["centre", "footprint_gap", "footprints_overlap", "gap_floor", "near_pairs", "overlaps_any"]
