@@ -33,7 +33,7 @@ from physics_side.layout import FREE_NQ, FREE_NV, FREE_POS, FREE_QUAT, FREE_WZ, 
 from physics_side.pools import HEADROOM, SLEEP_NEVER, SlotPools
 from protocol.frames import wrap_pi
 from protocol.messages import AgentClass
-from runtime.native import optional_extension
+from runtime.native import numpy_math_is_libm, optional_extension
 
 MAX_PLACE_CURVATURE = 0.2  # [1/m] placements assume at most a 5 m radius turn
 # [1] tan of the steepest lean a placed two-wheeler takes (31 deg): the bicycles' stabiliser
@@ -54,6 +54,8 @@ PLAN_CACHE = 8  # [slot arrays] plans kept (a fleet uses a few slot arrays per s
 # The C paths of ``observe`` and ``command_vehicles`` for vehicles (bit-identical;
 # ``SUMOCO_PURE_PHYSICS=1`` or no compiler: the numpy bodies). ``FAST_OBSERVE`` says which run.
 _kernel = optional_extension("physics_side._worldkernel", "SUMOCO_PURE_PHYSICS")
+if _kernel is not None and not numpy_math_is_libm():  # (its libm calls would not be numpy's bits)
+    _kernel = None
 FAST_OBSERVE: bool = _kernel is not None
 
 

@@ -48,3 +48,15 @@ def test_the_variable_turns_the_fast_path_off(ext, module, flag, env, usable):
     environ[env] = "0"
     out = subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == str(_built(ext, usable))
+
+
+def test_the_numpy_math_check_sees_a_difference(monkeypatch):
+    """The physics kernels call libm; they stay off where numpy's own functions differ."""
+    import numpy as np
+
+    from runtime.native import numpy_math_is_libm
+
+    assert numpy_math_is_libm()  # (on this build: the kernels' tests compare bit for bit)
+    real = np.cos
+    monkeypatch.setattr(np, "cos", lambda a: np.nextafter(real(a), np.inf))
+    assert not numpy_math_is_libm()

@@ -22,11 +22,13 @@ from physics_side.policies.footprints import footprints_overlap
 from physics_side.reference import Reference
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
-from runtime.native import optional_extension
+from runtime.native import numpy_math_is_libm, optional_extension
 
 # The C path of ``path_tightness`` after its path evaluation (bit-identical;
 # ``SUMOCO_PURE_PHYSICS=1`` or no compiler: the numpy body). ``FAST_TIGHTNESS`` says which runs.
 _kernel = optional_extension("physics_side.policies._policykernel", "SUMOCO_PURE_PHYSICS")
+if _kernel is not None and not numpy_math_is_libm():  # (its libm calls would not be numpy's bits)
+    _kernel = None
 FAST_TIGHTNESS: bool = _kernel is not None
 
 # Seen on the path ahead: the heading change over INFEASIBLE_WINDOW_M (shorter windows take
