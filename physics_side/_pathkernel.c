@@ -50,9 +50,10 @@ static const double PI = 0x1.921fb54442d18p+1;
 static const double TWO_PI = 0x1.921fb54442d18p+2;
 static const double INV_TWO_PI = 0x1.45f306dc9c883p-3;
 
-/* numpy's maximum / minimum on float64: a NaN in either argument is the result */
-static inline double np_max(double a, double b) { return (a >= b || a != a) ? a : b; }
-static inline double np_min(double a, double b) { return (a <= b || a != a) ? a : b; }
+/* numpy's maximum / minimum on float64: a NaN in either argument is the result, and of two
+ * equal values the second (maximum(-0.0, 0.0) is 0.0, as the SIMD instructions it uses) */
+static inline double np_max(double a, double b) { return (a > b || a != a) ? a : b; }
+static inline double np_min(double a, double b) { return (a < b || a != a) ? a : b; }
 
 /* ------------------------------------------------------------------ buffers */
 
