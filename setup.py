@@ -9,11 +9,14 @@ sumo_side.simulation and the physics side run their pure-Python paths.
 
 from setuptools import Extension, setup
 
+# the physics kernels' shared rules of numpy's arithmetic (a change rebuilds all of them)
+NUMPY_ARITH = ["physics_side/_numpy_arith.h"]
+
 setup(ext_modules=[
     Extension("protocol._fastcodec", ["protocol/_fastcodec.c"], optional=True),
     Extension("sumo_side._fastread", ["sumo_side/_fastread.c"], optional=True),
-    Extension("physics_side._pathkernel", ["physics_side/_pathkernel.c"], optional=True),
-    Extension("physics_side._worldkernel", ["physics_side/_worldkernel.c"], optional=True),
-    Extension("physics_side.policies._policykernel", ["physics_side/policies/_policykernel.c"], optional=True),
-    Extension("physics_side.policies._footprintkernel", ["physics_side/policies/_footprintkernel.c"], optional=True),
+    Extension("physics_side._pathkernel", ["physics_side/_pathkernel.c"], depends=NUMPY_ARITH, optional=True),
+    Extension("physics_side._worldkernel", ["physics_side/_worldkernel.c"], depends=NUMPY_ARITH, optional=True),
+    Extension("physics_side.policies._policykernel", ["physics_side/policies/_policykernel.c"], depends=NUMPY_ARITH, optional=True),
+    Extension("physics_side.policies._footprintkernel", ["physics_side/policies/_footprintkernel.c"], depends=NUMPY_ARITH, optional=True),
 ])

@@ -21,39 +21,16 @@
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+
 #include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
 
-/* Bit-identical results need each product rounded on its own, as numpy does: no fused
- * multiply-add (compilers contract by default on FMA hardware, e.g. every arm64). */
-#if defined(__clang__)
-#pragma STDC FP_CONTRACT OFF
-#elif defined(__GNUC__)
-#pragma GCC optimize("fp-contract=off")
-#elif defined(_MSC_VER)
-#pragma fp_contract(off)
-#endif
-
-/* x87 extended-precision intermediates would round differently: do not build (the
- * extension is optional, the Python path then runs). */
-#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD != 0 && FLT_EVAL_METHOD != -1
-#error "physics_side._pathkernel needs double evaluation (FLT_EVAL_METHOD 0)"
-#endif
+#include "_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
 #define SEG_ROWS 15 /* reference._SEG_ROWS, the rows of PathSet._segment_table in its order */
 enum { R_X0, R_Y0, R_DX, R_DY, R_C0, R_L, R_BS, R_BE, R_NEG_DS, R_DE, R_H, R_TWO_BS, R_TWO_BE, R_KS, R_KE };
-
-/* protocol.frames: np.pi, _TWO_PI = 2 * np.pi, _INV_TWO_PI = 1 / _TWO_PI, as exact bits */
-static const double PI = 0x1.921fb54442d18p+1;
-static const double TWO_PI = 0x1.921fb54442d18p+2;
-static const double INV_TWO_PI = 0x1.45f306dc9c883p-3;
-
-/* numpy's maximum / minimum on float64: a NaN in either argument is the result, and of two
- * equal values the second (maximum(-0.0, 0.0) is 0.0, as the SIMD instructions it uses) */
-static inline double np_max(double a, double b) { return (a > b || a != a) ? a : b; }
-static inline double np_min(double a, double b) { return (a < b || a != a) ? a : b; }
 
 /* ------------------------------------------------------------------ buffers */
 
@@ -160,7 +137,7 @@ static int at_one(const paths_t *p, Py_ssize_t i, double s, double *x, double *y
     a = ROW(R_H) + blend;
     *x = ROW(R_X0) + ROW(R_DX) * t;
     *y = ROW(R_Y0) + ROW(R_DY) * t;
-    *heading = a - TWO_PI * ceil((a - PI) * INV_TWO_PI);
+    *heading = wrap_pi(a);
     *kappa = k;
 #undef ROW
     return 1;

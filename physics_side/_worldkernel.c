@@ -17,34 +17,17 @@
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+
 #include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
 
-/* Bit-identical results need each product rounded on its own, as numpy does: no fused
- * multiply-add (compilers contract by default on FMA hardware, e.g. every arm64). */
-#if defined(__clang__)
-#pragma STDC FP_CONTRACT OFF
-#elif defined(__GNUC__)
-#pragma GCC optimize("fp-contract=off")
-#elif defined(_MSC_VER)
-#pragma fp_contract(off)
-#endif
-
-#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD != 0 && FLT_EVAL_METHOD != -1
-#error "physics_side._worldkernel needs double evaluation (FLT_EVAL_METHOD 0)"
-#endif
+#include "_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
 #define STATE_ROWS 15 /* world._SlotPlan.veh_state: freejoint qpos (7), qvel (6), two steer qpos */
 #define OBS_ROWS 16   /* world.OBSERVATION_ROWS, in that order */
 enum { O_CX, O_CY, O_Z, O_FX, O_FY, O_YAW, O_ROLL, O_PITCH, O_SPEED, O_VX, O_VY, O_WZ, O_WX, O_STEER, O_FVX, O_FVY };
-
-/* numpy's maximum / minimum on float64: a NaN in either argument is the result, and of two
- * equal values the second (as the SIMD max / min instructions it uses: maximum(-0.0, 0.0) is
- * 0.0, maximum(0.0, -0.0) is -0.0) */
-static inline double np_max(double a, double b) { return (a > b || a != a) ? a : b; }
-static inline double np_min(double a, double b) { return (a < b || a != a) ? a : b; }
 
 typedef struct {
     Py_buffer v;

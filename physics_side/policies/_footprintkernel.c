@@ -23,26 +23,13 @@
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+
 #include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
 
-/* Bit-identical results need each product rounded on its own, as numpy does: no fused
- * multiply-add (compilers contract by default on FMA hardware, e.g. every arm64). */
-#if defined(__clang__)
-#pragma STDC FP_CONTRACT OFF
-#elif defined(__GNUC__)
-#pragma GCC optimize("fp-contract=off")
-#elif defined(_MSC_VER)
-#pragma fp_contract(off)
-#endif
-
-/* x87 extended-precision intermediates would round differently: do not build (the
- * extension is optional, the Python path then runs). */
-#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD != 0 && FLT_EVAL_METHOD != -1
-#error "physics_side.policies._footprintkernel needs double evaluation (FLT_EVAL_METHOD 0)"
-#endif
+#include "../_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
 /* footprints.INV_SQRT2 = 1.0 / np.sqrt(2.0), as exact bits (the quotient rounds down: one ulp
  * below the nearest double to 1 / sqrt(2)) */
@@ -53,10 +40,6 @@ static const double CELL_MIN_M = 1e-3;
  * an exact double and an int64 difference of two cannot overflow */
 static const double MAX_CELL = 4503599627370496.0; /* 2^52 */
 #define RELEASE_GIL_FROM 4096 /* pairs per call */
-
-/* numpy's maximum on float64: a NaN in either argument is the result, and of two equal
- * values the second (maximum(-0.0, 0.0) is 0.0, as the SIMD instruction it uses) */
-static inline double np_max(double a, double b) { return (a > b || a != a) ? a : b; }
 
 /* ------------------------------------------------------------------ buffers */
 

@@ -16,37 +16,13 @@
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+
 #include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
 
-/* Bit-identical results need each product rounded on its own, as numpy does: no fused
- * multiply-add (compilers contract by default on FMA hardware, e.g. every arm64). */
-#if defined(__clang__)
-#pragma STDC FP_CONTRACT OFF
-#elif defined(__GNUC__)
-#pragma GCC optimize("fp-contract=off")
-#elif defined(_MSC_VER)
-#pragma fp_contract(off)
-#endif
-
-#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD != 0 && FLT_EVAL_METHOD != -1
-#error "physics_side.policies._policykernel needs double evaluation (FLT_EVAL_METHOD 0)"
-#endif
-
-/* protocol.frames: np.pi, _TWO_PI = 2 * np.pi, _INV_TWO_PI = 1 / _TWO_PI, as exact bits */
-static const double PI = 0x1.921fb54442d18p+1;
-static const double TWO_PI = 0x1.921fb54442d18p+2;
-static const double INV_TWO_PI = 0x1.45f306dc9c883p-3;
-
-static inline double wrap_pi(double a) { return a - TWO_PI * ceil((a - PI) * INV_TWO_PI); }
-
-/* numpy's maximum / minimum on float64: a NaN in either argument is the result, and of two
- * equal values the second (as the SIMD max / min instructions it uses: maximum(-0.0, 0.0) is
- * 0.0, maximum(0.0, -0.0) is -0.0) */
-static inline double np_max(double a, double b) { return (a > b || a != a) ? a : b; }
-static inline double np_min(double a, double b) { return (a < b || a != a) ? a : b; }
+#include "../_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
 typedef struct {
     Py_buffer v;
