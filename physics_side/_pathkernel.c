@@ -1,8 +1,11 @@
-/* Fast path of physics_side.reference.PathSet.at: every agent's polyline at an arc length.
+/* Fast paths of physics_side.reference: PathSet.at (every agent's polyline at an arc
+ * length) and Reference.at / at_and_project (`reference`: the speed profile, the path there,
+ * the sample's offset and drift, and the projection of the measured bumper, per agent).
  *
- * The Python body spends ~40 us per call in ~20 small numpy calls whatever the agent
- * count; this loop does the same arithmetic per query, operation for operation, so its
- * results are bit-identical (tests/test_physics_pathkernel.py compares them):
+ * The Python bodies spend ~40 us (PathSet.at) and ~80 us (at_and_project) per call in small
+ * numpy calls whatever the agent count; these loops do the same arithmetic per agent,
+ * operation for operation, so their results are bit-identical
+ * (tests/test_physics_pathkernel.py, tests/test_physics_referencekernel.py compare them):
  *
  * - the segment: numpy's searchsorted(key, clip(s, 0, total) + base, side="right") - 1,
  *   clamped to [first, last_seg], found by a binary search over the agent's own vertices
@@ -11,6 +14,12 @@
  *   sorts after every key in numpy, i.e. the agent's last segment.
  * - the expressions of PathSet.at with numpy's maximum / minimum (NaN propagates) and
  *   protocol.frames.wrap_pi with the same constants.
+ *
+ * - Reference: the expressions of Reference._profile, _shift and _project and of
+ *   stopping_distance, with np.clip's comparisons; its scalars (u = tau / L, (1 - u) ** 2)
+ *   come from the Python wrapper. cos / sin are libm's (gcc merges them into sincos, which
+ *   glibc computes with the same code): the wrapper runs it only where numpy's are the same
+ *   bits (runtime.native.numpy_math_is_libm).
  *
  * Assumes finite paths (the wire decoder rejects anything else): with a NaN vertex the
  * Python search key is unsorted and numpy's result is undefined anyway.
@@ -245,17 +254,244 @@ done:
     return result;
 }
 
+/* ------------------------------------------------------------------ reference */
+
+/* Rows of Reference._c_state (per agent), in its order */
+enum { S_SPEED, S_ACCEL, S_OFF_LON, S_OFF_LAT, S_DYAW, S_SIDE_RATE, S_SIDE_CAP, S_INTERP, S_S_END, S_V0, S_V1,
+       S_A_END, STATE_ROWS };
+/* Rows of the output: Reference.at's ReferencePoint, then project's s, lateral offset and PathPoint */
+enum { O_X, O_Y, O_YAW, O_V, O_A, O_KAPPA, O_S, O_TANGENT, AT_ROWS, O_PS = AT_ROWS, O_LAT, O_PX, O_PY, O_PH, O_PK,
+       PROJECT_ROWS };
+/* Reference._profile's cases: extrapolated from the sample; interpolated with tau <= L (the
+ * cubic); interpolated with tau > L (extrapolated from the next sample) */
+enum { MODE_EXTRAPOLATE, MODE_CUBIC, MODE_PAST_END };
+
+static inline double wrap_pi(double a) { return a - TWO_PI * ceil((a - PI) * INV_TWO_PI); }
+
+/* np.clip(x, lo, hi) on float64 (numpy's clip loop): min(max(x, lo), hi) where a NaN first
+ * argument is the result, a NaN bound passes through and of two equal values the second wins */
+static inline double clip_max(double a, double b) { return (a != a) ? a : (a > b ? a : b); }
+static inline double clip_min(double a, double b) { return (a != a) ? a : (a < b ? a : b); }
+
+/* reference.stopping_distance for one agent: the same expressions in the same order */
+static inline void stopping(double v, double a, double tau, double *s, double *vt) {
+    double w = v + a * tau;
+    double d = v * tau + 0.5 * a * tau * tau;
+    if (w < 0.0) {
+        d = (a < 0) ? v * v / (-2.0 * a) : 0.0;
+        w = 0.0;
+    }
+    *s = d;
+    *vt = w;
+}
+
+typedef struct {
+    int mode, drift;
+    double tau, tau_l, L, u, c2;
+    /* the cubic's factors in u, each computed as the Python body computes it (scalars first) */
+    double c1, c3, d1, d2, d3, e1, e2, e3;
+} profile_t;
+
+/* Reference._profile for agent i: arc length, speed, acceleration */
+static inline void profile_one(const profile_t *f, const double *st, Py_ssize_t n, Py_ssize_t i, double *s, double *v,
+                               double *a) {
+#define ST(r) st[(Py_ssize_t)(r) * n + i]
+    const double spd = ST(S_SPEED), acc = ST(S_ACCEL);
+    double sx, vx, ax, si, vi, ai;
+    if (f->mode == MODE_EXTRAPOLATE) {
+        stopping(spd, acc, f->tau, s, v);
+        *a = *v > 0.0 ? acc : 0.0;
+        return;
+    }
+    stopping(spd, acc, f->tau_l, &sx, &vx); /* its own sample is L later */
+    ax = vx > 0.0 ? acc : 0.0;
+    {
+        const double S = ST(S_S_END), v0 = ST(S_V0), v1 = ST(S_V1), u = f->u, L = f->L;
+        if (f->mode == MODE_CUBIC) {
+            si = S * f->c1 * u * u + L * (v0 * f->c2 * u + v1 * f->c3 * u * u);
+            vi = S * 6.0 * u * f->d1 / L + v0 * f->d1 * f->d2 + v1 * u * f->d3;
+            ai = (S * f->e1 / L + v0 * f->e2 + v1 * f->e3) / L;
+            vi = np_max(vi, 0.0);
+        } else {
+            const double a_end = ST(S_A_END);
+            double s2;
+            stopping(v1, a_end, f->tau_l, &s2, &vi);
+            si = S + s2;
+            ai = vi > 0.0 ? a_end : 0.0;
+        }
+    }
+    if (ST(S_INTERP) != 0.0) {
+        *s = si;
+        *v = vi;
+        *a = ai;
+    } else {
+        *s = sx;
+        *v = vx;
+        *a = ax;
+    }
+#undef ST
+}
+
+static int as_double(PyObject *o, const char *name, double *v) {
+    *v = PyFloat_AsDouble(o);
+    if (*v == -1.0 && PyErr_Occurred()) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s: needs a float (got %.100s)", name, Py_TYPE(o)->tp_name);
+        return 0;
+    }
+    return 1;
+}
+
+static PyObject *py_reference(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    buf_t seg, key, af, ai, st, sg, bx, by, out;
+    paths_t p;
+    profile_t f;
+    Py_ssize_t n, m, i;
+    long mode;
+    int project, ok = 1;
+    PyObject *result = NULL;
+    (void)self;
+    seg.held = key.held = af.held = ai.held = st.held = sg.held = bx.held = by.held = out.held = 0;
+    if (nargs != 16) {
+        PyErr_SetString(PyExc_TypeError, "reference(seg, key, agents_f, agents_i, state, mode, drift, tau, tau_l, L, "
+                                         "u, c2, s_guess, px, py, out) takes 16 arguments");
+        return NULL;
+    }
+    if (!get(args[0], &seg, "seg", 'f', 0, 0) || !get(args[1], &key, "key", 'f', 0, 0) ||
+        !get(args[2], &af, "agents_f", 'f', 0, 0) || !get(args[3], &ai, "agents_i", 'i', 0, 0) ||
+        !get(args[4], &st, "state", 'f', 0, 0) || !get(args[15], &out, "out", 'f', 1, 0))
+        goto done;
+    mode = PyLong_AsLong(args[5]);
+    if (mode == -1 && PyErr_Occurred()) goto done;
+    if (mode < MODE_EXTRAPOLATE || mode > MODE_PAST_END) {
+        PyErr_SetString(PyExc_ValueError, "mode: needs 0 (extrapolate), 1 (cubic) or 2 (past the end)");
+        goto done;
+    }
+    f.mode = (int)mode;
+    f.drift = PyObject_IsTrue(args[6]);
+    if (f.drift < 0 || !as_double(args[7], "tau", &f.tau) || !as_double(args[8], "tau_l", &f.tau_l) ||
+        !as_double(args[9], "L", &f.L) || !as_double(args[10], "u", &f.u) || !as_double(args[11], "c2", &f.c2))
+        goto done;
+    /* Reference._profile's scalar factors (3.0 - 2.0 * u, u - 1.0, ...), as Python rounds them */
+    f.c1 = 3.0 - 2.0 * f.u;
+    f.c3 = f.u - 1.0;
+    f.d1 = 1.0 - f.u;
+    f.d2 = 1.0 - 3.0 * f.u;
+    f.d3 = 3.0 * f.u - 2.0;
+    f.e1 = 6.0 - 12.0 * f.u;
+    f.e2 = 6.0 * f.u - 4.0;
+    f.e3 = 6.0 * f.u - 2.0;
+    m = seg.v.shape[seg.v.ndim - 1];
+    n = st.v.shape[st.v.ndim - 1];
+    project = args[12] != Py_None;
+    if (!shape_is(&seg, "seg", 2, SEG_ROWS, m) || !shape_is(&key, "key", 1, m + 1, 0) ||
+        !shape_is(&af, "agents_f (total, base)", 2, 2, n) || !shape_is(&ai, "agents_i (first, last_seg)", 2, 2, n) ||
+        !shape_is(&st, "state", 2, STATE_ROWS, n) || !shape_is(&out, "out", 2, project ? PROJECT_ROWS : AT_ROWS, n))
+        goto done;
+    if (project && (!get(args[12], &sg, "s_guess", 'f', 0, 0) || !get(args[13], &bx, "px", 'f', 0, 0) ||
+                    !get(args[14], &by, "py", 'f', 0, 0) || !shape_is(&sg, "s_guess", 1, n, 0) ||
+                    !shape_is(&bx, "px", 1, n, 0) || !shape_is(&by, "py", 1, n, 0)))
+        goto done;
+    p.seg = (const double *)seg.v.buf;
+    p.m = m;
+    p.key = (const double *)key.v.buf;
+    p.total = (const double *)af.v.buf;
+    p.base = p.total + n;
+    p.first = (const int64_t *)ai.v.buf;
+    p.last_seg = p.first + n;
+    {
+        const double *S = (const double *)st.v.buf;
+        const double *gs = project ? (const double *)sg.v.buf : NULL;
+        const double *qx = project ? (const double *)bx.v.buf : NULL, *qy = project ? (const double *)by.v.buf : NULL;
+        double *o = (double *)out.v.buf;
+#define OUT(r) o[(Py_ssize_t)(r) * n + i]
+#define ST(r) S[(Py_ssize_t)(r) * n + i]
+        for (i = 0; i < n; i++) {
+            double s, v, a, x, y, h, k, lat, c, sn, sx, sy;
+            profile_one(&f, S, n, i, &s, &v, &a);
+            if (!at_one(&p, i, s, &x, &y, &h, &k)) {
+                ok = 0;
+                break;
+            }
+            /* Reference._shift: the sample's offset from its path plus the drift since, in the
+             * path's frame at the point */
+            lat = ST(S_OFF_LAT);
+            if (f.drift) lat = lat + clip_min(clip_max(ST(S_SIDE_RATE) * f.tau, -ST(S_SIDE_CAP)), ST(S_SIDE_CAP));
+            c = cos(h);
+            sn = sin(h);
+            sx = ST(S_OFF_LON) * c - lat * sn;
+            sy = ST(S_OFF_LON) * sn + lat * c;
+            OUT(O_X) = x + sx;
+            OUT(O_Y) = y + sy;
+            OUT(O_YAW) = wrap_pi(h + ST(S_DYAW));
+            OUT(O_V) = v;
+            OUT(O_A) = a;
+            OUT(O_KAPPA) = k;
+            OUT(O_S) = s;
+            OUT(O_TANGENT) = h;
+            if (project) {
+                /* Reference._project at the shifted path point of s_guess */
+                const double g = gs[i];
+                double gx, gy, dx, dy, ds;
+                if (!at_one(&p, i, g, &x, &y, &h, &k)) {
+                    ok = 0;
+                    break;
+                }
+                c = cos(h);
+                sn = sin(h);
+                gx = x + (ST(S_OFF_LON) * c - lat * sn);
+                gy = y + (ST(S_OFF_LON) * sn + lat * c);
+                dx = qx[i] - gx;
+                dy = qy[i] - gy;
+                ds = dx * c + dy * sn;
+                OUT(O_PS) = g + ds;
+                OUT(O_LAT) = -dx * sn + dy * c;
+                OUT(O_PX) = gx + ds * c;
+                OUT(O_PY) = gy + ds * sn;
+                OUT(O_PH) = wrap_pi(h + k * ds);
+                OUT(O_PK) = k;
+            }
+        }
+#undef OUT
+#undef ST
+    }
+    if (!ok) {
+        PyErr_SetString(PyExc_ValueError, "agents_i: a segment range [first, last_seg] lies outside seg");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    release(&seg);
+    release(&key);
+    release(&af);
+    release(&ai);
+    release(&st);
+    release(&sg);
+    release(&bx);
+    release(&by);
+    release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"at", (PyCFunction)(void (*)(void))py_at, METH_FASTCALL,
      "at(seg, key, agents_f, agents_i, s, out) -> None: PathSet.at into out (4, *s.shape) = x, y, heading, "
      "curvature. seg: the (15, m) segment table; key: the (m + 1,) search key; agents_f: (2, n) total, base; "
      "agents_i: (2, n) int64 first, last_seg; s: float64 (..., n)."},
+    {"reference", (PyCFunction)(void (*)(void))py_reference, METH_FASTCALL,
+     "reference(seg, key, agents_f, agents_i, state, mode, drift, tau, tau_l, L, u, c2, s_guess, px, py, out) -> "
+     "None: Reference.at(tau) into out[:8] (x, y, yaw, speed, accel, curvature, s, tangent) and, unless s_guess "
+     "is None, project(px, py, s_guess, tau) into out[8:14] (s, lateral offset, x, y, heading, curvature). "
+     "state: Reference._c_state (12, n); mode, drift, tau, tau_l, L, u, c2: the scalars of Reference._profile "
+     "and _shift (Reference._c_scalars); the rest as in at, s_guess, px, py float64 (n,)."},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "physics_side._pathkernel",
-    "C fast path of physics_side.reference.PathSet.at (bit-identical to its Python body).", -1, methods,
+    "C fast paths of physics_side.reference: PathSet.at and Reference.at / at_and_project (bit-identical "
+    "to their Python bodies).", -1, methods,
     NULL, NULL, NULL, NULL,
 };
 

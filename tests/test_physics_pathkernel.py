@@ -176,7 +176,9 @@ def test_shapes_layouts_and_empty():
 @needs_c
 def test_reference_evaluations_go_through_the_kernel(monkeypatch):
     """The control tick's calls (Reference.at / at_and_project / point_at) reach the C path
-    and give what the Python body gives."""
+    and give what the Python body gives (with Reference's own C path off, as where numpy's
+    cos / sin are not libm's; tests/test_physics_referencekernel.py tests that one)."""
+    monkeypatch.setattr(reference, "FAST_REFERENCE", False)
     msg = circle_traffic(40, 3)
     ref = Reference.from_batch(msg.time, msg.agents)
     calls = []
