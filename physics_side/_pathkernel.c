@@ -1,6 +1,7 @@
 /* Fast paths of physics_side.reference: PathSet.at (every agent's polyline at an arc
- * length) and Reference.at / at_and_project (`reference`: the speed profile, the path there,
- * the sample's offset and drift, and the projection of the measured bumper, per agent).
+ * length), Reference.at / at_and_project (`reference`: the speed profile, the path there,
+ * the sample's offset and drift, and the projection of the measured bumper, per agent), and
+ * per SUMO step PathSet's tables (`build`) and PathSet.dedup.
  *
  * The Python bodies spend ~40 us (PathSet.at) and ~80 us (at_and_project) per call in small
  * numpy calls whatever the agent count; these loops do the same arithmetic per agent,
@@ -20,6 +21,9 @@
  *   come from the Python wrapper. cos / sin are libm's (gcc merges them into sincos, which
  *   glibc computes with the same code): the wrapper runs it only where numpy's are the same
  *   bits (runtime.native.numpy_math_is_libm).
+ *
+ * - build / dedup: the numpy bodies' expressions per segment (hypot, atan2 from libm, under
+ *   the same condition), numpy's cumsum as the sequential sum it is.
  *
  * Assumes finite paths (the wire decoder rejects anything else): with a NaN vertex the
  * Python search key is unsorted and numpy's result is undefined anyway.
@@ -474,6 +478,220 @@ done:
     return result;
 }
 
+/* ------------------------------------------------------------------ PathSet construction */
+
+/* reference's constants, as exact doubles */
+static const double MIN_SEG_M = 1e-9;     /* [m] segment lengths divide as at least this */
+static const double AGENT_GAP_M = 1.0e6;  /* [m] reference._BIG, the search key's gap between agents */
+static const double BLEND_M = 3.5;        /* [m] */
+static const double FINE_SEG_M = 4.0;     /* [m] */
+static const double SAMPLING_RATIO = 1.5; /* [1] */
+
+/* Are the offsets what PathSet reads: from 0 to the vertex count, >= 2 vertices each? */
+static int offsets_ok(const int64_t *off, Py_ssize_t n, Py_ssize_t count, int min_each) {
+    Py_ssize_t a;
+    if (off[0] != 0 || off[n] != count) return 0;
+    for (a = 0; a < n; a++)
+        if (off[a + 1] - off[a] < min_each) return 0;
+    return 1;
+}
+
+/* PathSet.__init__ (_measure, _vertex_turns, _continue_sampled_ends, _segment_table) into
+ * seg (SEG_ROWS, m), cum and key (m + 1,), turn (m,) and agents_f (2, n) = total, base; the
+ * same expressions in numpy's order. Returns False (nothing written) when the offsets are
+ * not 0 .. len(xy) with >= 2 vertices each: the Python body then runs (and raises). */
+static PyObject *py_build(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    buf_t ob, xb, sb, cb, kb, tb, ab;
+    Py_ssize_t n, M, m, j, a;
+    PyObject *result = NULL;
+    double *raw = NULL;
+    (void)self;
+    ob.held = xb.held = sb.held = cb.held = kb.held = tb.held = ab.held = 0;
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError, "build(offsets, xy, seg, cum, key, turn, agents_f) takes 7 arguments");
+        return NULL;
+    }
+    if (!get(args[0], &ob, "offsets", 'i', 0, 0) || !get(args[1], &xb, "xy", 'f', 0, 0) ||
+        !get(args[2], &sb, "seg", 'f', 1, 0) || !get(args[3], &cb, "cum", 'f', 1, 0) ||
+        !get(args[4], &kb, "key", 'f', 1, 0) || !get(args[5], &tb, "turn", 'f', 1, 0) ||
+        !get(args[6], &ab, "agents_f", 'f', 1, 0))
+        goto done;
+    n = ob.v.shape[0] - 1;
+    M = xb.v.shape[0];
+    m = M - 1;
+    if (n < 1 || m < 1) {
+        PyErr_SetString(PyExc_ValueError, "build: needs at least one path and one segment");
+        goto done;
+    }
+    if (!shape_is(&ob, "offsets", 1, n + 1, 0) || !shape_is(&xb, "xy", 2, M, 2) ||
+        !shape_is(&sb, "seg", 2, SEG_ROWS, m) || !shape_is(&cb, "cum", 1, M, 0) || !shape_is(&kb, "key", 1, M, 0) ||
+        !shape_is(&tb, "turn", 1, m, 0) || !shape_is(&ab, "agents_f", 2, 2, n))
+        goto done;
+    {
+        const int64_t *off = (const int64_t *)ob.v.buf;
+        const double *xy = (const double *)xb.v.buf;
+        double *seg = (double *)sb.v.buf, *cum = (double *)cb.v.buf, *key = (double *)kb.v.buf;
+        double *turn = (double *)tb.v.buf, *total = (double *)ab.v.buf, *base = total + n;
+        double *X0 = seg + R_X0 * m, *Y0 = seg + R_Y0 * m, *DX = seg + R_DX * m, *DY = seg + R_DY * m;
+        double *C0 = seg + R_C0 * m, *SL = seg + R_L * m, *BS = seg + R_BS * m, *BE = seg + R_BE * m;
+        double *NDS = seg + R_NEG_DS * m, *DE = seg + R_DE * m, *H = seg + R_H * m, *TBS = seg + R_TWO_BS * m;
+        double *TBE = seg + R_TWO_BE * m, *KS = seg + R_KS * m, *KE = seg + R_KE * m;
+        double c;
+        if (!offsets_ok(off, n, M, 2)) {
+            result = Py_False;
+            Py_INCREF(result);
+            goto done;
+        }
+        raw = PyMem_Malloc((size_t)m * sizeof(double)); /* the segment lengths before the floor */
+        if (!raw) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        /* _measure: segments, lengths (0 across two paths), headings, directions */
+        for (j = 0; j < m; j++) {
+            const double dx = xy[2 * j + 2] - xy[2 * j], dy = xy[2 * j + 3] - xy[2 * j + 1];
+            raw[j] = hypot(dx, dy);
+            H[j] = atan2(dy, dx);
+            X0[j] = xy[2 * j];
+            Y0[j] = xy[2 * j + 1];
+            DX[j] = dx; /* divided below, once the gaps' lengths are 0 */
+            DY[j] = dy;
+        }
+        for (a = 0; a + 1 < n; a++) raw[off[a + 1] - 1] = 0.0;
+        for (j = 0; j < m; j++) {
+            SL[j] = np_max(raw[j], MIN_SEG_M);
+            DX[j] = DX[j] / SL[j];
+            DY[j] = DY[j] / SL[j];
+        }
+        /* the arc lengths: numpy's cumsum (sequential) minus each path's start */
+        c = 0.0;
+        cum[0] = 0.0;
+        for (j = 0; j < m; j++) cum[j + 1] = c = c + raw[j];
+        for (a = 0; a < n; a++) {
+            const double start = cum[off[a]], b = (double)a * AGENT_GAP_M;
+            Py_ssize_t v;
+            for (v = off[a]; v < off[a + 1]; v++) {
+                cum[v] = cum[v] - start;
+                key[v] = cum[v] + b;
+            }
+            total[a] = cum[off[a + 1] - 1];
+            base[a] = b;
+        }
+        for (j = 0; j < m; j++) C0[j] = cum[j];
+        /* _vertex_turns */
+        turn[0] = 0.0;
+        BS[0] = 0.0;
+        for (j = 1; j < m; j++) {
+            turn[j] = wrap_pi(H[j] - H[j - 1]);
+            BS[j] = np_min(np_min(raw[j], raw[j - 1]) * 0.5, BLEND_M);
+        }
+        for (a = 0; a < n; a++) turn[off[a]] = BS[off[a]] = 0.0;
+        for (j = 0; j + 1 < m; j++) {
+            DE[j] = turn[j + 1];
+            BE[j] = BS[j + 1];
+        }
+        DE[m - 1] = BE[m - 1] = 0.0;
+        for (a = 0; a < n; a++) DE[off[a + 1] - 2] = BE[off[a + 1] - 2] = 0.0;
+        /* _continue_sampled_ends: a path's first / last segment continues its neighbour's turn */
+        if (m > 1) {
+            for (a = 0; a < n; a++) {
+                const Py_ssize_t f = off[a], ls = off[a + 1] - 2;
+                if (f == ls) continue;
+                if (raw[f] <= FINE_SEG_M && raw[f + 1] <= FINE_SEG_M && raw[f] <= SAMPLING_RATIO * raw[f + 1]) {
+                    turn[f] = DE[f] * raw[f] / np_max(raw[f + 1], MIN_SEG_M);
+                    BS[f] = 0.5 * raw[f];
+                }
+                if (raw[ls] <= FINE_SEG_M && raw[ls - 1] <= FINE_SEG_M && raw[ls] <= SAMPLING_RATIO * raw[ls - 1]) {
+                    DE[ls] = turn[ls] * raw[ls] / np_max(raw[ls - 1], MIN_SEG_M);
+                    BE[ls] = 0.5 * raw[ls];
+                }
+            }
+        }
+        /* _segment_table's derived rows */
+        for (j = 0; j < m; j++) {
+            NDS[j] = -turn[j];
+            TBS[j] = BS[j] > 0 ? 2 * BS[j] : 1.0;
+            TBE[j] = BE[j] > 0 ? 2 * BE[j] : 1.0;
+            KS[j] = turn[j] / TBS[j];
+            KE[j] = DE[j] / TBE[j];
+        }
+    }
+    result = Py_True;
+    Py_INCREF(result);
+done:
+    PyMem_Free(raw);
+    release(&ob);
+    release(&xb);
+    release(&sb);
+    release(&cb);
+    release(&kb);
+    release(&tb);
+    release(&ab);
+    return result;
+}
+
+/* PathSet.dedup: keeps a path's first vertex and every vertex at least tol from the one
+ * before it (hypot >= tol, so a NaN distance drops it), into new_offsets (n + 1,) and the
+ * first rows of new_xy (len(xy), 2). Returns the number of vertices kept (len(xy): nothing
+ * dropped, the inputs stay), or -1 when the offsets are not 0 .. len(xy) (the Python body
+ * then runs). */
+static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    buf_t ob, xb, nob, nxb;
+    Py_ssize_t n, M, v, a, kept = 0;
+    double tol;
+    PyObject *result = NULL;
+    (void)self;
+    ob.held = xb.held = nob.held = nxb.held = 0;
+    if (nargs != 5) {
+        PyErr_SetString(PyExc_TypeError, "dedup(offsets, xy, tol, new_offsets, new_xy) takes 5 arguments");
+        return NULL;
+    }
+    if (!get(args[0], &ob, "offsets", 'i', 0, 0) || !get(args[1], &xb, "xy", 'f', 0, 0) ||
+        !as_double(args[2], "tol", &tol) || !get(args[3], &nob, "new_offsets", 'i', 1, 0) ||
+        !get(args[4], &nxb, "new_xy", 'f', 1, 0))
+        goto done;
+    n = ob.v.shape[0] - 1;
+    M = xb.v.shape[0];
+    if (n < 0 || !shape_is(&ob, "offsets", 1, n + 1, 0) || !shape_is(&xb, "xy", 2, M, 2) ||
+        !shape_is(&nob, "new_offsets", 1, n + 1, 0) || !shape_is(&nxb, "new_xy", 2, M, 2))
+        goto done;
+    {
+        const int64_t *off = (const int64_t *)ob.v.buf;
+        const double *xy = (const double *)xb.v.buf;
+        int64_t *no = (int64_t *)nob.v.buf;
+        double *nxy = (double *)nxb.v.buf;
+        int dropped = 0;
+        if (n < 1 || !offsets_ok(off, n, M, 0)) {
+            result = PyLong_FromSsize_t(-1);
+            goto done;
+        }
+        for (v = 1; v < M && !dropped; v++) dropped = !(hypot(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1]) >= tol);
+        if (dropped) {
+            /* some vertex goes (maybe a path's first, which stays): compact */
+            no[0] = 0;
+            for (a = 0; a < n; a++) {
+                for (v = off[a]; v < off[a + 1]; v++) {
+                    if (v == off[a] || hypot(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1]) >= tol) {
+                        nxy[2 * kept] = xy[2 * v];
+                        nxy[2 * kept + 1] = xy[2 * v + 1];
+                        kept++;
+                    }
+                }
+                no[a + 1] = kept;
+            }
+        } else {
+            kept = M;
+        }
+    }
+    result = PyLong_FromSsize_t(kept);
+done:
+    release(&ob);
+    release(&xb);
+    release(&nob);
+    release(&nxb);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"at", (PyCFunction)(void (*)(void))py_at, METH_FASTCALL,
      "at(seg, key, agents_f, agents_i, s, out) -> None: PathSet.at into out (4, *s.shape) = x, y, heading, "
@@ -484,14 +702,21 @@ static PyMethodDef methods[] = {
      "None: Reference.at(tau) into out[:8] (x, y, yaw, speed, accel, curvature, s, tangent) and, unless s_guess "
      "is None, project(px, py, s_guess, tau) into out[8:14] (s, lateral offset, x, y, heading, curvature). "
      "state: Reference._c_state (12, n); mode, drift, tau, tau_l, L, u, c2: the scalars of Reference._profile "
-     "and _shift (Reference._c_scalars); the rest as in at, s_guess, px, py float64 (n,)."},
+     "and _shift (Reference._run_c); the rest as in at, s_guess, px, py float64 (n,)."},
+    {"build", (PyCFunction)(void (*)(void))py_build, METH_FASTCALL,
+     "build(offsets, xy, seg, cum, key, turn, agents_f) -> bool: PathSet.__init__'s tables into seg (15, m), "
+     "cum, key (m + 1,), turn (m,), agents_f (2, n) = total, base; False (nothing written) unless offsets run "
+     "from 0 to len(xy) with >= 2 vertices each. offsets int64 (n + 1,), xy float64 (m + 1, 2)."},
+    {"dedup", (PyCFunction)(void (*)(void))py_dedup, METH_FASTCALL,
+     "dedup(offsets, xy, tol, new_offsets, new_xy) -> int: PathSet.dedup into new_offsets (n + 1,) and "
+     "new_xy[:kept]; returns kept (len(xy): nothing dropped), or -1 unless offsets run from 0 to len(xy)."},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "physics_side._pathkernel",
-    "C fast paths of physics_side.reference: PathSet.at and Reference.at / at_and_project (bit-identical "
-    "to their Python bodies).", -1, methods,
+    "C fast paths of physics_side.reference: PathSet.at, Reference.at / at_and_project, PathSet's tables "
+    "and dedup (bit-identical to their Python bodies).", -1, methods,
     NULL, NULL, NULL, NULL,
 };
 

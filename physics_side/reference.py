@@ -65,6 +65,9 @@ FAST_PATHS: bool = _kernel is not None
 #: ``reference``, bit-identical to their Python bodies). It calls libm's cos / sin: off where
 #: numpy's are other bits.
 FAST_REFERENCE: bool = FAST_PATHS and numpy_math_is_libm()
+#: True when ``PathSet``'s tables (``__init__``) and ``PathSet.dedup`` are built in C (the same
+#: extension's ``build`` and ``dedup``; libm's hypot / atan2, hence the same condition).
+FAST_PATHSET: bool = FAST_REFERENCE
 
 
 @dataclass(frozen=True)
@@ -102,6 +105,9 @@ class PathSet:
         self.n = n
         self.offsets = offsets
         self.xy = xy
+        if FAST_PATHSET and n and len(xy) > 1 and xy.ndim == 2 and xy.flags.c_contiguous and offsets.flags.c_contiguous \
+                and self._build_c():
+            return
         seglen = self._measure(offsets, xy, np.repeat(np.arange(n), counts))
         turn, b_start, turn_end, b_end = _vertex_turns(seglen, self.h, self.first, self.last_seg)
         _continue_sampled_ends(seglen, self.first, self.last_seg, turn, b_start, turn_end, b_end)
@@ -111,6 +117,23 @@ class PathSet:
         if _kernel is not None:  # the per-agent inputs of the C path, two arrays instead of four
             self._agents_f = np.array([self.total, self._base])
             self._agents_i = np.array([self.first, self.last_seg], np.int64)
+
+    def _build_c(self) -> bool:
+        """``__init__``'s tables in C, the same bits; False when the offsets do not span xy
+        (the Python body then runs and raises)."""
+        n, m = self.n, len(self.xy) - 1
+        seg, cum, key, turn, agents_f = np.empty((_SEG_ROWS, m)), np.empty(m + 1), np.empty(m + 1), np.empty(m), \
+            np.empty((2, n))
+        if not _kernel.build(self.offsets, self.xy, seg, cum, key, turn, agents_f):
+            return False
+        self.cum, self.key, self.total, self._base = cum, key, agents_f[0], agents_f[1]
+        self.first, self.last_seg = self.offsets[:-1], self.offsets[1:] - 2
+        self.seglen, self.dir, self.h = seg[5], seg[2:4].T, seg[10]
+        self.turn_s, self.b_s, self.turn_e, self.b_e = turn, seg[6], seg[9], seg[7]
+        self._seg = seg
+        self._agents_f = agents_f
+        self._agents_i = np.array([self.first, self.last_seg], np.int64)
+        return True
 
     def _measure(self, offsets: np.ndarray, xy: np.ndarray, owner: np.ndarray) -> np.ndarray:
         """Segments, their headings and the arc length of every vertex (and the search key over
@@ -164,6 +187,14 @@ class PathSet:
         n = len(offsets) - 1
         if len(xy) < 2:
             return offsets, xy
+        if FAST_PATHSET and xy.ndim == 2 and xy.flags.c_contiguous and offsets.flags.c_contiguous and \
+                isinstance(tol, float):
+            new_off, new_xy = np.empty(n + 1, np.int64), np.empty(xy.shape)
+            kept = _kernel.dedup(offsets, xy, tol, new_off, new_xy)
+            if kept == len(xy):
+                return offsets, xy
+            if kept >= 0:
+                return new_off, new_xy[:kept]
         d = np.hypot(*(xy[1:] - xy[:-1]).T)
         keep = np.ones(len(xy), bool)
         keep[1:] = d >= tol
