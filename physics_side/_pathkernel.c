@@ -630,6 +630,21 @@ done:
     return result;
 }
 
+/* Squared tolerances within which dedup asks hypot: outside them the squared distance
+ * (2 roundings, relative error < 1e-15) decides hypot(dx, dy) >= tol (< 1 ulp off) alike;
+ * a NaN or overflowing square falls to hypot or to the right side. Only for tolerances whose
+ * square is a normal double. */
+#define DEDUP_SQ_MARGIN 1e-6 /* [1] */
+#define DEDUP_QUICK_TOL_MIN 1e-100 /* [m] */
+#define DEDUP_QUICK_TOL_MAX 1e100  /* [m] */
+
+static inline int far_enough(double dx, double dy, double tol, double lo2, double hi2) {
+    const double q = dx * dx + dy * dy;
+    if (q > hi2) return 1;
+    if (q < lo2) return 0;
+    return hypot(dx, dy) >= tol;
+}
+
 /* PathSet.dedup: keeps a path's first vertex and every vertex at least tol from the one
  * before it (hypot >= tol, so a NaN distance drops it), into new_offsets (n + 1,) and the
  * first rows of new_xy (len(xy), 2). Returns the number of vertices kept (len(xy): nothing
@@ -661,17 +676,22 @@ static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t narg
         int64_t *no = (int64_t *)nob.v.buf;
         double *nxy = (double *)nxb.v.buf;
         int dropped = 0;
+        const int quick = tol >= DEDUP_QUICK_TOL_MIN && tol <= DEDUP_QUICK_TOL_MAX;
+        /* without the quick test every distance goes to hypot (the bounds never decide) */
+        const double lo2 = quick ? tol * tol * (1.0 - DEDUP_SQ_MARGIN) : -HUGE_VAL;
+        const double hi2 = quick ? tol * tol * (1.0 + DEDUP_SQ_MARGIN) : HUGE_VAL;
         if (n < 1 || !offsets_ok(off, n, M, 0)) {
             result = PyLong_FromSsize_t(-1);
             goto done;
         }
-        for (v = 1; v < M && !dropped; v++) dropped = !(hypot(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1]) >= tol);
+        for (v = 1; v < M && !dropped; v++)
+            dropped = !far_enough(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1], tol, lo2, hi2);
         if (dropped) {
             /* some vertex goes (maybe a path's first, which stays): compact */
             no[0] = 0;
             for (a = 0; a < n; a++) {
                 for (v = off[a]; v < off[a + 1]; v++) {
-                    if (v == off[a] || hypot(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1]) >= tol) {
+                    if (v == off[a] || far_enough(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1], tol, lo2, hi2)) {
                         nxy[2 * kept] = xy[2 * v];
                         nxy[2 * kept + 1] = xy[2 * v + 1];
                         kept++;

@@ -357,3 +357,24 @@ def test_build_and_dedup_leave_what_the_kernel_cannot_read_to_python():
         k.build(np.array([0, 3]), xy, np.empty((15, 1)), cum, key, turn, af)
     _same_dedup(np.array([0, 2, 3]), xy[:, ::-1].copy())
     _same_dedup(np.array([0, 2, 3]), np.asfortranarray(xy))
+
+
+@needs_c_build
+@pytest.mark.parametrize("tol", [0.01, 0.3, 0.0, 1e-200, 1e200, float("nan")])
+def test_dedup_decides_near_ties_as_hypot_does(tol):
+    """Vertices at distances within a few ulps of the tolerance in every direction (where the
+    kernel's squared-distance shortcut hands over to hypot), tiny and huge steps."""
+    rng = np.random.default_rng(7)
+    k = 4000
+    th = rng.uniform(-np.pi, np.pi, k)
+    r = (0.01 if np.isnan(tol) or tol == 0.0 else tol) * (1.0 + rng.integers(-8, 9, k) * 2.0 ** -52)
+    r[::7] *= 1.0 + rng.normal(0.0, 1e-6, len(r[::7]))
+    steps = np.c_[r * np.cos(th), r * np.sin(th)]
+    steps[::11] = rng.choice([0.0, 1e-170, 1e170, np.inf], (len(steps[::11]), 1))
+    xy = np.cumsum(np.vstack([[0.0, 0.0], steps]), axis=0)
+    xy[1::2] = xy[0::2][: len(xy[1::2])] + steps[0::2][: len(xy[1::2])]  # (each step from an exact vertex)
+    counts = rng.integers(1, 6, len(xy))
+    off = np.concatenate(([0], np.cumsum(counts)))
+    off = off[off < len(xy)]
+    off = np.append(off, len(xy))
+    _same_dedup(off, xy, tol)
