@@ -1,6 +1,7 @@
 /* Fast paths of physics_side.reference: PathSet.at (every agent's polyline at an arc
  * length), Reference.at / at_and_project (`reference`: the speed profile, the path there,
- * the sample's offset and drift, and the projection of the measured bumper, per agent), and
+ * the sample's offset and drift, and the projection of the measured bumper, per agent),
+ * Reference.point_at (`point_at`: the path shifted by that offset and drift), and
  * per SUMO step PathSet's tables (`build`) and PathSet.dedup.
  *
  * The Python bodies spend ~40 us (PathSet.at) and ~80 us (at_and_project) per call in small
@@ -478,6 +479,80 @@ done:
     return result;
 }
 
+/* Reference.point_at(s, tau) for s of shape (n,): the path at s shifted by the sample's
+ * offset and drift (Reference._shift) into out (4, n) = x, y, heading, curvature. */
+static PyObject *py_point_at(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    buf_t seg, key, af, ai, st, sb, out;
+    paths_t p;
+    Py_ssize_t n, m, i;
+    int drift, ok = 1;
+    double tau;
+    PyObject *result = NULL;
+    (void)self;
+    seg.held = key.held = af.held = ai.held = st.held = sb.held = out.held = 0;
+    if (nargs != 9) {
+        PyErr_SetString(PyExc_TypeError, "point_at(seg, key, agents_f, agents_i, state, drift, tau, s, out) takes 9 "
+                                         "arguments");
+        return NULL;
+    }
+    if (!get(args[0], &seg, "seg", 'f', 0, 0) || !get(args[1], &key, "key", 'f', 0, 0) ||
+        !get(args[2], &af, "agents_f", 'f', 0, 0) || !get(args[3], &ai, "agents_i", 'i', 0, 0) ||
+        !get(args[4], &st, "state", 'f', 0, 0) || !get(args[7], &sb, "s", 'f', 0, 0) ||
+        !get(args[8], &out, "out", 'f', 1, 0))
+        goto done;
+    drift = PyObject_IsTrue(args[5]);
+    if (drift < 0 || !as_double(args[6], "tau", &tau)) goto done;
+    m = seg.v.shape[seg.v.ndim - 1];
+    n = st.v.shape[st.v.ndim - 1];
+    if (!shape_is(&seg, "seg", 2, SEG_ROWS, m) || !shape_is(&key, "key", 1, m + 1, 0) ||
+        !shape_is(&af, "agents_f (total, base)", 2, 2, n) || !shape_is(&ai, "agents_i (first, last_seg)", 2, 2, n) ||
+        !shape_is(&st, "state", 2, STATE_ROWS, n) || !shape_is(&sb, "s", 1, n, 0) || !shape_is(&out, "out", 2, 4, n))
+        goto done;
+    p.seg = (const double *)seg.v.buf;
+    p.m = m;
+    p.key = (const double *)key.v.buf;
+    p.total = (const double *)af.v.buf;
+    p.base = p.total + n;
+    p.first = (const int64_t *)ai.v.buf;
+    p.last_seg = p.first + n;
+    {
+        const double *S = (const double *)st.v.buf, *q = (const double *)sb.v.buf;
+        double *o = (double *)out.v.buf;
+#define ST(r) S[(Py_ssize_t)(r) * n + i]
+        for (i = 0; i < n; i++) {
+            double x, y, h, k, lat, c, sn;
+            if (!at_one(&p, i, q[i], &x, &y, &h, &k)) {
+                ok = 0;
+                break;
+            }
+            lat = ST(S_OFF_LAT);
+            if (drift) lat = lat + clip_min(clip_max(ST(S_SIDE_RATE) * tau, -ST(S_SIDE_CAP)), ST(S_SIDE_CAP));
+            c = cos(h);
+            sn = sin(h);
+            o[i] = x + (ST(S_OFF_LON) * c - lat * sn);
+            o[n + i] = y + (ST(S_OFF_LON) * sn + lat * c);
+            o[2 * n + i] = h;
+            o[3 * n + i] = k;
+        }
+#undef ST
+    }
+    if (!ok) {
+        PyErr_SetString(PyExc_ValueError, "agents_i: a segment range [first, last_seg] lies outside seg");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    release(&seg);
+    release(&key);
+    release(&af);
+    release(&ai);
+    release(&st);
+    release(&sb);
+    release(&out);
+    return result;
+}
+
 /* ------------------------------------------------------------------ PathSet construction */
 
 /* reference's constants, as exact doubles */
@@ -723,6 +798,9 @@ static PyMethodDef methods[] = {
      "is None, project(px, py, s_guess, tau) into out[8:14] (s, lateral offset, x, y, heading, curvature). "
      "state: Reference._c_state (12, n); mode, drift, tau, tau_l, L, u, c2: the scalars of Reference._profile "
      "and _shift (Reference._run_c); the rest as in at, s_guess, px, py float64 (n,)."},
+    {"point_at", (PyCFunction)(void (*)(void))py_point_at, METH_FASTCALL,
+     "point_at(seg, key, agents_f, agents_i, state, drift, tau, s, out) -> None: Reference.point_at(s, tau) into "
+     "out (4, n) = x, y, heading, curvature; s float64 (n,), the rest as in reference."},
     {"build", (PyCFunction)(void (*)(void))py_build, METH_FASTCALL,
      "build(offsets, xy, seg, cum, key, turn, agents_f) -> bool: PathSet.__init__'s tables into seg (15, m), "
      "cum, key (m + 1,), turn (m,), agents_f (2, n) = total, base; False (nothing written) unless offsets run "

@@ -61,8 +61,8 @@ _kernel = optional_extension("physics_side._pathkernel", "SUMOCO_PURE_PHYSICS")
 #: True when ``PathSet.at`` runs in C (``physics_side._pathkernel``, bit-identical to its
 #: Python body, which runs otherwise).
 FAST_PATHS: bool = _kernel is not None
-#: True when ``Reference.at`` and ``Reference.at_and_project`` run in C (the same extension's
-#: ``reference``, bit-identical to their Python bodies). It calls libm's cos / sin: off where
+#: True when ``Reference.at``, ``Reference.at_and_project`` and ``Reference.point_at`` run in C
+#: (the same extension's ``reference`` and ``point_at``, bit-identical to their Python bodies). It calls libm's cos / sin: off where
 #: numpy's are other bits.
 FAST_REFERENCE: bool = FAST_PATHS and numpy_math_is_libm()
 #: True when ``PathSet``'s tables (``__init__``) and ``PathSet.dedup`` are built in C (the same
@@ -673,6 +673,12 @@ class Reference:
     def point_at(self, s: np.ndarray, tau: float = 0.0) -> PathPoint:
         """Path (shifted by the sample's offset from its start, and its sideways drift until
         ``tau`` [s]) at arc length s [m]; its heading is the path tangent."""
+        n = self.n
+        if FAST_REFERENCE and n and isinstance(tau, float) and _vector(s, n):
+            ps, out = self.path, np.empty((4, n))
+            _kernel.point_at(ps._seg, ps.key, ps._agents_f, ps._agents_i, self._c_state(), self._drift and tau > 0.0,
+                             tau, s, out)
+            return PathPoint(out[0], out[1], out[2], out[3])
         p = self.path.at(s)
         sx, sy = self._shift(p.heading, tau)
         return PathPoint(p.x + sx, p.y + sy, p.heading, p.curvature)

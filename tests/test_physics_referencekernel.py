@@ -1,5 +1,5 @@
-"""The C fast path of ``Reference.at`` / ``Reference.at_and_project`` (physics_side._pathkernel's
-``reference``) against their Python bodies.
+"""The C fast paths of ``Reference.at`` / ``Reference.at_and_project`` and ``Reference.point_at``
+(physics_side._pathkernel's ``reference`` and ``point_at``) against their Python bodies.
 
 Every output bit for bit (the sign of a zero included; NaN at the same places) on recorded
 SUMO steps, synthetic traffic and random ragged polylines; extrapolated and interpolated
@@ -63,7 +63,12 @@ def _same(ref: Reference, tau, px, py, s_guess) -> None:
         ref._last_at = None
         r3 = ref.at(tau)
         r4 = _python(ref, lambda: ref.at(tau))
-    for a, b in [(r, r2), (s, s2), (lat, lat2), (g, g2), (r3, r4), (r, r4)]:
+        p = ref.point_at(s_guess, tau)
+        p2 = _python(ref, lambda: ref.point_at(s_guess, tau))
+        ref.at(tau)  # the cached reference: at_and_project projects with point_at
+        _, cached = ref.at_and_project(tau, px, py, s_guess)
+        _, cached2 = _python(ref, lambda: (ref.at(tau), ref.at_and_project(tau, px, py, s_guess))[1])
+    for a, b in [(r, r2), (s, s2), (lat, lat2), (g, g2), (r3, r4), (r, r4), (p, p2), *zip(cached, cached2)]:
         _same_results(a, b)
 
 
@@ -207,13 +212,20 @@ def test_the_tick_goes_through_the_kernel(monkeypatch):
             calls.append(args[12] is not None)
             return kernel.reference(*args)
 
+        @staticmethod
+        def point_at(*args):
+            calls.append("point_at")
+            return kernel.point_at(*args)
+
     monkeypatch.setattr(reference, "_kernel", Spy)
     px, py = msg.agents.x + 0.2, np.asarray(msg.agents.y, np.float64)
     r, _ = ref.at_and_project(0.1, px, py, np.zeros(40))
     assert ref.at(0.1) is r
     ref._last_at = None
     ref.at(0.05)
-    assert calls == [True, False]
+    ref.at_and_project(0.05, px, py, np.zeros(40))  # (cached: projects with point_at)
+    ref.point_at(np.ones(40), 0.05)
+    assert calls == [True, False, "point_at", "point_at"]
 
 
 @needs_c
@@ -254,6 +266,12 @@ def test_kernel_rejects_what_it_cannot_read():
     fails(13, z.astype(np.float32), TypeError, "px: needs float64")
     fails(14, np.zeros(8)[::2], TypeError, "py: needs a C-contiguous")
     fails(15, np.empty((8, 4)), ValueError, r"out: needs shape \(14, 4\)")
+    pa = [ps._seg, ps.key, ps._agents_f, ps._agents_i, ref._c_state(), False, 0.1, z, np.empty((4, 4))]
+    k.point_at(*pa)
+    with pytest.raises(ValueError, match=r"s: needs shape \(4,\)"):
+        k.point_at(*pa[:7], z[:3], pa[8])
+    with pytest.raises(TypeError, match="takes 9 arguments"):
+        k.point_at(*pa[:8])
     fails(3, np.array([[0, 1, 2, 3], [0, 1, 2, 400]]), ValueError, "outside seg")
     a = list(args)
     a[12], a[15] = None, np.empty((8, 4))  # at only
