@@ -742,7 +742,11 @@ static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t narg
         goto done;
     n = ob.v.shape[0] - 1;
     M = xb.v.shape[0];
-    if (n < 0 || !shape_is(&ob, "offsets", 1, n + 1, 0) || !shape_is(&xb, "xy", 2, M, 2) ||
+    if (n < 1) { /* no paths: the Python body's case */
+        result = PyLong_FromSsize_t(-1);
+        goto done;
+    }
+    if (!shape_is(&ob, "offsets", 1, n + 1, 0) || !shape_is(&xb, "xy", 2, M, 2) ||
         !shape_is(&nob, "new_offsets", 1, n + 1, 0) || !shape_is(&nxb, "new_xy", 2, M, 2))
         goto done;
     {
@@ -755,7 +759,7 @@ static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t narg
         /* without the quick test every distance goes to hypot (the bounds never decide) */
         const double lo2 = quick ? tol * tol * (1.0 - DEDUP_SQ_MARGIN) : -HUGE_VAL;
         const double hi2 = quick ? tol * tol * (1.0 + DEDUP_SQ_MARGIN) : HUGE_VAL;
-        if (n < 1 || !offsets_ok(off, n, M, 0)) {
+        if (!offsets_ok(off, n, M, 0)) {
             result = PyLong_FromSsize_t(-1);
             goto done;
         }
@@ -766,7 +770,9 @@ static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t narg
             no[0] = 0;
             for (a = 0; a < n; a++) {
                 for (v = off[a]; v < off[a + 1]; v++) {
-                    if (v == off[a] || far_enough(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1], tol, lo2, hi2)) {
+                    /* (a path's first vertex stays, without reading the one before it) */
+                    if (v == off[a] ||
+                        far_enough(xy[2 * v] - xy[2 * v - 2], xy[2 * v + 1] - xy[2 * v - 1], tol, lo2, hi2)) {
                         nxy[2 * kept] = xy[2 * v];
                         nxy[2 * kept + 1] = xy[2 * v + 1];
                         kept++;

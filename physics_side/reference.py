@@ -62,8 +62,8 @@ _kernel = optional_extension("physics_side._pathkernel", "SUMOCO_PURE_PHYSICS")
 #: Python body, which runs otherwise).
 FAST_PATHS: bool = _kernel is not None
 #: True when ``Reference.at``, ``Reference.at_and_project`` and ``Reference.point_at`` run in C
-#: (the same extension's ``reference`` and ``point_at``, bit-identical to their Python bodies). It calls libm's cos / sin: off where
-#: numpy's are other bits.
+#: (the same extension's ``reference`` and ``point_at``, bit-identical to their Python bodies).
+#: They call libm's cos / sin: off where numpy's are other bits.
 FAST_REFERENCE: bool = FAST_PATHS and numpy_math_is_libm()
 #: True when ``PathSet``'s tables (``__init__``) and ``PathSet.dedup`` are built in C (the same
 #: extension's ``build`` and ``dedup``; libm's hypot / atan2, hence the same condition).
@@ -105,8 +105,8 @@ class PathSet:
         self.n = n
         self.offsets = offsets
         self.xy = xy
-        if FAST_PATHSET and n and len(xy) > 1 and xy.ndim == 2 and xy.flags.c_contiguous and offsets.flags.c_contiguous \
-                and self._build_c():
+        if FAST_PATHSET and n and len(xy) > 1 and xy.ndim == 2 and xy.flags.c_contiguous and \
+                offsets.flags.c_contiguous and self._build_c():
             return
         seglen = self._measure(offsets, xy, np.repeat(np.arange(n), counts))
         turn, b_start, turn_end, b_end = _vertex_turns(seglen, self.h, self.first, self.last_seg)

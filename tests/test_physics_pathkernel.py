@@ -353,6 +353,8 @@ def test_build_and_dedup_leave_what_the_kernel_cannot_read_to_python():
     assert k.build(np.array([0, 3]), xy, seg, cum, key, turn, af) is True
     assert k.build(np.array([0, 2]), xy, seg, cum, key, turn, af) is False
     assert k.dedup(np.array([0, 2]), xy, 0.01, np.empty(2, np.int64), np.empty((3, 2))) == -1
+    assert k.dedup(np.zeros(0, np.int64), xy, 0.01, np.zeros(0, np.int64), np.empty((3, 2))) == -1  # no paths
+    assert k.dedup(np.zeros(1, np.int64), xy[:0], 0.01, np.zeros(1, np.int64), np.empty((0, 2))) == -1
     with pytest.raises(ValueError, match=r"seg: needs shape \(15, 2\)"):
         k.build(np.array([0, 3]), xy, np.empty((15, 1)), cum, key, turn, af)
     _same_dedup(np.array([0, 2, 3]), xy[:, ::-1].copy())
