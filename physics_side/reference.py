@@ -26,7 +26,7 @@ import numpy as np
 
 from physics_side.kinematics import concat_ranges
 from protocol.frames import sumo_angle_to_yaw, wrap_pi
-from runtime.native import optional_extension
+from runtime.native import numpy_math_is_libm, optional_extension
 
 _BIG = 1.0e6  # [m] arc-length gap between agents in the global search key (> any path)
 _SEG_ROWS = 15  # rows of the per-segment table (``PathSet._segment_table``, unpacked in ``at``)
@@ -61,6 +61,13 @@ _kernel = optional_extension("physics_side._pathkernel", "SUMOCO_PURE_PHYSICS")
 #: True when ``PathSet.at`` runs in C (``physics_side._pathkernel``, bit-identical to its
 #: Python body, which runs otherwise).
 FAST_PATHS: bool = _kernel is not None
+#: True when ``Reference.at``, ``Reference.at_and_project`` and ``Reference.point_at`` run in C
+#: (the same extension's ``reference`` and ``point_at``, bit-identical to their Python bodies).
+#: They call libm's cos / sin: off where numpy's are other bits.
+FAST_REFERENCE: bool = FAST_PATHS and numpy_math_is_libm()
+#: True when ``PathSet``'s tables (``__init__``) and ``PathSet.dedup`` are built in C (the same
+#: extension's ``build`` and ``dedup``; libm's hypot / atan2, hence the same condition).
+FAST_PATHSET: bool = FAST_REFERENCE
 
 
 @dataclass(frozen=True)
@@ -98,6 +105,9 @@ class PathSet:
         self.n = n
         self.offsets = offsets
         self.xy = xy
+        if FAST_PATHSET and n and len(xy) > 1 and xy.ndim == 2 and xy.flags.c_contiguous and \
+                offsets.flags.c_contiguous and self._build_c():
+            return
         seglen = self._measure(offsets, xy, np.repeat(np.arange(n), counts))
         turn, b_start, turn_end, b_end = _vertex_turns(seglen, self.h, self.first, self.last_seg)
         _continue_sampled_ends(seglen, self.first, self.last_seg, turn, b_start, turn_end, b_end)
@@ -107,6 +117,23 @@ class PathSet:
         if _kernel is not None:  # the per-agent inputs of the C path, two arrays instead of four
             self._agents_f = np.array([self.total, self._base])
             self._agents_i = np.array([self.first, self.last_seg], np.int64)
+
+    def _build_c(self) -> bool:
+        """``__init__``'s tables in C, the same bits; False when the offsets do not span xy
+        (the Python body then runs and raises)."""
+        n, m = self.n, len(self.xy) - 1
+        seg, cum, key, turn, agents_f = np.empty((_SEG_ROWS, m)), np.empty(m + 1), np.empty(m + 1), np.empty(m), \
+            np.empty((2, n))
+        if not _kernel.build(self.offsets, self.xy, seg, cum, key, turn, agents_f):
+            return False
+        self.cum, self.key, self.total, self._base = cum, key, agents_f[0], agents_f[1]
+        self.first, self.last_seg = self.offsets[:-1], self.offsets[1:] - 2
+        self.seglen, self.dir, self.h = seg[5], seg[2:4].T, seg[10]
+        self.turn_s, self.b_s, self.turn_e, self.b_e = turn, seg[6], seg[9], seg[7]
+        self._seg = seg
+        self._agents_f = agents_f
+        self._agents_i = np.array([self.first, self.last_seg], np.int64)
+        return True
 
     def _measure(self, offsets: np.ndarray, xy: np.ndarray, owner: np.ndarray) -> np.ndarray:
         """Segments, their headings and the arc length of every vertex (and the search key over
@@ -160,6 +187,14 @@ class PathSet:
         n = len(offsets) - 1
         if len(xy) < 2:
             return offsets, xy
+        if FAST_PATHSET and xy.ndim == 2 and xy.flags.c_contiguous and offsets.flags.c_contiguous and \
+                isinstance(tol, float):
+            new_off, new_xy = np.empty(n + 1, np.int64), np.empty(xy.shape)
+            kept = _kernel.dedup(offsets, xy, tol, new_off, new_xy)
+            if kept == len(xy):
+                return offsets, xy
+            if kept >= 0:
+                return new_off, new_xy[:kept]
         d = np.hypot(*(xy[1:] - xy[:-1]).T)
         keep = np.ones(len(xy), bool)
         keep[1:] = d >= tol
@@ -380,6 +415,7 @@ class Reference:
         self.side_rate = np.zeros(n)
         self._side_cap = np.full(n, np.inf)
         self._drift = False
+        self._state: np.ndarray | None = None  # the C path's per-agent inputs (``_c_state``)
 
     def set_side_rate(self, rate: np.ndarray) -> None:
         """Extrapolate a sideways drift of ``rate`` [m/s, + left of the path] (from the last two
@@ -393,6 +429,7 @@ class Reference:
         self.side_rate = np.where(self._side_cap > 0.0, rate, 0.0)
         self._drift = bool(np.any(self.side_rate != 0.0))
         self._last_at = None
+        self._state = None
 
     @property
     def side_offset(self) -> np.ndarray:
@@ -487,6 +524,7 @@ class Reference:
         self._side_cap = np.where(self._interp, np.abs(lat), self._side_cap)
         self._drift = bool(np.any(self.side_rate != 0.0))
         self._last_at = None
+        self._state = None
 
     def profile(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
         """Arc length [m] and speed [m/s] ``tau`` [s] after the sample (never reversing)."""
@@ -565,6 +603,9 @@ class Reference:
         return r
 
     def _at(self, tau: float) -> ReferencePoint:
+        if FAST_REFERENCE and self.n and isinstance(tau, float):
+            o = self._run_c(tau, None, None, None, np.empty((8, self.n)))
+            return ReferencePoint(o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7])
         s, v, a = self._profile(tau)
         return self._point(s, v, a, self.path.at(s), tau)
 
@@ -582,6 +623,13 @@ class Reference:
         s_guess = np.asarray(s_guess, np.float64)
         if self._last_at is not None and self._last_at[0] == tau:
             return self._last_at[1], self.project(px, py, s_guess, tau)
+        n = self.n
+        if FAST_REFERENCE and n and isinstance(tau, float) and _vector(px, n) and _vector(py, n) and \
+                _vector(s_guess, n):
+            o = self._run_c(tau, s_guess, px, py, np.empty((14, n)))
+            r = ReferencePoint(o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7])
+            self._last_at = (tau, r)
+            return r, (o[8], o[9], PathPoint(o[10], o[11], o[12], o[13]))
         s, v, a = self._profile(tau)
         p = self.path.at(np.array([s, s_guess]))
         r = self._point(s, v, a, PathPoint(p.x[0], p.y[0], p.heading[0], p.curvature[0]), tau)
@@ -590,9 +638,47 @@ class Reference:
         g = PathPoint(p.x[1] + sx, p.y[1] + sy, p.heading[1], p.curvature[1])
         return r, self._project(px, py, s_guess, g)
 
+    def _c_state(self) -> np.ndarray:
+        """The per-agent inputs of the C path, rows in _pathkernel.c's order (built once per
+        reference and after ``set_side_rate`` / ``interpolate_to``)."""
+        if self._state is None:
+            interp = getattr(self, "_interp", None)
+            z = np.zeros(self.n)
+            rows = [self.speed, self.accel, self._off_lon, self._off_lat, self._dyaw, self.side_rate, self._side_cap]
+            if interp is None:
+                rows += [z, z, z, z, z]
+            else:
+                rows += [interp.astype(np.float64), self._s_end, self._v0, self._v1, self._a_end]
+            self._state = np.array(rows, np.float64)
+        return self._state
+
+    def _run_c(self, tau: float, s_guess, px, py, out: np.ndarray) -> np.ndarray:
+        """``_at(tau)`` (out[:8]) and, with ``s_guess``, ``project(px, py, s_guess, tau)`` (out[8:])
+        in C. The scalars of ``_profile`` are computed here, as its Python body does."""
+        mode, tau_l, L, u, c2 = 0, 0.0, 1.0, 0.0, 0.0
+        if getattr(self, "_interp", None) is not None:
+            L = self._L
+            tau_l = tau - L
+            if tau <= L:
+                mode = 1
+                u = max(tau, 0.0) / L
+                c2 = (1.0 - u) ** 2
+            else:
+                mode = 2
+        ps = self.path
+        _kernel.reference(ps._seg, ps.key, ps._agents_f, ps._agents_i, self._c_state(), mode,
+                          self._drift and tau > 0.0, tau, tau_l, L, u, c2, s_guess, px, py, out)
+        return out
+
     def point_at(self, s: np.ndarray, tau: float = 0.0) -> PathPoint:
         """Path (shifted by the sample's offset from its start, and its sideways drift until
         ``tau`` [s]) at arc length s [m]; its heading is the path tangent."""
+        n = self.n
+        if FAST_REFERENCE and n and isinstance(tau, float) and _vector(s, n):
+            ps, out = self.path, np.empty((4, n))
+            _kernel.point_at(ps._seg, ps.key, ps._agents_f, ps._agents_i, self._c_state(), self._drift and tau > 0.0,
+                             tau, s, out)
+            return PathPoint(out[0], out[1], out[2], out[3])
         p = self.path.at(s)
         sx, sy = self._shift(p.heading, tau)
         return PathPoint(p.x + sx, p.y + sy, p.heading, p.curvature)
@@ -626,6 +712,11 @@ class Reference:
         for _ in range(iterations - 1):
             s = self.project(px, py, s, tau)[0]
         return self.project(px, py, s, tau)
+
+
+def _vector(a, n: int) -> bool:
+    """Is ``a`` what the C path reads: a C-contiguous float64 array of shape (n,)?"""
+    return type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (n,) and a.flags.c_contiguous
 
 
 def tracking_error(px, py, ref) -> tuple[np.ndarray, np.ndarray]:

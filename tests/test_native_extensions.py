@@ -16,6 +16,8 @@ EXTENSIONS = [
     ("protocol._fastcodec", "protocol.codec", "FAST_CODEC", "SUMOCO_PURE_CODEC", sys.byteorder == "little"),
     ("sumo_side._fastread", "sumo_side.simulation", "FAST_READ", "SUMOCO_PURE_READ", True),
     ("physics_side._pathkernel", "physics_side.reference", "FAST_PATHS", "SUMOCO_PURE_PHYSICS", True),
+    ("physics_side._pathkernel", "physics_side.reference", "FAST_REFERENCE", "SUMOCO_PURE_PHYSICS", True),
+    ("physics_side._pathkernel", "physics_side.reference", "FAST_PATHSET", "SUMOCO_PURE_PHYSICS", True),
     ("physics_side._worldkernel", "physics_side.world", "FAST_OBSERVE", "SUMOCO_PURE_PHYSICS", True),
     ("physics_side.policies._policykernel", "physics_side.policies.carry", "FAST_TIGHTNESS", "SUMOCO_PURE_PHYSICS",
      True),

@@ -176,7 +176,10 @@ def test_shapes_layouts_and_empty():
 @needs_c
 def test_reference_evaluations_go_through_the_kernel(monkeypatch):
     """The control tick's calls (Reference.at / at_and_project / point_at) reach the C path
-    and give what the Python body gives."""
+    and give what the Python body gives (with Reference's own C path off, as where numpy's
+    cos / sin are not libm's; tests/test_physics_referencekernel.py tests that one)."""
+    monkeypatch.setattr(reference, "FAST_REFERENCE", False)
+    monkeypatch.setattr(reference, "FAST_PATHSET", False)
     msg = circle_traffic(40, 3)
     ref = Reference.from_batch(msg.time, msg.agents)
     calls = []
@@ -238,3 +241,142 @@ def test_kernel_rejects_what_it_cannot_read():
     fails(5, b"x" * 64, TypeError, "out: needs a writable")
     with pytest.raises(TypeError, match="takes 6 arguments"):
         k.at(*args[:5])
+
+
+# --------------------------------------------------------------------------- construction
+
+needs_c_build = pytest.mark.skipif(not reference.FAST_PATHSET, reason="physics_side._pathkernel not built, "
+                                   "SUMOCO_PURE_PHYSICS set, or numpy's hypot / arctan2 are not libm's")
+TABLES = ("cum", "key", "total", "_base", "seglen", "dir", "h", "turn_s", "b_s", "turn_e", "b_e", "_seg", "_agents_f")
+
+
+def _python_pathset(fn):
+    saved = reference.FAST_PATHSET
+    reference.FAST_PATHSET = False
+    try:
+        return fn()
+    finally:
+        reference.FAST_PATHSET = saved
+
+
+def _same_build(off, xy) -> PathSet:
+    """PathSet(off, xy) in C and in Python: every table bit for bit; and dedup's results."""
+    with np.errstate(all="ignore"):  # (the non-finite vertices)
+        c = PathSet(off, xy)
+        p = _python_pathset(lambda: PathSet(off, xy))
+    for name in TABLES:
+        assert _bits_equal(np.ascontiguousarray(getattr(c, name)), np.ascontiguousarray(getattr(p, name))), name
+    for name in ("first", "last_seg", "_agents_i"):
+        assert np.array_equal(getattr(c, name), getattr(p, name)) and getattr(c, name).dtype == np.int64, name
+    return c
+
+
+def _same_dedup(off, xy, tol: float = 0.01) -> None:
+    with np.errstate(all="ignore"):
+        o1, x1 = PathSet.dedup(off, xy, tol)
+        o2, x2 = _python_pathset(lambda: PathSet.dedup(off, xy, tol))
+    assert np.array_equal(o1, o2) and o1.dtype == o2.dtype == np.int64
+    assert _bits_equal(x1, x2)
+
+
+@needs_c_build
+@pytest.mark.parametrize("seed", range(16))
+def test_build_and_dedup_of_random_ragged_polylines(seed):
+    """Random paths (sampled curves near the sampling ratio, repeated vertices, one-segment
+    paths, vertices within the dedup tolerance), then deduplicated and built again."""
+    rng = np.random.default_rng(seed)
+    off, xy = _random_paths(rng, int(rng.integers(1, 120)))
+    ps = _same_build(off, xy)
+    _check_everything(ps, seed)
+    near = xy.copy()
+    near[1:] += rng.choice([0.0, 0.004, 0.01, -0.01, 0.02], (len(xy) - 1, 1))  # around the tolerance
+    _same_dedup(off, xy)
+    _same_dedup(off, near)
+    _same_dedup(off, near, 0.0)
+    _same_dedup(off, xy, 0.0)  # (repeated vertices exactly 0 apart)
+    o, x = PathSet.dedup(off, near)
+    if np.diff(o).min() >= 2:  # (a dedup may leave a path one vertex)
+        _same_build(o, x)
+
+
+@needs_c_build
+def test_build_of_recorded_and_synthetic_paths():
+    d = np.load(Path(__file__).parent / "data" / "bicycle_waiting_beside_a_zigzag_lane.npz")
+    off = np.asarray(d["path_offsets"], np.int64)
+    xy = np.asarray(d["path_xy"], np.float64)
+    _same_dedup(off, xy)  # (with empty and one-vertex paths)
+    n = len(off) - 1
+    ps = PathSet.concat_fallback(off, xy, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+    p2 = _python_pathset(lambda: PathSet.concat_fallback(off, xy, np.zeros(n), np.zeros(n), np.zeros(n),
+                                                         np.zeros(n)))
+    for name in TABLES:
+        assert _bits_equal(np.ascontiguousarray(getattr(ps, name)), np.ascontiguousarray(getattr(p2, name))), name
+    for n in (1, 30, 1000):
+        a = circle_traffic(n, 7).agents
+        _same_build(np.asarray(a.path_offsets, np.int64), np.asarray(a.path_xy, np.float64))
+
+
+@needs_c_build
+def test_build_of_hostile_paths():
+    """Sampled ends exactly at the sampling ratio and the fine length, only repeated
+    vertices, non-finite and huge vertices, a single one-segment path."""
+    # first / last segments exactly SAMPLING_RATIO (1.5) times their neighbour, exactly FINE_SEG_M (4 m) long,
+    # one ulp longer; then only repeated vertices
+    pts = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 2.0], [3.0, 4.0], [6.0, 4.0],
+                    [0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [7.0, 3.0], [7.0, 7.0],
+                    [0.0, 0.0], [np.nextafter(4.0, 9.0), 0.0], [np.nextafter(4.0, 9.0), 3.0], [9.0, 9.0],
+                    [9.0, 9.0], [9.0, 9.0], [9.0, 9.0]])
+    _same_build(np.array([0, 5, 10, 14, 17]), pts)
+    exact = np.array([[0.0, 0.0], [0.01, 0.0], [0.01, 0.01], [0.0, 0.0], [0.0, 0.01]])  # 0.01 apart: all stay
+    _same_dedup(np.array([0, 3, 5]), exact)
+    _same_dedup(np.array([0, 4, 6]), np.insert(exact, 2, exact[1], axis=0))  # one goes, the others stay
+    _same_build(np.array([0, 2]), np.array([[1.0, 2.0], [1.0, 2.0]]))
+    _same_build(np.array([0, 2]), np.array([[1.0, 2.0], [-3.0, 2.0]]))
+    bad = np.array([[0.0, 0.0], [np.nan, 1.0], [2.0, 2.0], [np.inf, 0.0], [1e308, -1e308], [-1e308, 1e308],
+                    [0.0, 0.0], [-0.0, -0.0], [5e-324, 0.0]])
+    _same_build(np.array([0, 3, 6, 9]), bad)
+    _same_dedup(np.array([0, 3, 6, 9]), bad)
+    _same_dedup(np.array([0, 0, 3, 3, 6, 9, 9]), bad)  # empty paths between
+
+
+@needs_c_build
+def test_build_and_dedup_leave_what_the_kernel_cannot_read_to_python():
+    """Offsets that do not span xy or too few vertices: the Python body runs (and raises as before)."""
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    for off in (np.array([0, 2]), np.array([1, 3])):
+        with pytest.raises(ValueError):
+            PathSet(off, xy)
+    with pytest.raises(ValueError, match="at least 2 vertices"):
+        PathSet(np.array([0, 1, 3]), xy)
+    k = reference._kernel
+    seg, cum, key, turn, af = np.empty((15, 2)), np.empty(3), np.empty(3), np.empty(2), np.empty((2, 1))
+    assert k.build(np.array([0, 3]), xy, seg, cum, key, turn, af) is True
+    assert k.build(np.array([0, 2]), xy, seg, cum, key, turn, af) is False
+    assert k.dedup(np.array([0, 2]), xy, 0.01, np.empty(2, np.int64), np.empty((3, 2))) == -1
+    assert k.dedup(np.zeros(0, np.int64), xy, 0.01, np.zeros(0, np.int64), np.empty((3, 2))) == -1  # no paths
+    assert k.dedup(np.zeros(1, np.int64), xy[:0], 0.01, np.zeros(1, np.int64), np.empty((0, 2))) == -1
+    with pytest.raises(ValueError, match=r"seg: needs shape \(15, 2\)"):
+        k.build(np.array([0, 3]), xy, np.empty((15, 1)), cum, key, turn, af)
+    _same_dedup(np.array([0, 2, 3]), xy[:, ::-1].copy())
+    _same_dedup(np.array([0, 2, 3]), np.asfortranarray(xy))
+
+
+@needs_c_build
+@pytest.mark.parametrize("tol", [0.01, 0.3, 0.0, 1e-200, 1e200, float("nan")])
+def test_dedup_decides_near_ties_as_hypot_does(tol):
+    """Vertices at distances within a few ulps of the tolerance in every direction (where the
+    kernel's squared-distance shortcut hands over to hypot), tiny and huge steps."""
+    rng = np.random.default_rng(7)
+    k = 4000
+    th = rng.uniform(-np.pi, np.pi, k)
+    r = (0.01 if np.isnan(tol) or tol == 0.0 else tol) * (1.0 + rng.integers(-8, 9, k) * 2.0 ** -52)
+    r[::7] *= 1.0 + rng.normal(0.0, 1e-6, len(r[::7]))
+    steps = np.c_[r * np.cos(th), r * np.sin(th)]
+    steps[::11] = rng.choice([0.0, 1e-170, 1e170, np.inf], (len(steps[::11]), 1))
+    xy = np.cumsum(np.vstack([[0.0, 0.0], steps]), axis=0)
+    xy[1::2] = xy[0::2][: len(xy[1::2])] + steps[0::2][: len(xy[1::2])]  # (each step from an exact vertex)
+    counts = rng.integers(1, 6, len(xy))
+    off = np.concatenate(([0], np.cumsum(counts)))
+    off = off[off < len(xy)]
+    off = np.append(off, len(xy))
+    _same_dedup(off, xy, tol)
