@@ -248,8 +248,6 @@ enum { O_X, O_Y, O_YAW, O_V, O_A, O_KAPPA, O_S, O_TANGENT, AT_ROWS, O_PS = AT_RO
  * cubic); interpolated with tau > L (extrapolated from the next sample) */
 enum { MODE_EXTRAPOLATE, MODE_CUBIC, MODE_PAST_END };
 
-static inline double wrap_pi(double a) { return a - TWO_PI * ceil((a - PI) * INV_TWO_PI); }
-
 /* np.clip(x, lo, hi) on float64 (numpy's clip loop): min(max(x, lo), hi) where a NaN first
  * argument is the result, a NaN bound passes through and of two equal values the second wins */
 static inline double clip_max(double a, double b) { return (a != a) ? a : (a > b ? a : b); }
