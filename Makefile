@@ -20,7 +20,7 @@ $(BIN)/python:
 # setup.py and the C sources: the editable install compiles the optional C fast paths
 # (setup.py's list) in place
 C_SOURCES := $(wildcard protocol/*.c sumo_side/*.c physics_side/*.c physics_side/policies/*.c)
-$(STAMP): pyproject.toml setup.py $(C_SOURCES) $(wildcard physics_side/*.h) | $(BIN)/python
+$(STAMP): pyproject.toml setup.py $(C_SOURCES) $(wildcard include/*.h physics_side/*.h) | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[all,test]'
 	touch $(STAMP)
 

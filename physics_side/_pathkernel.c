@@ -41,6 +41,7 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "sumoco_capi.h"  /* buffers in, module definition */
 #include "_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
 #define SEG_ROWS 15 /* reference._SEG_ROWS, the rows of PathSet._segment_table in its order */
@@ -51,51 +52,13 @@ enum { R_X0, R_Y0, R_DX, R_DY, R_C0, R_L, R_BS, R_BE, R_NEG_DS, R_DE, R_H, R_TWO
 #define MAX_NDIM 8
 #define RELEASE_GIL_FROM 4096 /* queries per call */
 
-typedef struct {
-    Py_buffer v;
-    int held;
-} buf_t;
-
-static void release(buf_t *b) {
-    if (b->held) PyBuffer_Release(&b->v);
-    b->held = 0;
-}
-
-/* A C-contiguous buffer of 8-byte items of `kind` ('f' float64, 'i' int64); strided
- * (any strides, e.g. np.broadcast_to) when `strided`. Raises and returns 0 otherwise. */
-static int get(PyObject *obj, buf_t *b, const char *name, char kind, int writable, int strided) {
-    const char *f;
-    int flags = PyBUF_FORMAT | (strided ? PyBUF_STRIDES : PyBUF_C_CONTIGUOUS) | (writable ? PyBUF_WRITABLE : 0);
-    b->held = 0;
-    if (PyObject_GetBuffer(obj, &b->v, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a%s%s array (got %.100s)", name, writable ? " writable" : "",
-                     strided ? "" : " C-contiguous", Py_TYPE(obj)->tp_name);
-        return 0;
-    }
-    b->held = 1;
-    f = b->v.format ? b->v.format : "B";
-    if (*f == '<' || *f == '=' || *f == '@') f++;
-    if (b->v.itemsize != 8 || f[0] == '\0' || f[1] != '\0' ||
-        (kind == 'f' ? f[0] != 'd' : (f[0] != 'q' && f[0] != 'l'))) {
-        PyErr_Format(PyExc_TypeError, "%s: needs %s items (got format '%s', %zd bytes)", name,
-                     kind == 'f' ? "float64" : "int64", b->v.format ? b->v.format : "B", b->v.itemsize);
-        release(b);
-        return 0;
-    }
+/* A buffer of float64 ('f') / int64 ('i') items, C-contiguous unless `strided`, of 1 to
+ * MAX_NDIM dimensions. Raises and returns 0 otherwise. */
+static int get(PyObject *obj, sc_buf *b, const char *name, char kind, int writable, int strided) {
+    if (!sc_get(obj, b, name, kind, writable, strided)) return 0;
     if (b->v.ndim < 1 || b->v.ndim > MAX_NDIM) {
         PyErr_Format(PyExc_ValueError, "%s: needs 1 to %d dimensions (got %d)", name, MAX_NDIM, b->v.ndim);
-        release(b);
-        return 0;
-    }
-    return 1;
-}
-
-static int shape_is(buf_t *b, const char *name, int ndim, Py_ssize_t d0, Py_ssize_t d1) {
-    if (b->v.ndim != ndim || b->v.shape[0] != d0 || (ndim > 1 && b->v.shape[1] != d1)) {
-        if (ndim == 1)
-            PyErr_Format(PyExc_ValueError, "%s: needs shape (%zd,)", name, d0);
-        else
-            PyErr_Format(PyExc_ValueError, "%s: needs shape (%zd, %zd)", name, d0, d1);
+        sc_release(b);
         return 0;
     }
     return 1;
@@ -157,28 +120,53 @@ static int at_one(const paths_t *p, Py_ssize_t i, double s, double *x, double *y
     return 1;
 }
 
+/* PathSet's tables, the first four arguments of at / reference / point_at (seg, key,
+ * agents_f, agents_i), into b[0..4). */
+static int get_paths(PyObject *const *args, sc_buf *b) {
+    return get(args[0], &b[0], "seg", 'f', 0, 0) && get(args[1], &b[1], "key", 'f', 0, 0) &&
+           get(args[2], &b[2], "agents_f", 'f', 0, 0) && get(args[3], &b[3], "agents_i", 'i', 0, 0);
+}
+
+/* get_paths' tables as paths_t, their shapes checked for n agents */
+static int paths_of(const sc_buf *b, Py_ssize_t n, paths_t *p) {
+    const Py_ssize_t m = b[0].v.shape[b[0].v.ndim - 1];
+    if (!sc_shape(&b[0], "seg", 2, SEG_ROWS, m) || !sc_shape(&b[1], "key", 1, m + 1, 0) ||
+        !sc_shape(&b[2], "agents_f (total, base)", 2, 2, n) || !sc_shape(&b[3], "agents_i (first, last_seg)", 2, 2, n))
+        return 0;
+    p->seg = (const double *)b[0].v.buf;
+    p->m = m;
+    p->key = (const double *)b[1].v.buf;
+    p->total = (const double *)b[2].v.buf;
+    p->base = p->total + n;
+    p->first = (const int64_t *)b[3].v.buf;
+    p->last_seg = p->first + n;
+    return 1;
+}
+
+/* The result of a loop over the agents' paths: None, or the error of a segment range
+ * outside seg (at_one failed) */
+static PyObject *paths_result(int ok) {
+    if (ok) Py_RETURN_NONE;
+    PyErr_SetString(PyExc_ValueError, "agents_i: a segment range [first, last_seg] lies outside seg");
+    return NULL;
+}
+
 static PyObject *py_at(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t seg, key, af, ai, s, out;
+    sc_buf pb[4] = {{{0}}}, s = {0}, out = {0};
     paths_t p;
-    Py_ssize_t n, m, rows = 1, count, idx[MAX_NDIM] = {0};
+    Py_ssize_t n, rows = 1, count, idx[MAX_NDIM] = {0};
     int d, ok = 1, nd;
     PyObject *result = NULL;
     (void)self;
-    seg.held = key.held = af.held = ai.held = s.held = out.held = 0;
     if (nargs != 6) {
         PyErr_SetString(PyExc_TypeError, "at(seg, key, agents_f, agents_i, s, out) takes 6 arguments");
         return NULL;
     }
-    if (!get(args[0], &seg, "seg", 'f', 0, 0) || !get(args[1], &key, "key", 'f', 0, 0) ||
-        !get(args[2], &af, "agents_f", 'f', 0, 0) || !get(args[3], &ai, "agents_i", 'i', 0, 0) ||
-        !get(args[4], &s, "s", 'f', 0, 1) || !get(args[5], &out, "out", 'f', 1, 0))
+    if (!get_paths(args, pb) || !get(args[4], &s, "s", 'f', 0, 1) || !get(args[5], &out, "out", 'f', 1, 0))
         goto done;
-    m = seg.v.shape[seg.v.ndim - 1];
     n = s.v.shape[s.v.ndim - 1];
     nd = s.v.ndim;
-    if (!shape_is(&seg, "seg", 2, SEG_ROWS, m) || !shape_is(&key, "key", 1, m + 1, 0) ||
-        !shape_is(&af, "agents_f (total, base)", 2, 2, n) || !shape_is(&ai, "agents_i (first, last_seg)", 2, 2, n))
-        goto done;
+    if (!paths_of(pb, n, &p)) goto done;
     ok = out.v.ndim == nd + 1 && out.v.shape[0] == 4;
     for (d = 0; d < nd && ok; d++) ok = out.v.shape[d + 1] == s.v.shape[d];
     if (!ok) {
@@ -187,13 +175,6 @@ static PyObject *py_at(PyObject *self, PyObject *const *args, Py_ssize_t nargs) 
     }
     for (d = 0; d < nd - 1; d++) rows *= s.v.shape[d];
     count = rows * n;
-    p.seg = (const double *)seg.v.buf;
-    p.m = m;
-    p.key = (const double *)key.v.buf;
-    p.total = (const double *)af.v.buf;
-    p.base = p.total + n;
-    p.first = (const int64_t *)ai.v.buf;
-    p.last_seg = p.first + n;
     {
         double *ox = (double *)out.v.buf, *oy = ox + count, *oh = oy + count, *oc = oh + count;
         const char *sb = (const char *)s.v.buf;
@@ -220,19 +201,10 @@ static PyObject *py_at(PyObject *self, PyObject *const *args, Py_ssize_t nargs) 
         }
         if (ts) PyEval_RestoreThread(ts);
     }
-    if (!ok) {
-        PyErr_SetString(PyExc_ValueError, "agents_i: a segment range [first, last_seg] lies outside seg");
-        goto done;
-    }
-    result = Py_None;
-    Py_INCREF(result);
+    result = paths_result(ok);
 done:
-    release(&seg);
-    release(&key);
-    release(&af);
-    release(&ai);
-    release(&s);
-    release(&out);
+    sc_release_all(pb, 4);
+    SC_RELEASE(&s, &out);
     return result;
 }
 
@@ -312,6 +284,20 @@ static inline void profile_one(const profile_t *f, const double *st, Py_ssize_t 
 #undef ST
 }
 
+/* Reference._shift's sideways offset of agent i (state S, n agents) tau [s] past its
+ * sample: the sample's offset from its path plus, with `drift`, the capped drift since */
+static inline double shift_lat(const double *S, Py_ssize_t n, Py_ssize_t i, int drift, double tau) {
+    const double lat = S[S_OFF_LAT * n + i];
+    if (!drift) return lat;
+    return lat + clip_min(clip_max(S[S_SIDE_RATE * n + i] * tau, -S[S_SIDE_CAP * n + i]), S[S_SIDE_CAP * n + i]);
+}
+
+/* the path point (x, y) moved by the offsets lon, lat [m] in the path's frame there (cos c, sin sn) */
+static inline void shift_xy(double x, double y, double c, double sn, double lon, double lat, double *ox, double *oy) {
+    *ox = x + (lon * c - lat * sn);
+    *oy = y + (lon * sn + lat * c);
+}
+
 static int as_double(PyObject *o, const char *name, double *v) {
     *v = PyFloat_AsDouble(o);
     if (*v == -1.0 && PyErr_Occurred()) {
@@ -323,23 +309,20 @@ static int as_double(PyObject *o, const char *name, double *v) {
 }
 
 static PyObject *py_reference(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t seg, key, af, ai, st, sg, bx, by, out;
+    sc_buf pb[4] = {{{0}}}, st = {0}, sg = {0}, bx = {0}, by = {0}, out = {0};
     paths_t p;
     profile_t f;
-    Py_ssize_t n, m, i;
+    Py_ssize_t n, i;
     long mode;
     int project, ok = 1;
     PyObject *result = NULL;
     (void)self;
-    seg.held = key.held = af.held = ai.held = st.held = sg.held = bx.held = by.held = out.held = 0;
     if (nargs != 16) {
         PyErr_SetString(PyExc_TypeError, "reference(seg, key, agents_f, agents_i, state, mode, drift, tau, tau_l, L, "
                                          "u, c2, s_guess, px, py, out) takes 16 arguments");
         return NULL;
     }
-    if (!get(args[0], &seg, "seg", 'f', 0, 0) || !get(args[1], &key, "key", 'f', 0, 0) ||
-        !get(args[2], &af, "agents_f", 'f', 0, 0) || !get(args[3], &ai, "agents_i", 'i', 0, 0) ||
-        !get(args[4], &st, "state", 'f', 0, 0) || !get(args[15], &out, "out", 'f', 1, 0))
+    if (!get_paths(args, pb) || !get(args[4], &st, "state", 'f', 0, 0) || !get(args[15], &out, "out", 'f', 1, 0))
         goto done;
     mode = PyLong_AsLong(args[5]);
     if (mode == -1 && PyErr_Occurred()) goto done;
@@ -361,24 +344,15 @@ static PyObject *py_reference(PyObject *self, PyObject *const *args, Py_ssize_t 
     f.e1 = 6.0 - 12.0 * f.u;
     f.e2 = 6.0 * f.u - 4.0;
     f.e3 = 6.0 * f.u - 2.0;
-    m = seg.v.shape[seg.v.ndim - 1];
     n = st.v.shape[st.v.ndim - 1];
     project = args[12] != Py_None;
-    if (!shape_is(&seg, "seg", 2, SEG_ROWS, m) || !shape_is(&key, "key", 1, m + 1, 0) ||
-        !shape_is(&af, "agents_f (total, base)", 2, 2, n) || !shape_is(&ai, "agents_i (first, last_seg)", 2, 2, n) ||
-        !shape_is(&st, "state", 2, STATE_ROWS, n) || !shape_is(&out, "out", 2, project ? PROJECT_ROWS : AT_ROWS, n))
+    if (!paths_of(pb, n, &p) || !sc_shape(&st, "state", 2, STATE_ROWS, n) ||
+        !sc_shape(&out, "out", 2, project ? PROJECT_ROWS : AT_ROWS, n))
         goto done;
     if (project && (!get(args[12], &sg, "s_guess", 'f', 0, 0) || !get(args[13], &bx, "px", 'f', 0, 0) ||
-                    !get(args[14], &by, "py", 'f', 0, 0) || !shape_is(&sg, "s_guess", 1, n, 0) ||
-                    !shape_is(&bx, "px", 1, n, 0) || !shape_is(&by, "py", 1, n, 0)))
+                    !get(args[14], &by, "py", 'f', 0, 0) || !sc_shape(&sg, "s_guess", 1, n, 0) ||
+                    !sc_shape(&bx, "px", 1, n, 0) || !sc_shape(&by, "py", 1, n, 0)))
         goto done;
-    p.seg = (const double *)seg.v.buf;
-    p.m = m;
-    p.key = (const double *)key.v.buf;
-    p.total = (const double *)af.v.buf;
-    p.base = p.total + n;
-    p.first = (const int64_t *)ai.v.buf;
-    p.last_seg = p.first + n;
     {
         const double *S = (const double *)st.v.buf;
         const double *gs = project ? (const double *)sg.v.buf : NULL;
@@ -387,7 +361,7 @@ static PyObject *py_reference(PyObject *self, PyObject *const *args, Py_ssize_t 
 #define OUT(r) o[(Py_ssize_t)(r) * n + i]
 #define ST(r) S[(Py_ssize_t)(r) * n + i]
         for (i = 0; i < n; i++) {
-            double s, v, a, x, y, h, k, lat, c, sn, sx, sy;
+            double s, v, a, x, y, h, k, lat, c, sn;
             profile_one(&f, S, n, i, &s, &v, &a);
             if (!at_one(&p, i, s, &x, &y, &h, &k)) {
                 ok = 0;
@@ -395,14 +369,10 @@ static PyObject *py_reference(PyObject *self, PyObject *const *args, Py_ssize_t 
             }
             /* Reference._shift: the sample's offset from its path plus the drift since, in the
              * path's frame at the point */
-            lat = ST(S_OFF_LAT);
-            if (f.drift) lat = lat + clip_min(clip_max(ST(S_SIDE_RATE) * f.tau, -ST(S_SIDE_CAP)), ST(S_SIDE_CAP));
+            lat = shift_lat(S, n, i, f.drift, f.tau);
             c = cos(h);
             sn = sin(h);
-            sx = ST(S_OFF_LON) * c - lat * sn;
-            sy = ST(S_OFF_LON) * sn + lat * c;
-            OUT(O_X) = x + sx;
-            OUT(O_Y) = y + sy;
+            shift_xy(x, y, c, sn, ST(S_OFF_LON), lat, &OUT(O_X), &OUT(O_Y));
             OUT(O_YAW) = wrap_pi(h + ST(S_DYAW));
             OUT(O_V) = v;
             OUT(O_A) = a;
@@ -419,8 +389,7 @@ static PyObject *py_reference(PyObject *self, PyObject *const *args, Py_ssize_t 
                 }
                 c = cos(h);
                 sn = sin(h);
-                gx = x + (ST(S_OFF_LON) * c - lat * sn);
-                gy = y + (ST(S_OFF_LON) * sn + lat * c);
+                shift_xy(x, y, c, sn, ST(S_OFF_LON), lat, &gx, &gy);
                 dx = qx[i] - gx;
                 dy = qy[i] - gy;
                 ds = dx * c + dy * sn;
@@ -435,61 +404,37 @@ static PyObject *py_reference(PyObject *self, PyObject *const *args, Py_ssize_t 
 #undef OUT
 #undef ST
     }
-    if (!ok) {
-        PyErr_SetString(PyExc_ValueError, "agents_i: a segment range [first, last_seg] lies outside seg");
-        goto done;
-    }
-    result = Py_None;
-    Py_INCREF(result);
+    result = paths_result(ok);
 done:
-    release(&seg);
-    release(&key);
-    release(&af);
-    release(&ai);
-    release(&st);
-    release(&sg);
-    release(&bx);
-    release(&by);
-    release(&out);
+    sc_release_all(pb, 4);
+    SC_RELEASE(&st, &sg, &bx, &by, &out);
     return result;
 }
 
 /* Reference.point_at(s, tau) for s of shape (n,): the path at s shifted by the sample's
  * offset and drift (Reference._shift) into out (4, n) = x, y, heading, curvature. */
 static PyObject *py_point_at(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t seg, key, af, ai, st, sb, out;
+    sc_buf pb[4] = {{{0}}}, st = {0}, sb = {0}, out = {0};
     paths_t p;
-    Py_ssize_t n, m, i;
+    Py_ssize_t n, i;
     int drift, ok = 1;
     double tau;
     PyObject *result = NULL;
     (void)self;
-    seg.held = key.held = af.held = ai.held = st.held = sb.held = out.held = 0;
     if (nargs != 9) {
         PyErr_SetString(PyExc_TypeError, "point_at(seg, key, agents_f, agents_i, state, drift, tau, s, out) takes 9 "
                                          "arguments");
         return NULL;
     }
-    if (!get(args[0], &seg, "seg", 'f', 0, 0) || !get(args[1], &key, "key", 'f', 0, 0) ||
-        !get(args[2], &af, "agents_f", 'f', 0, 0) || !get(args[3], &ai, "agents_i", 'i', 0, 0) ||
-        !get(args[4], &st, "state", 'f', 0, 0) || !get(args[7], &sb, "s", 'f', 0, 0) ||
+    if (!get_paths(args, pb) || !get(args[4], &st, "state", 'f', 0, 0) || !get(args[7], &sb, "s", 'f', 0, 0) ||
         !get(args[8], &out, "out", 'f', 1, 0))
         goto done;
     drift = PyObject_IsTrue(args[5]);
     if (drift < 0 || !as_double(args[6], "tau", &tau)) goto done;
-    m = seg.v.shape[seg.v.ndim - 1];
     n = st.v.shape[st.v.ndim - 1];
-    if (!shape_is(&seg, "seg", 2, SEG_ROWS, m) || !shape_is(&key, "key", 1, m + 1, 0) ||
-        !shape_is(&af, "agents_f (total, base)", 2, 2, n) || !shape_is(&ai, "agents_i (first, last_seg)", 2, 2, n) ||
-        !shape_is(&st, "state", 2, STATE_ROWS, n) || !shape_is(&sb, "s", 1, n, 0) || !shape_is(&out, "out", 2, 4, n))
+    if (!paths_of(pb, n, &p) || !sc_shape(&st, "state", 2, STATE_ROWS, n) || !sc_shape(&sb, "s", 1, n, 0) ||
+        !sc_shape(&out, "out", 2, 4, n))
         goto done;
-    p.seg = (const double *)seg.v.buf;
-    p.m = m;
-    p.key = (const double *)key.v.buf;
-    p.total = (const double *)af.v.buf;
-    p.base = p.total + n;
-    p.first = (const int64_t *)ai.v.buf;
-    p.last_seg = p.first + n;
     {
         const double *S = (const double *)st.v.buf, *q = (const double *)sb.v.buf;
         double *o = (double *)out.v.buf;
@@ -500,31 +445,19 @@ static PyObject *py_point_at(PyObject *self, PyObject *const *args, Py_ssize_t n
                 ok = 0;
                 break;
             }
-            lat = ST(S_OFF_LAT);
-            if (drift) lat = lat + clip_min(clip_max(ST(S_SIDE_RATE) * tau, -ST(S_SIDE_CAP)), ST(S_SIDE_CAP));
+            lat = shift_lat(S, n, i, drift, tau);
             c = cos(h);
             sn = sin(h);
-            o[i] = x + (ST(S_OFF_LON) * c - lat * sn);
-            o[n + i] = y + (ST(S_OFF_LON) * sn + lat * c);
+            shift_xy(x, y, c, sn, ST(S_OFF_LON), lat, &o[i], &o[n + i]);
             o[2 * n + i] = h;
             o[3 * n + i] = k;
         }
 #undef ST
     }
-    if (!ok) {
-        PyErr_SetString(PyExc_ValueError, "agents_i: a segment range [first, last_seg] lies outside seg");
-        goto done;
-    }
-    result = Py_None;
-    Py_INCREF(result);
+    result = paths_result(ok);
 done:
-    release(&seg);
-    release(&key);
-    release(&af);
-    release(&ai);
-    release(&st);
-    release(&sb);
-    release(&out);
+    sc_release_all(pb, 4);
+    SC_RELEASE(&st, &sb, &out);
     return result;
 }
 
@@ -551,7 +484,7 @@ static int offsets_ok(const int64_t *off, Py_ssize_t n, Py_ssize_t count, int mi
  * same expressions in numpy's order. Returns False (nothing written) when the offsets are
  * not 0 .. len(xy) with >= 2 vertices each: the Python body then runs (and raises). */
 static PyObject *py_build(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t ob, xb, sb, cb, kb, tb, ab;
+    sc_buf ob, xb, sb, cb, kb, tb, ab;
     Py_ssize_t n, M, m, j, a;
     PyObject *result = NULL;
     double *raw = NULL;
@@ -573,9 +506,9 @@ static PyObject *py_build(PyObject *self, PyObject *const *args, Py_ssize_t narg
         PyErr_SetString(PyExc_ValueError, "build: needs at least one path and one segment");
         goto done;
     }
-    if (!shape_is(&ob, "offsets", 1, n + 1, 0) || !shape_is(&xb, "xy", 2, M, 2) ||
-        !shape_is(&sb, "seg", 2, SEG_ROWS, m) || !shape_is(&cb, "cum", 1, M, 0) || !shape_is(&kb, "key", 1, M, 0) ||
-        !shape_is(&tb, "turn", 1, m, 0) || !shape_is(&ab, "agents_f", 2, 2, n))
+    if (!sc_shape(&ob, "offsets", 1, n + 1, 0) || !sc_shape(&xb, "xy", 2, M, 2) ||
+        !sc_shape(&sb, "seg", 2, SEG_ROWS, m) || !sc_shape(&cb, "cum", 1, M, 0) || !sc_shape(&kb, "key", 1, M, 0) ||
+        !sc_shape(&tb, "turn", 1, m, 0) || !sc_shape(&ab, "agents_f", 2, 2, n))
         goto done;
     {
         const int64_t *off = (const int64_t *)ob.v.buf;
@@ -670,13 +603,7 @@ static PyObject *py_build(PyObject *self, PyObject *const *args, Py_ssize_t narg
     Py_INCREF(result);
 done:
     PyMem_Free(raw);
-    release(&ob);
-    release(&xb);
-    release(&sb);
-    release(&cb);
-    release(&kb);
-    release(&tb);
-    release(&ab);
+    SC_RELEASE(&ob, &xb, &sb, &cb, &kb, &tb, &ab);
     return result;
 }
 
@@ -701,7 +628,7 @@ static inline int far_enough(double dx, double dy, double tol, double lo2, doubl
  * dropped, the inputs stay), or -1 when the offsets are not 0 .. len(xy) (the Python body
  * then runs). */
 static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t ob, xb, nob, nxb;
+    sc_buf ob, xb, nob, nxb;
     Py_ssize_t n, M, v, a, kept = 0;
     double tol;
     PyObject *result = NULL;
@@ -721,8 +648,8 @@ static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t narg
         result = PyLong_FromSsize_t(-1);
         goto done;
     }
-    if (!shape_is(&ob, "offsets", 1, n + 1, 0) || !shape_is(&xb, "xy", 2, M, 2) ||
-        !shape_is(&nob, "new_offsets", 1, n + 1, 0) || !shape_is(&nxb, "new_xy", 2, M, 2))
+    if (!sc_shape(&ob, "offsets", 1, n + 1, 0) || !sc_shape(&xb, "xy", 2, M, 2) ||
+        !sc_shape(&nob, "new_offsets", 1, n + 1, 0) || !sc_shape(&nxb, "new_xy", 2, M, 2))
         goto done;
     {
         const int64_t *off = (const int64_t *)ob.v.buf;
@@ -761,10 +688,7 @@ static PyObject *py_dedup(PyObject *self, PyObject *const *args, Py_ssize_t narg
     }
     result = PyLong_FromSsize_t(kept);
 done:
-    release(&ob);
-    release(&xb);
-    release(&nob);
-    release(&nxb);
+    SC_RELEASE(&ob, &xb, &nob, &nxb);
     return result;
 }
 
@@ -792,11 +716,6 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "physics_side._pathkernel",
-    "C fast paths of physics_side.reference: PathSet.at, Reference.at / at_and_project, PathSet's tables "
-    "and dedup (bit-identical to their Python bodies).", -1, methods,
-    NULL, NULL, NULL, NULL,
-};
-
-PyMODINIT_FUNC PyInit__pathkernel(void) { return PyModule_Create(&module); }
+SC_MODULE(PyInit__pathkernel, "physics_side._pathkernel",
+          "C fast paths of physics_side.reference: PathSet.at, Reference.at / at_and_project, PathSet's tables "
+    "and dedup (bit-identical to their Python bodies).", methods)

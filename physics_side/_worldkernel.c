@@ -23,49 +23,28 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "sumoco_capi.h"  /* buffers in, module definition */
 #include "_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
 #define STATE_ROWS 15 /* world._SlotPlan.veh_state: freejoint qpos (7), qvel (6), two steer qpos */
 #define OBS_ROWS 16   /* world.OBSERVATION_ROWS, in that order */
 enum { O_CX, O_CY, O_Z, O_FX, O_FY, O_YAW, O_ROLL, O_PITCH, O_SPEED, O_VX, O_VY, O_WZ, O_WX, O_STEER, O_FVX, O_FVY };
 
-typedef struct {
-    Py_buffer v;
-    int held;
-} Buf;
-
-static void release(Buf *b) {
-    if (b->held) PyBuffer_Release(&b->v);
-    b->held = 0;
-}
-
-/* a C-contiguous buffer of ``itemsize``-byte items in format ``fmt`` with ``ndim`` dimensions */
-static int get(PyObject *o, Buf *b, const char *name, const char *fmt, Py_ssize_t itemsize, int ndim, int writable) {
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(o, &b->v, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous%s array", name, writable ? " writable" : "");
-        return 0;
-    }
-    b->held = 1;
-    if (b->v.itemsize != itemsize || b->v.ndim != ndim || !b->v.format || strchr(fmt, b->v.format[0]) == NULL ||
-        b->v.format[1] != '\0') {
-        PyErr_Format(PyExc_TypeError, "%s: expected a %d-d array of %s", name, ndim,
-                     itemsize == 8 && fmt[0] == 'd' ? "float64" : "int64");
-        return 0;
-    }
-    return 1;
+/* a C-contiguous float64 ('f') / int64 ('i') array of ``ndim`` dimensions */
+static int get(PyObject *o, sc_buf *b, const char *name, char kind, int ndim, int writable) {
+    return sc_get(o, b, name, kind, writable, 0) && sc_ndim(b, name, ndim);
 }
 
 static PyObject *py_observe(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    Buf st = {0}, idx = {0}, fr = {0}, out = {0};
+    sc_buf st = {0}, idx = {0}, fr = {0}, out = {0};
     PyObject *result = NULL;
     (void)self;
     if (nargs != 4) {
         PyErr_SetString(PyExc_TypeError, "observe(state, idx, front, out) takes 4 arguments");
         return NULL;
     }
-    if (!get(args[0], &st, "state", "d", 8, 1, 0) || !get(args[1], &idx, "idx", "lq", 8, 2, 0) ||
-        !get(args[2], &fr, "front", "d", 8, 1, 0) || !get(args[3], &out, "out", "d", 8, 2, 1))
+    if (!get(args[0], &st, "state", 'f', 1, 0) || !get(args[1], &idx, "idx", 'i', 2, 0) ||
+        !get(args[2], &fr, "front", 'f', 1, 0) || !get(args[3], &out, "out", 'f', 2, 1))
         goto done;
     const Py_ssize_t n = idx.v.shape[1], m = st.v.shape[0];
     if (idx.v.shape[0] != STATE_ROWS || fr.v.shape[0] != n || out.v.shape[0] != OBS_ROWS || out.v.shape[1] != n) {
@@ -117,16 +96,13 @@ static PyObject *py_observe(PyObject *self, PyObject *const *args, Py_ssize_t na
     result = Py_None;
     Py_INCREF(result);
 done:
-    release(&st);
-    release(&idx);
-    release(&fr);
-    release(&out);
+    SC_RELEASE(&st, &idx, &fr, &out);
     return result;
 }
 
 /* a float64 / int64 argument of ``n`` rows, ``cols`` columns (0: 1-d) */
-static int get_n(PyObject *o, Buf *b, const char *name, const char *fmt, Py_ssize_t n, Py_ssize_t cols) {
-    if (!get(o, b, name, fmt, 8, cols ? 2 : 1, 0)) return 0;
+static int get_n(PyObject *o, sc_buf *b, const char *name, char kind, Py_ssize_t n, Py_ssize_t cols) {
+    if (!get(o, b, name, kind, cols ? 2 : 1, 0)) return 0;
     if (b->v.shape[0] != n || (cols && b->v.shape[1] != cols)) {
         PyErr_Format(PyExc_ValueError, "command: %s has %zd rows, expected %zd", name, b->v.shape[0], n);
         return 0;
@@ -147,7 +123,7 @@ static int in_range(const int64_t *ix, Py_ssize_t count, Py_ssize_t m, const cha
 #define N_BRAKE 4 /* layout: a vehicle's brake columns (a two-wheeler's wheel in two each) */
 
 static PyObject *py_command(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    Buf st = {0}, fl = {0}, sl = {0}, sr = {0}, du = {0}, sf = {0}, wb = {0}, tr = {0}, bs = {0}, str = {0}, dr = {0},
+    sc_buf st = {0}, fl = {0}, sl = {0}, sr = {0}, du = {0}, sf = {0}, wb = {0}, tr = {0}, bs = {0}, str = {0}, dr = {0},
         br = {0};
     PyObject *result = NULL;
     (void)self;
@@ -156,15 +132,15 @@ static PyObject *py_command(PyObject *self, PyObject *const *args, Py_ssize_t na
                                          "track, brake_share, steer, drive, brake) takes 12 arguments");
         return NULL;
     }
-    if (!get(args[0], &st, "state", "d", 8, 1, 1) || !get(args[1], &fl, "frictionloss", "d", 8, 1, 1) ||
-        !get(args[2], &sl, "steer_l", "lq", 8, 1, 0))
+    if (!get(args[0], &st, "state", 'f', 1, 1) || !get(args[1], &fl, "frictionloss", 'f', 1, 1) ||
+        !get(args[2], &sl, "steer_l", 'i', 1, 0))
         goto done;
     const Py_ssize_t n = sl.v.shape[0], m = st.v.shape[0], mf = fl.v.shape[0];
-    if (!get_n(args[3], &sr, "steer_r", "lq", n, 0) || !get_n(args[4], &du, "drive_u", "lq", n, 0) ||
-        !get_n(args[5], &sf, "spin_fl", "lq", n, N_BRAKE) || !get_n(args[6], &wb, "wheelbase", "d", n, 0) ||
-        !get_n(args[7], &tr, "track", "d", n, 0) || !get_n(args[8], &bs, "brake_share", "d", n, N_BRAKE) ||
-        !get_n(args[9], &str, "steer", "d", n, 0) || !get_n(args[10], &dr, "drive", "d", n, 0) ||
-        !get_n(args[11], &br, "brake", "d", n, 0))
+    if (!get_n(args[3], &sr, "steer_r", 'i', n, 0) || !get_n(args[4], &du, "drive_u", 'i', n, 0) ||
+        !get_n(args[5], &sf, "spin_fl", 'i', n, N_BRAKE) || !get_n(args[6], &wb, "wheelbase", 'f', n, 0) ||
+        !get_n(args[7], &tr, "track", 'f', n, 0) || !get_n(args[8], &bs, "brake_share", 'f', n, N_BRAKE) ||
+        !get_n(args[9], &str, "steer", 'f', n, 0) || !get_n(args[10], &dr, "drive", 'f', n, 0) ||
+        !get_n(args[11], &br, "brake", 'f', n, 0))
         goto done;
     const int64_t *il = (const int64_t *)sl.v.buf, *ir = (const int64_t *)sr.v.buf, *id = (const int64_t *)du.v.buf,
                   *ib = (const int64_t *)sf.v.buf;
@@ -195,18 +171,7 @@ static PyObject *py_command(PyObject *self, PyObject *const *args, Py_ssize_t na
     result = Py_None;
     Py_INCREF(result);
 done:
-    release(&st);
-    release(&fl);
-    release(&sl);
-    release(&sr);
-    release(&du);
-    release(&sf);
-    release(&wb);
-    release(&tr);
-    release(&bs);
-    release(&str);
-    release(&dr);
-    release(&br);
+    SC_RELEASE(&st, &fl, &sl, &sr, &du, &sf, &wb, &tr, &bs, &str, &dr, &br);
     return result;
 }
 
@@ -223,10 +188,6 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "physics_side._worldkernel",
-    "C fast paths of physics_side.world.PhysicsWorld.observe and command_vehicles (bit-identical to their numpy bodies).", -1, methods,
-    NULL, NULL, NULL, NULL,
-};
-
-PyMODINIT_FUNC PyInit__worldkernel(void) { return PyModule_Create(&module); }
+SC_MODULE(PyInit__worldkernel, "physics_side._worldkernel",
+          "C fast paths of physics_side.world.PhysicsWorld.observe and command_vehicles (bit-identical to their numpy "
+          "bodies).", methods)

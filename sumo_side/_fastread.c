@@ -22,6 +22,8 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "sumoco_capi.h" /* buffers in, module definition */
+
 /* The subscribed variables, in the order of simulation._VEHICLE_ROW (configure sets them). */
 enum { K_POS, K_ANGLE, K_SPEED, K_SIGNALS, K_LANEPOS, K_LANE, K_TYPE, K_ROUTE, NKEYS };
 static PyObject *g_keys[NKEYS];
@@ -152,12 +154,12 @@ static int take_row(PyObject *r, Py_ssize_t i, Py_ssize_t n, double *f, int64_t 
     return rc;
 }
 
-/* A writable C-contiguous buffer of exactly `bytes` bytes with 8-byte items. */
-static int get_buffer(PyObject *obj, Py_buffer *view, Py_ssize_t bytes, const char *name) {
-    if (PyObject_GetBuffer(obj, view, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) return -1;
-    if (view->len != bytes || view->itemsize != 8) {
+/* A writable C-contiguous float64 / int64 column block of exactly `bytes` bytes. */
+static int get_columns(PyObject *obj, sc_buf *b, char kind, Py_ssize_t bytes, const char *name) {
+    if (!sc_get(obj, b, name, kind, 1, 0)) return -1;
+    if (b->v.len != bytes) {
         PyErr_Format(PyExc_ValueError, "%s: expected a writable buffer of %zd bytes, 8-byte items", name, bytes);
-        PyBuffer_Release(view);
+        sc_release(b);
         return -1;
     }
     return 0;
@@ -165,8 +167,7 @@ static int get_buffer(PyObject *obj, Py_buffer *view, Py_ssize_t bytes, const ch
 
 static PyObject *py_read_vehicles(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     PyObject *get, *vids, *lanes, *types, *add, *routes = NULL, *out = NULL;
-    Py_buffer fb = {0}, ib = {0};
-    int have_f = 0, have_i = 0;
+    sc_buf fb = {0}, ib = {0};
     pending_t pending = {0};
     Py_ssize_t n;
     double *f;
@@ -188,12 +189,11 @@ static PyObject *py_read_vehicles(PyObject *self, PyObject *const *args, Py_ssiz
     }
     n = PyList_GET_SIZE(vids);
     if (n > PY_SSIZE_T_MAX / (8 * NF)) return PyErr_NoMemory();
-    if (get_buffer(args[5], &fb, 8 * NF * n, "floats") < 0) goto done;
-    have_f = 1;
-    if (get_buffer(args[6], &ib, 8 * NI * n, "ints") < 0) goto done;
-    have_i = 1;
-    f = (double *)fb.buf;
-    c = (int64_t *)ib.buf;
+    if (get_columns(args[5], &fb, SC_F64, 8 * NF * n, "floats") < 0 ||
+        get_columns(args[6], &ib, SC_I64, 8 * NI * n, "ints") < 0)
+        goto done;
+    f = (double *)fb.v.buf;
+    c = (int64_t *)ib.v.buf;
     routes = PyList_New(n);
     if (routes == NULL) goto done;
     for (Py_ssize_t i = 0; i < n; i++) {
@@ -231,8 +231,7 @@ decline:
 done:
     Py_XDECREF(routes);  /* unfilled slots are NULL, which list dealloc skips */
     pending_free(&pending);
-    if (have_f) PyBuffer_Release(&fb);
-    if (have_i) PyBuffer_Release(&ib);
+    SC_RELEASE(&fb, &ib);
     return out;
 }
 
@@ -265,10 +264,5 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "sumo_side._fastread",
-    "C fast path of sumo_side.simulation's vehicle read (None: use the Python path).", -1, methods,
-    NULL, NULL, NULL, NULL,
-};
-
-PyMODINIT_FUNC PyInit__fastread(void) { return PyModule_Create(&module); }
+SC_MODULE(PyInit__fastread, "sumo_side._fastread",
+          "C fast path of sumo_side.simulation's vehicle read (None: use the Python path).", methods)

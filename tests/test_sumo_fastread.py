@@ -353,8 +353,10 @@ def test_bad_arguments_are_errors():
         f.read_vehicles(get, ("a",), {}, {}, print, np.empty(5), np.empty(3, np.int64))
     with pytest.raises(TypeError):
         f.read_vehicles(get, ["a"], {}, {})
-    with pytest.raises(BufferError):  # read-only
+    with pytest.raises(TypeError, match="floats: needs a writable"):  # read-only
         f.read_vehicles(get, ["a"], {}, {}, print, b"\0" * 40, np.empty(3, np.int64))
+    with pytest.raises(TypeError, match="ints: needs int64"):
+        f.read_vehicles(get, ["a"], {}, {}, print, np.empty(5), np.empty(3))
     empty = f.read_vehicles(get, [], {}, {}, print, np.empty(0), np.empty(0, np.int64))
     assert empty == []
 

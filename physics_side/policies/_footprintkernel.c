@@ -29,6 +29,7 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "sumoco_capi.h"  /* buffers in, module definition */
 #include "../_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
 /* footprints.INV_SQRT2 = 1.0 / np.sqrt(2.0), as exact bits (the quotient rounds down: one ulp
@@ -43,48 +44,18 @@ static const double MAX_CELL = 4503599627370496.0; /* 2^52 */
 
 /* ------------------------------------------------------------------ buffers */
 
-typedef struct {
-    Py_buffer v;
-    int held;
-} buf_t;
-
-static void release(buf_t *b) {
-    if (b->held) PyBuffer_Release(&b->v);
-    b->held = 0;
-}
-
-/* A 1-D C-contiguous buffer of 8-byte items of `kind` ('f' float64, 'i' int64) and length
- * `n` (any when n < 0). Raises and returns 0 otherwise. */
-static int get(PyObject *obj, buf_t *b, const char *name, char kind, int writable, Py_ssize_t n) {
-    const char *f;
-    int flags = PyBUF_FORMAT | PyBUF_C_CONTIGUOUS | (writable ? PyBUF_WRITABLE : 0);
-    b->held = 0;
-    if (PyObject_GetBuffer(obj, &b->v, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a%s C-contiguous array (got %.100s)", name,
-                     writable ? " writable" : "", Py_TYPE(obj)->tp_name);
-        return 0;
-    }
-    b->held = 1;
-    f = b->v.format ? b->v.format : "B";
-    if (*f == '<' || *f == '=' || *f == '@') f++;
-    if (b->v.itemsize != 8 || f[0] == '\0' || f[1] != '\0' ||
-        (kind == 'f' ? f[0] != 'd' : (f[0] != 'q' && f[0] != 'l'))) {
-        PyErr_Format(PyExc_TypeError, "%s: needs %s items (got format '%s', %zd bytes)", name,
-                     kind == 'f' ? "float64" : "int64", b->v.format ? b->v.format : "B", b->v.itemsize);
-        release(b);
-        return 0;
-    }
-    if (b->v.ndim != 1) {
-        PyErr_Format(PyExc_ValueError, "%s: needs 1 dimension (got %d)", name, b->v.ndim);
-        release(b);
-        return 0;
-    }
+/* A 1-D C-contiguous float64 ('f') / int64 ('i') array of length `n` (any when n < 0). */
+static int get(PyObject *obj, sc_buf *b, const char *name, char kind, int writable, Py_ssize_t n) {
+    if (!sc_get(obj, b, name, kind, writable, 0)) return 0;
+    if (!sc_ndim(b, name, 1)) goto fail;
     if (n >= 0 && b->v.shape[0] != n) {
         PyErr_Format(PyExc_ValueError, "%s: needs length %zd (got %zd)", name, n, b->v.shape[0]);
-        release(b);
-        return 0;
+        goto fail;
     }
     return 1;
+fail:
+    sc_release(b);
+    return 0;
 }
 
 #define F(b) ((const double *)(b).v.buf)
@@ -113,7 +84,7 @@ static inline double gap_one(double ax, double ay, double ah, double al, double 
 }
 
 static PyObject *py_footprint_gap(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t in[10], out;
+    sc_buf in[10], out;
     Py_ssize_t m = -1, q;
     int k, ok = 1;
     PyObject *result = NULL;
@@ -143,15 +114,15 @@ static PyObject *py_footprint_gap(PyObject *self, PyObject *const *args, Py_ssiz
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (k = 0; k < 10; k++) release(&in[k]);
-    release(&out);
+    sc_release_all(in, 10);
+    sc_release(&out);
     return result;
 }
 
 /* ------------------------------------------------------------------ gap_floor */
 
 static PyObject *py_gap_floor(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t x, y, i, j, hl, hd, out;
+    sc_buf x, y, i, j, hl, hd, out;
     Py_ssize_t n, m, q;
     PyObject *result = NULL;
     (void)self;
@@ -188,13 +159,7 @@ static PyObject *py_gap_floor(PyObject *self, PyObject *const *args, Py_ssize_t 
     result = Py_True;
     Py_INCREF(result);
 done:
-    release(&x);
-    release(&y);
-    release(&i);
-    release(&j);
-    release(&hl);
-    release(&hd);
-    release(&out);
+    SC_RELEASE(&x, &y, &i, &j, &hl, &hd, &out);
     return result;
 }
 
@@ -278,7 +243,7 @@ static int grid_keys(const double *x, const double *y, Py_ssize_t n, double cell
 }
 
 static PyObject *py_near_pairs(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t bx, by, br;
+    sc_buf bx, by, br;
     Py_ssize_t n, k;
     int64_t *key = NULL, *order = NULL, *ks = NULL, rows = 0;
     pairs_t p = {NULL, NULL, 0, 0};
@@ -351,9 +316,7 @@ done:
     PyMem_Free(ks);
     PyMem_Free(p.i);
     PyMem_Free(p.j);
-    release(&bx);
-    release(&by);
-    release(&br);
+    SC_RELEASE(&bx, &by, &br);
     return result;
 }
 
@@ -361,7 +324,7 @@ done:
 
 /* libm's cos and sin of x into out (2, n): footprints.py compares them with numpy's at import. */
 static PyObject *py_cos_sin(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    buf_t x, out;
+    sc_buf x, out;
     Py_ssize_t n, k;
     PyObject *result = NULL;
     (void)self;
@@ -380,8 +343,7 @@ static PyObject *py_cos_sin(PyObject *self, PyObject *const *args, Py_ssize_t na
     result = Py_None;
     Py_INCREF(result);
 done:
-    release(&x);
-    release(&out);
+    SC_RELEASE(&x, &out);
     return result;
 }
 
@@ -401,10 +363,5 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "physics_side.policies._footprintkernel",
-    "C fast paths of physics_side.policies.footprints (bit-identical to its Python bodies).", -1, methods,
-    NULL, NULL, NULL, NULL,
-};
-
-PyMODINIT_FUNC PyInit__footprintkernel(void) { return PyModule_Create(&module); }
+SC_MODULE(PyInit__footprintkernel, "physics_side.policies._footprintkernel",
+          "C fast paths of physics_side.policies.footprints (bit-identical to its Python bodies).", methods)

@@ -22,36 +22,15 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "sumoco_capi.h"  /* buffers in, module definition */
 #include "../_numpy_arith.h" /* numpy's arithmetic: no FMA, its max / min, wrap_pi */
 
-typedef struct {
-    Py_buffer v;
-    int held;
-} Buf;
-
-static void release(Buf *b) {
-    if (b->held) PyBuffer_Release(&b->v);
-    b->held = 0;
+/* a C-contiguous float64 (itemsize 8) or bool (itemsize 1) array of ``ndim`` dimensions */
+static int get(PyObject *o, sc_buf *b, const char *name, int itemsize, int ndim, int writable) {
+    return sc_get(o, b, name, itemsize == 8 ? SC_F64 : SC_BOOL, writable, 0) && sc_ndim(b, name, ndim);
 }
 
-/* a C-contiguous 8-byte float (or 1-byte bool/uint8) array of ``ndim`` dimensions */
-static int get(PyObject *o, Buf *b, const char *name, int itemsize, int ndim, int writable) {
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(o, &b->v, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous%s array", name, writable ? " writable" : "");
-        return 0;
-    }
-    b->held = 1;
-    const char *f = b->v.format ? b->v.format : "";
-    int ok = itemsize == 8 ? strcmp(f, "d") == 0 : (strcmp(f, "?") == 0 || strcmp(f, "B") == 0);
-    if (!ok || b->v.itemsize != itemsize || b->v.ndim != ndim) {
-        PyErr_Format(PyExc_TypeError, "%s: expected a %d-d array of %s", name, ndim, itemsize == 8 ? "float64" : "bool");
-        return 0;
-    }
-    return 1;
-}
-
-static int get_n(PyObject *o, Buf *b, const char *name, int itemsize, Py_ssize_t n, int writable) {
+static int get_n(PyObject *o, sc_buf *b, const char *name, int itemsize, Py_ssize_t n, int writable) {
     if (!get(o, b, name, itemsize, 1, writable)) return 0;
     if (b->v.shape[0] != n) {
         PyErr_Format(PyExc_ValueError, "tightness: %s has %zd items, expected %zd", name, b->v.shape[0], n);
@@ -64,7 +43,7 @@ enum { A_H, A_GRID, A_V, A_AHEAD, A_REACH, A_ALAT, A_SHARE, A_BRAKE, A_ROLL, A_B
 enum { C_INTERP, C_GRIP, C_LEAN, C_K, C_KG, C_WINDOW, C_KAP_LEN, C_G, C_LEAN_MAX, C_CAR_SHARE, C_SHARE_FLOOR, N_CONST };
 
 static PyObject *py_tightness(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    Buf b[A_CONST] = {{{0}}};
+    sc_buf b[A_CONST] = {{{0}}};
     PyObject *result = NULL;
     double c[N_CONST];
     (void)self;
@@ -143,7 +122,7 @@ static PyObject *py_tightness(PyObject *self, PyObject *const *args, Py_ssize_t 
     result = Py_None;
     Py_INCREF(result);
 done:
-    for (int a = 0; a < A_CONST; a++) release(&b[a]);
+    sc_release_all(b, A_CONST);
     return result;
 }
 
@@ -156,10 +135,5 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "physics_side.policies._policykernel",
-    "C fast paths of physics_side.policies (bit-identical to their numpy bodies).", -1, methods,
-    NULL, NULL, NULL, NULL,
-};
-
-PyMODINIT_FUNC PyInit__policykernel(void) { return PyModule_Create(&module); }
+SC_MODULE(PyInit__policykernel, "physics_side.policies._policykernel",
+          "C fast paths of physics_side.policies (bit-identical to their numpy bodies).", methods)
