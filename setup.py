@@ -1,6 +1,7 @@
 """The C fast paths: the wire codec's (protocol/_fastcodec.c), the SUMO side's vehicle read
 (sumo_side/_fastread.c), the physics side's path evaluation (physics_side/_pathkernel.c), its
-vehicles' observation and commands (physics_side/_worldkernel.c) and its per-step policies
+vehicles' observation and commands (physics_side/_worldkernel.c), the default controller
+(physics_side/_controlkernel.c) and its per-step policies
 (physics_side/policies/_policykernel.c, _footprintkernel.c); everything else is in pyproject.toml.
 
 ``optional=True``: without a compiler the install still succeeds and protocol.codec,
@@ -24,6 +25,7 @@ setup(ext_modules=[
     fast_path("sumo_side._fastread", "sumo_side/_fastread.c"),
     fast_path("physics_side._pathkernel", "physics_side/_pathkernel.c", NUMPY_ARITH),
     fast_path("physics_side._worldkernel", "physics_side/_worldkernel.c", NUMPY_ARITH),
+    fast_path("physics_side._controlkernel", "physics_side/_controlkernel.c", NUMPY_ARITH),
     fast_path("physics_side.policies._policykernel", "physics_side/policies/_policykernel.c", NUMPY_ARITH),
     fast_path("physics_side.policies._footprintkernel", "physics_side/policies/_footprintkernel.c", NUMPY_ARITH),
 ])

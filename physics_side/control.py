@@ -33,6 +33,7 @@ from physics_side.config import DefaultControl, PaperControl
 from physics_side.reference import Reference, ReferencePoint, tracking_error
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
+from runtime.native import numpy_math_is_libm, optional_extension
 
 G = 9.81  # [m/s^2]
 P_PAPER, P_DEFAULT, P_KINEMATIC = 0, 1, 2  # controller presets: the paper's, ours, placed at SUMO's pose
@@ -75,6 +76,22 @@ HOLD_ACCEL_MAX = 0.5  # [m/s^2] a standing reference holds the brakes unless mor
 ROLLING_BACK_SPEED = 0.01  # [m/s] rolling backwards faster than this continues a roll back
 CREEP_GAIN = 2.0  # [1/s] roll back: speed error -> acceleration
 REAR_STEERED_DEMAND_MAX = 1.5  # [rad] steering demand kept whole for vehicles that steer their rear axle
+
+
+def _arctan_is_libm() -> bool:
+    """Does numpy's float64 arctan give libm's bits (the control kernel's atan)? (Not checked
+    by ``numpy_math_is_libm``; numpy builds with their own SIMD arctan would differ.)"""
+    x = np.concatenate([np.linspace(-50.0, 50.0, 2001), np.random.default_rng(0).uniform(-1e4, 1e4, 500)])
+    return bool(np.array_equal(np.arctan(x), [math.atan(v) for v in x.tolist()]))
+
+
+# The C path of ``control_default``'s per-agent arithmetic (bit-identical; no compiler,
+# ``SUMOCO_PURE_PHYSICS=1`` or numpy math that is not libm's: the numpy body). Its tanh stays
+# numpy's (numpy's own SIMD tanh is not libm's). ``FAST_CONTROL`` says which runs.
+_kernel = optional_extension("physics_side._controlkernel", "SUMOCO_PURE_PHYSICS")
+if _kernel is not None and not (numpy_math_is_libm() and _arctan_is_libm()):  # (its libm calls)
+    _kernel = None
+FAST_CONTROL: bool = _kernel is not None
 
 
 def _clip(x, lo, hi):
@@ -563,6 +580,9 @@ def control_default(
     ``rolls_back`` (bool mask, default all): who may roll back to a standing reference it
     came to rest past (not riders: a motorcycle rolled back into the bicycle queued beside
     and behind it under the sublane model).
+
+    The per-agent arithmetic runs in C when it is built (``FAST_CONTROL``), bit-identical to
+    ``_control_default_numpy``, which runs otherwise and for inputs the C path does not read.
     """
     if proj is None and s_guess is not None:  # one path evaluation for both
         r, proj = ref.at_and_project(tau, obs.fx, obs.fy, s_guess)
@@ -570,6 +590,24 @@ def control_default(
         r = ref.at(tau)
         if proj is None:
             proj = ref.project(obs.fx, obs.fy, r.s, tau)
+    step = state.observe_tau(tau, dt)
+    if FAST_CONTROL:
+        cmd = _control_default_c(obs, p, ref, tau, dt, cfg, state, r, proj, step, stopping, stop_decel, stop_speed,
+                                 rolls_back)
+        if cmd is not None:
+            return cmd
+    return _control_default_numpy(obs, p, ref, tau, dt, cfg, state, r, proj, step, stopping, stop_decel, stop_speed,
+                                  rolls_back)
+
+
+def _control_default_numpy(
+    obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, dt: float, cfg: DefaultControl,
+    state: ControlState, r: ReferencePoint, proj: tuple, step: float, stopping: np.ndarray | None,
+    stop_decel: float, stop_speed: np.ndarray | None, rolls_back: np.ndarray | None,
+) -> VehicleCommand:
+    """``control_default`` in numpy once the reference ``r`` at ``tau``, the bumper's projection
+    ``proj`` and the SUMO step length ``step`` [s] (``ControlState.observe_tau``) are known
+    (the reference for the C path, which computes the same bits)."""
     s_act, e_lat, pp = proj
     e_s = r.s - s_act  # + = behind the reference
     v_ref, a_ref = r.speed, r.accel
@@ -580,7 +618,6 @@ def control_default(
     still = v_ref <= cfg.hold_speed
     if still.any():
         e_s = np.where(still, (r.x - obs.fx) * np.cos(r.yaw) + (r.y - obs.fy) * np.sin(r.yaw), e_s)
-    step = state.observe_tau(tau, dt)
     if cfg.mean_speed_lead and step > 0.0:
         # SUMO's speed is the mean over the step before its sample: follow the smooth motion
         # through its positions, half a step further on in the speed profile (reference.py)
@@ -615,6 +652,88 @@ def control_default(
         steer = np.where(back, 0.0, steer)
     return VehicleCommand(steer, drive, brake, a_cmd)
 
+
+
+def _default_constants(cfg: DefaultControl) -> tuple[tuple, tuple]:
+    """The scalars of ``_control_default_numpy`` for the C path, computed as the numpy body
+    computes them: (prepare's, control's without the per-call ones); kept per ``cfg``."""
+    global _CONSTANTS
+    if _CONSTANTS is not None and _CONSTANTS[0] is cfg:
+        return _CONSTANTS[1]
+    stanley = cfg.lateral == "stanley"
+    mc = math.radians(cfg.max_correction_deg)
+    omega, zeta, w_b = cfg.pos_omega, cfg.pos_zeta, cfg.brake_omega
+    int_max = cfg.int_limit / max(cfg.k_int, GAIN_FLOOR)
+    prepare = (float(stanley), cfg.preview_s, cfg.k_cross, cfg.v_soft, float(bool(mc)), mc, cfg.lad_min, cfg.lad_max,
+               cfg.k_lad)
+    control = (
+        float(stanley), cfg.hold_speed, -int_max, int_max, omega * omega, 2.0 * zeta * omega, cfg.k_int,
+        w_b * w_b, 2.0 * zeta * w_b, -cfg.decel_max, cfg.accel_max, HOLD_ACCEL_MAX, cfg.hold_brake,
+        float(cfg.creep_back_m > 0), -cfg.creep_back_m, CREEP_FROM_REST, -CREEP_DONE_M, -ROLLING_BACK_SPEED,
+        cfg.creep_speed, CREEP_GAIN, CREEP_ACCEL, float(bool(mc)), mc, STANLEY_BETA_MAX, float(bool(cfg.k_yaw)),
+        cfg.k_yaw, REAR_STEERED_DEMAND_MAX,
+    )
+    _CONSTANTS = (cfg, (prepare, control))
+    return _CONSTANTS[1]
+
+
+_CONSTANTS: tuple | None = None  # (the DefaultControl, its ``_default_constants``)
+
+
+def _control_default_c(
+    obs: VehicleObs, p: VehicleParams, ref: Reference, tau: float, dt: float, cfg: DefaultControl,
+    state: ControlState, r: ReferencePoint, proj: tuple, step: float, stopping: np.ndarray | None,
+    stop_decel: float, stop_speed: np.ndarray | None, rolls_back: np.ndarray | None,
+) -> VehicleCommand | None:
+    """``_control_default_numpy`` in C (physics_side._controlkernel): the reference's own
+    methods (preview point, drift, mean-speed lead) and numpy's tanh between its two calls.
+    None for inputs it does not read (not float64 (n,) C-contiguous, masks not bool): the
+    numpy body then runs, nothing changed."""
+    speed = obs.speed
+    if type(speed) is not np.ndarray or speed.ndim != 1 or not len(speed):
+        return None
+    if (stopping is not None and (stop_speed is None or getattr(stopping, "dtype", None) != np.bool_)) or \
+            (rolls_back is not None and getattr(rolls_back, "dtype", None) != np.bool_):
+        return None
+    n = len(speed)
+    s_act, e_lat, pp = proj
+    c_prep, c_ctl = _default_constants(cfg)
+    pre = np.empty((3, n))
+    try:
+        _kernel.prepare(speed, s_act, e_lat, pre, c_prep)
+    except (TypeError, ValueError):
+        return None
+    v_pos, s_ahead, corr = pre
+    drift = None
+    if cfg.lateral == "stanley":
+        ahead = ref.point_at(s_ahead, tau) if cfg.preview_s else pp
+        lat1, lat2 = ahead.heading, ahead.curvature
+        d = ref.drift_angle(tau, v_pos)
+        drift = d if isinstance(d, np.ndarray) else None
+        if drift is None and d != 0.0:  # (a reference of another kind)
+            return None
+        if c_prep[4]:  # max_correction: stanley_bumper's tanh
+            corr = np.tanh(corr)
+    else:
+        tgt = ref.point_at(s_ahead, tau)
+        lat1, lat2 = tgt.x, tgt.y
+        corr = None
+    ds = dv = None
+    if cfg.mean_speed_lead and step > 0.0:
+        ds, dv = ref.mean_speed_lead(tau, cfg.mean_speed_lead * min(step, MAX_LEAD_STEP_S))
+    brake_on = float(cfg.brake_omega > cfg.pos_omega and ref.interpolated is None)
+    consts = (c_ctl[0], c_ctl[1], -stop_decel, dt, *c_ctl[2:7], brake_on, *c_ctl[7:])
+    out = np.empty((5, n))
+    try:
+        _kernel.control(obs.fx, obs.fy, obs.cx, obs.cy, obs.yaw, speed, obs.yaw_rate, obs.fvx, obs.fvy,
+                        r.x, r.y, r.yaw, r.s, r.speed, r.accel, s_act, pp.heading, ds, dv,
+                        stopping, stop_speed, state.integ, p.wheelbase, p.d_bumper, p.rear_axle, p.m_eff, p.r_wheel,
+                        p.max_steer, p.max_drive, p.max_brake, p.max_rear, rolls_back, lat1, lat2, drift, corr, out,
+                        consts)
+    except (TypeError, ValueError):
+        return None
+    state.integ = out[4]
+    return VehicleCommand(out[0], out[1], out[2], out[3])
 
 
 # --------------------------------------------------------------------------- vehicle limits, composed
@@ -856,7 +975,7 @@ def pedestrian_control(idx: np.ndarray, obs, at, held, paper: np.ndarray, stop_s
 
 __all__ = [
     "ControlState", "VehicleCommand", "VehicleObs", "VehicleParams", "accel_command", "accel_to_torques",
-    "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
+    "FAST_CONTROL", "control_default", "control_paper", "lad", "paper_pedal", "paper_steer", "pedal_to_torques",
     "planar_force", "pure_pursuit_delta", "pursuit_alpha", "roll_stabiliser", "stanley_bumper",
     "bumper_curvature_limit", "curve_speed_cut", "drive_grip_torque", "friction_steer_limit", "lateral_accel_limit",
     "pedestrian_force",
