@@ -19,6 +19,7 @@ EXTENSIONS = [
     ("physics_side._pathkernel", "physics_side.reference", "FAST_REFERENCE", "SUMOCO_PURE_PHYSICS", True),
     ("physics_side._pathkernel", "physics_side.reference", "FAST_PATHSET", "SUMOCO_PURE_PHYSICS", True),
     ("physics_side._worldkernel", "physics_side.world", "FAST_OBSERVE", "SUMOCO_PURE_PHYSICS", True),
+    ("physics_side._controlkernel", "physics_side.control", "FAST_CONTROL", "SUMOCO_PURE_PHYSICS", True),
     ("physics_side.policies._policykernel", "physics_side.policies.carry", "FAST_TIGHTNESS", "SUMOCO_PURE_PHYSICS",
      True),
     ("physics_side.policies._footprintkernel", "physics_side.policies.footprints", "FAST_FOOTPRINTS",
