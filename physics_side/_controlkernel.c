@@ -5,7 +5,7 @@
  *   the preview and the drift take, the preview's or the pursuit target's arc length) and
  *   Stanley's cross-track angle before numpy's tanh (numpy's own SIMD tanh is not libm's;
  *   the wrapper calls np.tanh between the two);
- * - control: the longitudinal loop (standing reference, mean-speed lead, stopping, integral,
+ * - control: the longitudinal loop (standing reference, Reference.mean_speed_lead's correction, stopping, integral,
  *   brake loop, torques, hold, roll back) and the lateral law (Stanley at the front bumper
  *   or front-axle pure pursuit) with their clips.
  *
@@ -114,12 +114,23 @@ done:
 
 /* ------------------------------------------------------------------ control */
 
+/* reference.stopping_distance: distance and speed after ``tau`` from speed v at constant
+ * acceleration a, never reversing */
+static inline void stopping_distance(double v, double a, double tau, double *s, double *vt) {
+    *vt = v + a * tau;
+    *s = v * tau + 0.5 * a * tau * tau;
+    if (*vt < 0.0) {
+        *s = a < 0 ? v * v / (-2.0 * a) : 0.0;
+        *vt = 0.0;
+    }
+}
+
 /* arguments, in the order of control._control_default_c's call */
 enum {
     A_FX, A_FY, A_CX, A_CY, A_YAW, A_SPEED, A_YAW_RATE, A_FVX, A_FVY, /* VehicleObs */
     A_RX, A_RY, A_RYAW, A_RS, A_RV, A_RA,                             /* ReferencePoint at tau */
     A_S_ACT, A_PP_H,                                                  /* projection of the bumper */
-    A_DS, A_DV,                                                       /* mean-speed lead or None */
+    A_V0, A_A0,                                                       /* the sample's speed, acceleration */
     A_STOP, A_STOP_SPEED,                                             /* stopping (bool) or None */
     A_INTEG,                                                          /* ControlState.integ */
     A_WB, A_DB, A_REAR, A_MEFF, A_RW, A_MAX_STEER, A_MAX_DRIVE, A_MAX_BRAKE, A_MAX_REAR, /* VehicleParams */
@@ -131,13 +142,14 @@ enum {
     C_STANLEY, C_HOLD_SPEED, C_STOP_ACCEL, C_DT, C_INT_LO, C_INT_HI, C_W2, C_CZ, C_K_INT, C_BRAKE_ON, C_BW2, C_BZ,
     C_A_LO, C_A_HI, C_HOLD_ACCEL, C_HOLD_BRAKE, C_CREEP_ON, C_CREEP_LO, C_CREEP_FROM_REST, C_CREEP_DONE_LO,
     C_ROLLING_LO, C_CREEP_SPEED, C_CREEP_GAIN, C_CREEP_ACCEL, C_MC_ON, C_MC, C_BETA_MAX, C_K_YAW_ON, C_K_YAW,
-    C_DEMAND_MAX, C_COUNT
+    C_DEMAND_MAX, C_LEAD, C_TAU, C_LEAD_S, C_TAU_LEAD, C_COUNT
 };
+enum { LEAD_OFF, LEAD_ZERO, LEAD_ON }; /* C_LEAD: no lead, Reference.mean_speed_lead's zeros, its profile */
 enum { O_STEER, O_DRIVE, O_BRAKE, O_ACCEL, O_INTEG, O_ROWS };
 
 static const char *const arg_names[A_OUT] = {
     "fx", "fy", "cx", "cy", "yaw", "speed", "yaw_rate", "fvx", "fvy", "r_x", "r_y", "r_yaw", "r_s", "r_speed",
-    "r_accel", "s_act", "pp_heading", "ds", "dv", "stopping", "stop_speed", "integ", "wheelbase",
+    "r_accel", "s_act", "pp_heading", "v0", "a0", "stopping", "stop_speed", "integ", "wheelbase",
     "d_bumper", "rear_axle", "m_eff", "r_wheel", "max_steer", "max_drive", "max_brake", "max_rear", "rolls_back",
     "lat1", "lat2", "drift", "corr"};
 
@@ -160,13 +172,13 @@ static PyObject *py_control(PyObject *self, PyObject *const *args, Py_ssize_t na
     const int stanley = c[C_STANLEY] != 0.0;
     for (int a = 0; a < A_OUT; a++) {
         if (a == A_SPEED) continue;
-        const int optional = a == A_DS || a == A_DV || a == A_STOP || a == A_STOP_SPEED || a == A_MAX_REAR ||
+        const int optional = a == A_STOP || a == A_STOP_SPEED || a == A_MAX_REAR ||
                              a == A_ROLLS || a == A_DRIFT || (a == A_CORR && !stanley);
         const char kind = a == A_STOP || a == A_ROLLS ? SC_BOOL : SC_F64;
         if (!get_n(args[a], &b[a], "control", arg_names[a], kind, n, optional, 0)) goto done;
     }
-    if ((b[A_DS].held != b[A_DV].held) || (b[A_STOP].held && !b[A_STOP_SPEED].held)) {
-        PyErr_SetString(PyExc_ValueError, "control: ds and dv go together, stopping needs stop_speed");
+    if (b[A_STOP].held && !b[A_STOP_SPEED].held) {
+        PyErr_SetString(PyExc_ValueError, "control: stopping needs stop_speed");
         goto done;
     }
     if (!sc_get(args[A_OUT], &b[A_OUT], "out", SC_F64, 1, 0) || !sc_shape(&b[A_OUT], "out", 2, O_ROWS, n)) goto done;
@@ -177,7 +189,7 @@ static PyObject *py_control(PyObject *self, PyObject *const *args, Py_ssize_t na
     const double *rx = b[A_RX].v.buf, *ry = b[A_RY].v.buf, *ryaw = b[A_RYAW].v.buf, *rs = b[A_RS].v.buf,
                  *rv = b[A_RV].v.buf, *ra = b[A_RA].v.buf;
     const double *s_act = b[A_S_ACT].v.buf, *pp_h = b[A_PP_H].v.buf;
-    const double *ds = b[A_DS].held ? b[A_DS].v.buf : NULL, *dv = b[A_DV].held ? b[A_DV].v.buf : NULL;
+    const double *v0 = b[A_V0].v.buf, *a0 = b[A_A0].v.buf;
     const uint8_t *stop = b[A_STOP].held ? b[A_STOP].v.buf : NULL;
     const double *stop_speed = b[A_STOP_SPEED].held ? b[A_STOP_SPEED].v.buf : NULL;
     const double *integ = b[A_INTEG].v.buf;
@@ -190,16 +202,24 @@ static PyObject *py_control(PyObject *self, PyObject *const *args, Py_ssize_t na
     double *o = b[A_OUT].v.buf;
     const double hold_speed = c[C_HOLD_SPEED];
     const int brake_on = c[C_BRAKE_ON] != 0.0, creep_on = c[C_CREEP_ON] != 0.0, mc_on = c[C_MC_ON] != 0.0,
-              k_yaw_on = c[C_K_YAW_ON] != 0.0;
+              k_yaw_on = c[C_K_YAW_ON] != 0.0, lead = (int)c[C_LEAD];
 
     for (Py_ssize_t i = 0; i < n; i++) {
         /* ---- control_default: the longitudinal loop */
         double e_s = rs[i] - s_act[i], v_ref = rv[i], a_ref = ra[i];
         if (v_ref <= hold_speed) /* a standing reference: the error along SUMO's own heading */
             e_s = (rx[i] - fx[i]) * cos(ryaw[i]) + (ry[i] - fy[i]) * sin(ryaw[i]);
-        if (ds) {
-            e_s = e_s + ds[i];
-            v_ref = v_ref + dv[i];
+        if (lead == LEAD_ZERO) {
+            e_s = e_s + 0.0; /* (turns -0.0 into 0.0, as numpy's + zeros) */
+            v_ref = v_ref + 0.0;
+        } else if (lead == LEAD_ON) {
+            /* Reference.mean_speed_lead: S(tau + lead) - S(lead) - S(tau), V(tau + lead) - V(tau) */
+            double s0, w0, s1, w1, sl, wl;
+            stopping_distance(v0[i], a0[i], c[C_TAU], &s0, &w0);
+            stopping_distance(v0[i], a0[i], c[C_TAU_LEAD], &s1, &w1);
+            stopping_distance(v0[i], a0[i], c[C_LEAD_S], &sl, &wl);
+            e_s = e_s + (s1 - sl - s0);
+            v_ref = v_ref + (w1 - w0);
         }
         const int stopping = stop && stop[i];
         if (stopping) {
@@ -277,10 +297,10 @@ static PyMethodDef methods[] = {
      "k_cross [1/s], v_soft [m/s], max_correction on, max_correction [rad], lad_min [m], lad_max [m], k_lad [s])."},
     {"control", (PyCFunction)(void (*)(void))py_control, METH_FASTCALL,
      "control(fx, fy, cx, cy, yaw, speed, yaw_rate, fvx, fvy, r_x, r_y, r_yaw, r_s, r_speed, r_accel, s_act, "
-     "pp_heading, ds, dv, stopping, stop_speed, integ, wheelbase, d_bumper, rear_axle, m_eff, r_wheel, max_steer, "
+     "pp_heading, v0, a0, stopping, stop_speed, integ, wheelbase, d_bumper, rear_axle, m_eff, r_wheel, max_steer, "
      "max_drive, max_brake, max_rear, rolls_back, lat1, lat2, drift, corr, out, constants) -> None: "
      "control_default's commands into out (5, n): steer, drive, brake, commanded acceleration, integral. "
-     "float64 (n,) arrays (stopping, rolls_back: bool); ds / dv, stopping / stop_speed, max_rear, rolls_back and "
+     "float64 (n,) arrays (stopping, rolls_back: bool; v0, a0: Reference.speed, .accel for the mean-speed lead); stopping / stop_speed, max_rear, rolls_back and "
      "drift may be None. constants: see control._default_constants."},
     {NULL, NULL, 0, NULL},
 };

@@ -686,11 +686,13 @@ def _control_default_c(
     stop_decel: float, stop_speed: np.ndarray | None, rolls_back: np.ndarray | None,
 ) -> VehicleCommand | None:
     """``_control_default_numpy`` in C (physics_side._controlkernel): the reference's own
-    methods (preview point, drift, mean-speed lead) and numpy's tanh between its two calls.
-    None for inputs it does not read (not float64 (n,) C-contiguous, masks not bool): the
-    numpy body then runs, nothing changed."""
+    methods for the preview point and the drift and numpy's tanh between its two calls; the
+    kernel computes ``Reference.mean_speed_lead``'s correction itself (from the sample's
+    speed and acceleration). None for inputs it does not read (not float64 (n,)
+    C-contiguous, masks not bool, a reference of another type): the numpy body then runs,
+    nothing changed."""
     speed = obs.speed
-    if type(speed) is not np.ndarray or speed.ndim != 1 or not len(speed):
+    if type(speed) is not np.ndarray or speed.ndim != 1 or not len(speed) or type(ref) is not Reference:
         return None
     if (stopping is not None and (stop_speed is None or getattr(stopping, "dtype", None) != np.bool_)) or \
             (rolls_back is not None and getattr(rolls_back, "dtype", None) != np.bool_):
@@ -718,15 +720,17 @@ def _control_default_c(
         tgt = ref.point_at(s_ahead, tau)
         lat1, lat2 = tgt.x, tgt.y
         corr = None
-    ds = dv = None
+    # Reference.mean_speed_lead's arithmetic in the kernel: none, its zeros, or its profile
+    lead_mode, lead = 0.0, 0.0
     if cfg.mean_speed_lead and step > 0.0:
-        ds, dv = ref.mean_speed_lead(tau, cfg.mean_speed_lead * min(step, MAX_LEAD_STEP_S))
+        lead = cfg.mean_speed_lead * min(step, MAX_LEAD_STEP_S)
+        lead_mode = 1.0 if lead <= 0.0 or ref.interpolated is not None else 2.0
     brake_on = float(cfg.brake_omega > cfg.pos_omega and ref.interpolated is None)
-    consts = (c_ctl[0], c_ctl[1], -stop_decel, dt, *c_ctl[2:7], brake_on, *c_ctl[7:])
+    consts = (c_ctl[0], c_ctl[1], -stop_decel, dt, *c_ctl[2:7], brake_on, *c_ctl[7:], lead_mode, tau, lead, tau + lead)
     out = np.empty((5, n))
     try:
         _kernel.control(obs.fx, obs.fy, obs.cx, obs.cy, obs.yaw, speed, obs.yaw_rate, obs.fvx, obs.fvy,
-                        r.x, r.y, r.yaw, r.s, r.speed, r.accel, s_act, pp.heading, ds, dv,
+                        r.x, r.y, r.yaw, r.s, r.speed, r.accel, s_act, pp.heading, ref.speed, ref.accel,
                         stopping, stop_speed, state.integ, p.wheelbase, p.d_bumper, p.rear_axle, p.m_eff, p.r_wheel,
                         p.max_steer, p.max_drive, p.max_brake, p.max_rear, rolls_back, lat1, lat2, drift, corr, out,
                         consts)

@@ -177,7 +177,7 @@ CONFIGS = list(itertools.product(
     ["stanley", "pursuit"],  # lateral
     [0.0, 0.05],  # preview_s
     [0.0, 0.05],  # k_yaw
-    [0.0, 0.5],  # mean_speed_lead
+    [0.0, 0.5, -0.5],  # mean_speed_lead (< 0: Reference.mean_speed_lead gives zeros)
     [4.0, 2.0],  # brake_omega (> pos_omega: on)
     [0.0, 0.15],  # creep_back_m
     [15.0, 0.0],  # max_correction_deg
@@ -234,12 +234,16 @@ def test_times_and_first_ticks(monkeypatch, tau):
 
 
 @needs_c
-def test_signed_zeros_and_ties(monkeypatch):
+@pytest.mark.parametrize("interpolated", [False, True])
+def test_signed_zeros_and_ties(monkeypatch, interpolated):
     """Every input a zero of either sign or a value on a clip's bound: numpy's minimum /
-    maximum keep the second of two equal values."""
+    maximum keep the second of two equal values, and adding the mean-speed lead's zeros
+    (an interpolated reference) turns -0.0 into 0.0. The reference point itself is set (the
+    reference's cache): its arc length, speed and acceleration zeros of either sign too."""
     rng = np.random.default_rng(3)
     n = 200
-    ref = _reference(rng, n, False, False)
+    tau = 0.06
+    ref = _reference(rng, n, interpolated, False)
     cfg = DefaultControl()
     zeros = np.where(rng.random(n) < 0.5, 0.0, -0.0)
     obs = C.VehicleObs(*[np.where(rng.random(n) < 0.5, 0.0, -0.0) for _ in range(9)])
@@ -247,11 +251,15 @@ def test_signed_zeros_and_ties(monkeypatch):
     p = C.VehicleParams(np.ones(n), np.ones(n), -np.ones(n), np.ones(n), np.abs(ties) + 1.0, np.ones(n),
                         np.abs(ties), np.abs(ties), np.abs(ties), zeros)
     pp = PathPoint(zeros, zeros, ties, zeros)
+    speeds = rng.choice([0.0, -0.0, cfg.hold_speed, 5.0], n)
+    with np.errstate(all="ignore"):
+        r = replace(ref.at(tau), x=zeros, y=zeros, s=zeros[::-1].copy(), speed=speeds, accel=zeros[::-1].copy())
     for e in (zeros, ties, -ties):
         for integ in (zeros, ties, -ties):
             state = C.ControlState(integ=integ.copy(), tau_last=0.14)
             for c in (cfg, replace(cfg, lateral="pursuit"), replace(cfg, int_limit=0.0, k_int=0.0)):
-                _same((obs, p, ref, 0.06, 0.02, c), dict(proj=(e, ties, pp)), state, monkeypatch)
+                ref._last_at = (tau, r)
+                _same((obs, p, ref, tau, 0.02, c), dict(proj=(e, ties, pp)), state, monkeypatch)
 
 
 # --------------------------------------------------------------------------- dispatch
@@ -307,8 +315,8 @@ def test_kernel_rejects_what_it_cannot_read():
         k.prepare(z, z, z, np.empty((3, n)), cp[:5])
     with pytest.raises(ValueError, match=r"e_lat needs shape \(4,\)"):
         k.prepare(z, z, z[:3], np.empty((3, n)), cp)
-    consts = (cc[0], cc[1], -3.0, 0.02, *cc[2:7], 1.0, *cc[7:])
-    args = [z] * 17 + [None, None, None, None] + [z] * 9 + [None, None, z, z, None, z, np.empty((5, n)), consts]
+    consts = (cc[0], cc[1], -3.0, 0.02, *cc[2:7], 1.0, *cc[7:], 2.0, 0.06, 0.05, 0.11)
+    args = [z] * 19 + [None, None] + [z] * 9 + [None, None, z, z, None, z, np.empty((5, n)), consts]
     k.control(*args)
 
     def fails(i, value, exc, match):
@@ -321,10 +329,10 @@ def test_kernel_rejects_what_it_cannot_read():
     fails(3, np.zeros(8)[::2], TypeError, "cy: needs a C-contiguous")
     fails(14, z[:3], ValueError, r"control: r_accel needs shape \(4,\)")
     fails(19, np.zeros(n, bool), ValueError, "stopping needs stop_speed")
-    fails(17, z, ValueError, "ds and dv go together")
+    fails(18, None, TypeError, "a0: needs")
     fails(31, z, TypeError, "rolls_back: needs bool")
     fails(35, None, TypeError, "corr: needs")
     fails(36, np.empty((4, n)), ValueError, r"out: needs shape \(5, 4\)")
-    fails(37, consts[:-1], TypeError, "constants must be a tuple of 30")
+    fails(37, consts[:-1], TypeError, "constants must be a tuple of 34")
     with pytest.raises(TypeError, match="takes 38 arguments"):
         k.control(*args[:-1])
