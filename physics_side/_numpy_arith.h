@@ -1,5 +1,5 @@
 /* What makes the physics side's C fast paths bit-identical to their numpy bodies (included by
- * _pathkernel.c, _worldkernel.c and policies/_*kernel.c; change it here, once).
+ * _pathkernel.c, _worldkernel.c, _controlkernel.c and policies/_*kernel.c; change it here, once).
  *
  * - Each product rounded on its own, as numpy does: no fused multiply-add (compilers
  *   contract by default on FMA hardware, e.g. every arm64).
