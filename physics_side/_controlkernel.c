@@ -9,8 +9,8 @@
  *   brake loop, torques, hold, roll back) and the lateral law (Stanley at the front bumper
  *   or front-axle pure pursuit) with their clips.
  *
- * The numpy body (control._control_default_numpy, ~40 numpy calls over every agent: ~0.2 ms
- * per control tick at 1,000 cars) stays the reference: each loop evaluates its expressions
+ * The numpy body (control._control_default_numpy, ~55 numpy calls over every agent with the
+ * mean-speed lead's: ~0.3 ms per control tick at 1,000 cars) stays the reference: each loop evaluates its expressions
  * operation for operation in numpy's order, with the libm functions numpy calls (cos, sin,
  * tan, atan, atan2) and numpy's NaN-propagating minimum / maximum, so the results are
  * bit-identical (tests/test_physics_controlkernel.py compares them). Where numpy evaluates

@@ -711,9 +711,7 @@ def _control_default_c(
         ahead = ref.point_at(s_ahead, tau) if cfg.preview_s else pp
         lat1, lat2 = ahead.heading, ahead.curvature
         d = ref.drift_angle(tau, v_pos)
-        drift = d if isinstance(d, np.ndarray) else None
-        if drift is None and d != 0.0:  # (a reference of another kind)
-            return None
+        drift = d if isinstance(d, np.ndarray) else None  # (0.0: no drift)
         if c_prep[4]:  # max_correction: stanley_bumper's tanh
             corr = np.tanh(corr)
     else:
