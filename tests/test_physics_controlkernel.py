@@ -36,7 +36,7 @@ CONTROL_DEFAULT = C.control_default  # (the fleet's calls are spied on below)
 SPECIAL = np.array([np.nan, np.inf, -np.inf, 0.0, -0.0, 1e308, -1e308, 5e-324, -5e-324, 0.2, -0.15])
 
 
-# --------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- both paths, compared
 
 
 def _run(fast: bool, args: tuple, kwargs: dict, state: C.ControlState, monkeypatch) -> tuple:
