@@ -39,6 +39,9 @@ typedef struct {
 
 #define FINITE_MAX DBL_MAX  /* the bounds of "any finite value" */
 
+/* bits of the largest float32 within la_dx's bound (the path offsets', set by configure) */
+static uint32_t g_path_lim_bits = 0;
+
 #define STEP_NCOL 14
 static column_t STEP_COLS[STEP_NCOL] = {  /* STEP_AGENT_COLUMNS, in its order */
     {"cls", 'u', 1, 0, 0, 0}, {"vtype", 'u', 2, 0, 0, 0}, {"x", 'f', 8, 0, 0, 0}, {"y", 'f', 8, 0, 0, 0},
@@ -66,6 +69,14 @@ static column_t PHYS_COLS[PHYS_NCOL] = {  /* PHYSICS_AGENT_COLUMNS, in its order
 #define MAX_VTYPES 65535    /* u16 index */
 #define MAX_MAP 4096        /* msgpack max_map_len of DecodeLimits */
 #define MAX_DEPTH 32        /* nesting skipped while looking for keys; the messages use 4 */
+
+/* Loops the compiler vectorises stay out of line: inlined into the large decode function,
+ * GCC leaves them scalar. */
+#if defined(__GNUC__)
+#define NOINLINE __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
 
 static int host_is_little(void) {
     const uint16_t one = 1;
@@ -691,6 +702,28 @@ static float load_f4(const uint8_t *p) {
     return f;
 }
 
+/* Every one of `count` float32 values at `p` (any alignment) within +-the float whose bits
+ * are `lim_bits`: |v| <= lim <=> (bits & 0x7fffffff) <= bits(lim) for a non-negative lim,
+ * and NaN (whose patterns are all above infinity's) fails it too. Integer compares without
+ * a branch, in a function of their own: the compiler makes vector code of it. */
+static NOINLINE int bits_within(const uint8_t *p, size_t count, uint32_t lim_bits) {
+    uint32_t bad = 0;
+    for (size_t j = 0; j < count; j++) {
+        uint32_t u;
+        memcpy(&u, p + 4 * j, 4);
+        bad |= (u & 0x7fffffffu) > lim_bits;
+    }
+    return !bad;
+}
+
+/* `count` (x, y) points: float32 offsets at `src` plus the anchor (ax, ay), as float64. */
+static NOINLINE void add_anchor(double *restrict dst, const uint8_t *restrict src, size_t count, double ax, double ay) {
+    for (size_t j = 0; j < count; j++) {
+        dst[2 * j] = ax + (double)load_f4(src + 8 * j);
+        dst[2 * j + 1] = ay + (double)load_f4(src + 8 * j + 4);
+    }
+}
+
 /* Checked size arithmetic for the output layout. */
 static int add_sz(size_t *acc, size_t a, size_t b) {  /* acc += a * b */
     if (b != 0 && a > SIZE_MAX / b) return 0;
@@ -943,20 +976,21 @@ static PyObject *decode_step(rd_t *r, const scan_t *sc, const limits_t *lim) {
         if (o.vtypes != NULL && n && nvt == 0) goto fail;
         if (!put_int(vtype, col[S_VTYPE].p, n, &C[S_VTYPE], 0, (double)nvt - 1, o.vtypes != NULL)) goto fail;
         if (has_path) {
-            /* offsets rising from 0 to m; vertices = float32 offset + the agent's float64 position */
+            /* offsets rising from 0 to m, checked before any vertex is touched: every vertex
+             * read and written is then within the m */
+            uint32_t bad = 0;
             memcpy(off, off_bin.p, (n + 1) * 4);
-            if (off[0] != 0 || off[n] != m) goto fail;
-            for (size_t i = 0; i < n; i++) {
-                size_t a = off[i], b = off[i + 1];
-                if (b < a || b > m) goto fail;  /* every vertex read and written within the m */
-                for (size_t j = a; j < b; j++) {
-                    double dx = (double)load_f4(dxy_bin.p + 8 * j), dy = (double)load_f4(dxy_bin.p + 8 * j + 4);
-                    if (!(dx >= -C[S_LADX].hi && dx <= C[S_LADX].hi && dy >= -C[S_LADX].hi && dy <= C[S_LADX].hi))
-                        goto fail;
-                    pxy[2 * j] = x[i] + dx;
-                    pxy[2 * j + 1] = y[i] + dy;
-                }
-            }
+            for (size_t i = 0; i < n; i++) bad |= off[i + 1] < off[i];
+            if (bad || off[0] != 0 || off[n] != m) goto fail;
+            /* every offset within +-the look-ahead bound, tested on the float32 bits before
+             * any vertex is made: |v| <= lim <=> (bits & 0x7fffffff) <= bits(lim) for a
+             * non-negative float lim, and NaN (all of whose patterns are above infinity's)
+             * fails it too. Integer compares with no branch compile to vector code; the
+             * float tests with a branch per value took half the decode. */
+            if (!bits_within(dxy_bin.p, 2 * m, g_path_lim_bits)) goto fail;
+            /* vertices = float32 offset + the agent's float64 position */
+            for (size_t i = 0; i < n; i++)
+                add_anchor(pxy + 2 * (size_t)off[i], dxy_bin.p + 8 * (size_t)off[i], off[i + 1] - off[i], x[i], y[i]);
         }
         /* traffic lights: phase integers 0..2^31-1, next finite numbers within +-1e9 (float32) */
         {
@@ -1846,6 +1880,17 @@ static PyObject *py_configure(PyObject *self, PyObject *args) {
             PyErr_Format(PyExc_ValueError, "agent key %d is not %s", A_COL0 + c, STEP_COLS[c].name);
             return NULL;
         }
+    {  /* the largest float32 within the bound, as bits: path offsets are tested on their bits */
+        double lim = STEP_COLS[S_LADX].hi;
+        float f;
+        if (!(lim >= 0)) {
+            PyErr_SetString(PyExc_ValueError, "la_dx bounds must be a non-negative range");
+            return NULL;
+        }
+        f = lim >= (double)FLT_MAX ? FLT_MAX : (float)lim;
+        memcpy(&g_path_lim_bits, &f, 4);
+        if ((double)f > lim) g_path_lim_bits--;  /* rounded up: the float below it */  /* rounded up: the float below it */
+    }
     g_major = major;
     g_minor = minor;
     g_ready = host_is_little();
