@@ -1472,10 +1472,34 @@ typedef struct {
     int narr;
 } hold_t;
 
+/* The attribute names the encoders read, as interned str made once: PyObject_GetAttrString
+ * makes a str of the name and hashes it on every call, and the instance dict then finds it
+ * by comparing characters (an interned key matches by identity). Keyed by the name's
+ * address (string literals and the column tables), which is stable. */
+#define MAX_NAMES 64
+static struct {
+    const char *key;
+    PyObject *str;
+} g_names[MAX_NAMES];
+
+static PyObject *get_attr(PyObject *o, const char *name) {
+    int i;
+    for (i = 0; i < MAX_NAMES && g_names[i].key != NULL; i++)
+        if (g_names[i].key == name) return PyObject_GetAttr(o, g_names[i].str);
+    if (i < MAX_NAMES) {
+        PyObject *u = PyUnicode_InternFromString(name);
+        if (u == NULL) return NULL;
+        g_names[i].key = name;
+        g_names[i].str = u;  /* kept for the life of the process */
+        return PyObject_GetAttr(o, u);
+    }
+    return PyObject_GetAttrString(o, name);
+}
+
 static PyObject *hold_attr(hold_t *h, PyObject *o, const char *name) {
     PyObject *v;
     if (h->nobj >= MAX_OBJS) return NULL;
-    v = PyObject_GetAttrString(o, name);
+    v = get_attr(o, name);
     if (v == NULL) {
         PyErr_Clear();
         return NULL;
@@ -1633,8 +1657,8 @@ static PyObject *prep_vtypes(PyObject *vt) {
     if (out == NULL) return NULL;
     for (Py_ssize_t i = 0; i < n; i++) {
         PyObject *v = PySequence_Fast_GET_ITEM(vt, i), *id, *vc, *pair;
-        id = PyObject_GetAttrString(v, "id");
-        vc = id ? PyObject_GetAttrString(v, "vclass") : NULL;
+        id = get_attr(v, "id");
+        vc = id ? get_attr(v, "vclass") : NULL;
         if (id == NULL || vc == NULL || !PyUnicode_Check(id) || !PyUnicode_Check(vc)) {
             Py_XDECREF(id);
             Py_XDECREF(vc);
