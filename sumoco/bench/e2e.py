@@ -89,6 +89,7 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
         wake.set()
 
     def main_loop() -> None:  # as PhysicsDaemon.run in lockstep: wait, take one step, decode
+        held: list[StepMessage] = []
         while not stop.is_set():
             if not steps:
                 wake.wait(0.05)
@@ -106,6 +107,9 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
             e2e_at[msg.step] = t1
             decode_ns.append(t1 - t0)
             decode_cpu_ns.append(time.thread_time_ns() - c0)
+            # The daemon's loop holds the previous step until the next one is decoded and
+            # applied (``msg = self.handle_step(...)``): it is released here, after the stamp.
+            held[:] = [msg]
 
     tune_allocator()
     freeze_startup_objects()
