@@ -556,11 +556,10 @@ static int ptrset_add(uintptr_t *t, size_t mask, uintptr_t v) {
  * unique when asked: a new list, or NULL with no exception set. Unique lists (ids) go
  * through the id cache; `prev` names the previous list of the same kind (PREV_NONE). */
 static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_chars, int prev) {
-    size_t n, j = 0, mask = 0;
+    size_t n, j = 0;
     PyObject *list;
     prev_t *p = NULL, *rec = NULL;
-    uintptr_t *seen = NULL;
-    int cache, all_cached = 1, cache_failed = 0;
+    int cache, all_cached = 1, cache_failed = 0, looked_up = 0;
     if (!rd_array(r, &n) || (want >= 0 && n != (size_t)want)) return NULL;
     list = PyList_New((Py_ssize_t)n);
     if (list == NULL) {
@@ -568,17 +567,10 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
         return NULL;
     }
     cache = unique && n > 0 && max_chars >= ID_MAX_BYTES && id_cache_ready(n);
-    if (cache) {
-        size_t cap = 8;
-        while (cap < 2 * n) cap <<= 1;
-        seen = (uintptr_t *)PyMem_Calloc(cap, sizeof(uintptr_t));
-        if (seen == NULL) goto fail;
-        mask = cap - 1;
-        if (prev != PREV_NONE) {
-            p = &g_prev[prev];
-            /* the new list is recorded as it goes, in arrays of its own when the old are read */
-            rec = p;
-        }
+    if (cache && prev != PREV_NONE) {
+        p = &g_prev[prev];
+        /* the new list is recorded as it goes, in arrays of its own when the old are read */
+        rec = p;
     }
     for (size_t i = 0; i < n; i++) {
         const char *s;
@@ -598,14 +590,12 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
             if (u == NULL && is_ascii(s, len)) {
                 u = id_cached(s, len);
                 cache_failed |= u == NULL;
+                looked_up = 1;
             }
 #if defined(__GNUC__)
             if (p != NULL && j + 8 < p->n && p->str[j + 8] != NULL) __builtin_prefetch(p->str[j + 8], 1);
 #endif
-            if (u != NULL) {
-                if (!ptrset_add(seen, mask, (uintptr_t)u)) goto fail;  /* an id twice */
-                Py_INCREF(u);
-            }
+            if (u != NULL) Py_INCREF(u);
         }
         if (u == NULL) {
             all_cached = 0;
@@ -614,7 +604,21 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
         }
         PyList_SET_ITEM(list, (Py_ssize_t)i, u);
     }
-    /* cached ids are unique by their pointers; any other id needs the full check */
+    /* Uniqueness. Ids taken from the previous list only are unique already: that list was,
+     * and its entries were taken at rising positions. Cached ids are unique when their
+     * pointers are (one str per text); any other id needs the full check. */
+    if (unique && cache && all_cached && looked_up) {
+        size_t cap = 8, mask;
+        uintptr_t *seen;
+        int dup = 0;
+        while (cap < 2 * n) cap <<= 1;
+        seen = (uintptr_t *)PyMem_Calloc(cap, sizeof(uintptr_t));
+        if (seen == NULL) goto fail;
+        mask = cap - 1;
+        for (size_t i = 0; i < n && !dup; i++) dup = !ptrset_add(seen, mask, (uintptr_t)PyList_GET_ITEM(list, (Py_ssize_t)i));
+        PyMem_Free(seen);
+        if (dup) goto fail;
+    }
     if (unique && !(cache && all_cached) && !unique_strs(list)) goto fail;
     if (rec != NULL) {  /* this list is the next one's previous (its short ASCII ids all cached) */
         if (cache_failed || !prev_reserve(rec, n)) {
@@ -622,8 +626,11 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
         } else {
             for (size_t i = 0; i < n; i++) {
                 PyObject *u = PyList_GET_ITEM(list, (Py_ssize_t)i);
-                Py_ssize_t len = PyUnicode_GET_LENGTH(u);
-                int cached = PyUnicode_IS_COMPACT_ASCII(u) && len <= ID_MAX_BYTES;
+                Py_ssize_t len;
+                int cached;
+                if (i < rec->n && rec->str[i] == u) continue;  /* recorded there already: no store */
+                len = PyUnicode_GET_LENGTH(u);
+                cached = PyUnicode_IS_COMPACT_ASCII(u) && len <= ID_MAX_BYTES;
                 rec->str[i] = cached ? u : NULL;
                 rec->len[i] = cached ? (uint8_t)len : UINT8_MAX;  /* never equal to an id's length */
                 if (cached && len) memcpy(rec->bytes + i * ID_MAX_BYTES, PyUnicode_DATA(u), (size_t)len);
@@ -631,11 +638,9 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
             rec->n = n;
         }
     }
-    PyMem_Free(seen);
     return list;
 fail:
     PyErr_Clear();
-    PyMem_Free(seen);
     Py_DECREF(list);
     return NULL;
 }

@@ -681,3 +681,22 @@ def test_ids_evolving_from_step_to_step(seed):
         else:
             assert got is None
     codec._fast.clear_cache()
+
+
+@needs_c
+def test_repeats_among_ids_of_the_previous_step():
+    """Ids taken from the previous step's list in order skip the pointer set (they are
+    unique by construction); a repeat among them still goes to the cache and is refused."""
+    codec._fast.clear_cache()
+    ids = [f"veh{i}" for i in range(50)]
+    base = synthetic_step(50, seed=1, step=1)
+    step = lambda sent: dataclasses.replace(base, agents=dataclasses.replace(base.agents, ids=sent))  # noqa: E731
+    for _ in range(2):  # the second time every id comes from the previous list
+        got = _both_decode(encode(step(ids)), fast=True)
+        assert got.agents.ids == ids
+    for i, d in [(10, 1), (10, 2), (0, 49), (48, 1), (20, 4), (20, 5)]:
+        sent = list(ids)
+        sent[i + d] = sent[i]
+        assert _both_decode(encode(step(sent)), fast=False) is None
+        assert _both_decode(encode(step(ids)), fast=True).agents.ids == ids  # and back
+    codec._fast.clear_cache()
