@@ -1072,15 +1072,11 @@ _DECODERS = {
 _NDARRAY = np.ndarray
 _F8, _F4, _I4, _U4, _U2, _U1 = (np.dtype(t) for t in ("<f8", "<f4", "<i4", "<u4", "<u2", "<u1"))
 _NEW = object.__new__
-
-
-def _frozen(cls: type, fields: dict) -> Any:
-    """``cls(**fields)`` for a frozen dataclass whose ``fields`` are all given, without its
-    ``__init__``: that sets each field through ``object.__setattr__``, which after an idle
-    wait costs tens of microseconds of cold interpreter code per message."""
-    obj = _NEW(cls)
-    obj.__dict__.update(fields)
-    return obj
+#: ``object.__setattr__(obj, "__dict__", fields)``: a frozen dataclass's fields set at once,
+#: without its ``__init__`` (a per-field ``object.__setattr__``, which after an idle wait
+#: costs tens of microseconds of cold interpreter code per message). Every field must be in
+#: ``fields``: tests compare them with ``dataclasses.fields``.
+_SET = object.__setattr__
 
 
 def _fast_step(p: tuple) -> StepMessage:
@@ -1098,19 +1094,23 @@ def _fast_step(p: tuple) -> StepMessage:
     m_off = n + 1 if has_path else 0  # no path: empty offsets and (0, 2) points, as the Python decoder
     o2 = o_off + 4 * m_off  # uint16 block
     o1 = o2 + 4 * n  # uint8 block
-    agents = _frozen(AgentBatch, {
+    agents = _NEW(AgentBatch)
+    _SET(agents, "__dict__", {
         "ids": ids, "cls": a(sh, _U1, buf, o1), "vtype": a(sh, _U2, buf, o2), "x": a(sh, _F8, buf, 0),
         "y": a(sh, _F8, buf, 8 * n), "angle": a(sh, _F4, buf, o), "speed": a(sh, _F4, buf, o + 4 * n),
         "accel": a(sh, _F4, buf, o + 8 * n), "signals": a(sh, _U2, buf, o2 + 2 * n),
         "la_x": a(sh, _F8, buf, 16 * n), "la_y": a(sh, _F8, buf, 24 * n), "length": a(sh, _F4, buf, o + 12 * n),
         "width": a(sh, _F4, buf, o + 16 * n), "lane": a(sh, _I4, buf, o4), "flags": a(sh, _U1, buf, o1 + n),
         "path_offsets": a((m_off,), _U4, buf, o_off), "path_xy": a((m, 2), _F8, buf, 32 * n)})
-    tls = _frozen(TrafficLights, {"ids": tls_ids, "state": tls_state, "phase": a((k,), _I4, buf, o4 + 4 * n),
-                                  "next_switch": a((k,), _F4, buf, o + 20 * n), "program": program})
-    return _frozen(StepMessage, {
+    tls = _NEW(TrafficLights)
+    _SET(tls, "__dict__", {"ids": tls_ids, "state": tls_state, "phase": a((k,), _I4, buf, o4 + 4 * n),
+                           "next_switch": a((k,), _F4, buf, o + 20 * n), "program": program})
+    msg = _NEW(StepMessage)
+    _SET(msg, "__dict__", {
         "run": run, "step": step, "time": t, "step_length": dt, "agents": agents, "tls": tls,
         "vtypes": None if vt is None else [VType(i, c) for i, c in vt], "static_version": sv, "final": final,
         "epoch": epoch})
+    return msg
 
 
 def _fast_physics(p: tuple) -> PhysicsState:
