@@ -11,7 +11,12 @@ keys with the SUMO daemon's publisher settings (``STEP_PUT``):
   (the message built from numpy columns just before, as the bridge does); received stamp once the physics side's receive
   path has decoded it: callback -> ``to_bytes`` -> bounded ``DropOldest`` queue -> wake the
   main loop (``runtime.transport.Wake``) -> ``decode_as`` with the daemon's limits
-  (``physics_side.daemon``).
+  (``physics_side.daemon``). As in the daemon's loop, the previous step is released only
+  after the next one is decoded (and stamped).
+
+Per-phase columns (medians): ``encode`` on the publisher; ``handoff`` from the callback's
+put to the main loop holding the bytes, of which ``wake`` is the wake-up alone (callback's
+put to the main loop running again after its wait); ``decode``.
 
 Each row names its ``codec``: ``c`` (the C fast path of ``protocol.codec``) or ``python``
 (``SUMOCO_PURE_CODEC=1``: the publisher calls ``encode_python``, the subscriber process is
