@@ -39,6 +39,9 @@ typedef struct {
 
 #define FINITE_MAX DBL_MAX  /* the bounds of "any finite value" */
 
+/* bits of the largest float32 within la_dx's bound (the path offsets', set by configure) */
+static uint32_t g_path_lim_bits = 0;
+
 #define STEP_NCOL 14
 static column_t STEP_COLS[STEP_NCOL] = {  /* STEP_AGENT_COLUMNS, in its order */
     {"cls", 'u', 1, 0, 0, 0}, {"vtype", 'u', 2, 0, 0, 0}, {"x", 'f', 8, 0, 0, 0}, {"y", 'f', 8, 0, 0, 0},
@@ -66,6 +69,14 @@ static column_t PHYS_COLS[PHYS_NCOL] = {  /* PHYSICS_AGENT_COLUMNS, in its order
 #define MAX_VTYPES 65535    /* u16 index */
 #define MAX_MAP 4096        /* msgpack max_map_len of DecodeLimits */
 #define MAX_DEPTH 32        /* nesting skipped while looking for keys; the messages use 4 */
+
+/* Loops the compiler vectorises stay out of line: inlined into the large decode function,
+ * GCC leaves them scalar. */
+#if defined(__GNUC__)
+#define NOINLINE __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
 
 static int host_is_little(void) {
     const uint16_t one = 1;
@@ -545,11 +556,10 @@ static int ptrset_add(uintptr_t *t, size_t mask, uintptr_t v) {
  * unique when asked: a new list, or NULL with no exception set. Unique lists (ids) go
  * through the id cache; `prev` names the previous list of the same kind (PREV_NONE). */
 static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_chars, int prev) {
-    size_t n, j = 0, mask = 0;
+    size_t n, j = 0;
     PyObject *list;
     prev_t *p = NULL, *rec = NULL;
-    uintptr_t *seen = NULL;
-    int cache, all_cached = 1, cache_failed = 0;
+    int cache, all_cached = 1, cache_failed = 0, looked_up = 0;
     if (!rd_array(r, &n) || (want >= 0 && n != (size_t)want)) return NULL;
     list = PyList_New((Py_ssize_t)n);
     if (list == NULL) {
@@ -557,17 +567,10 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
         return NULL;
     }
     cache = unique && n > 0 && max_chars >= ID_MAX_BYTES && id_cache_ready(n);
-    if (cache) {
-        size_t cap = 8;
-        while (cap < 2 * n) cap <<= 1;
-        seen = (uintptr_t *)PyMem_Calloc(cap, sizeof(uintptr_t));
-        if (seen == NULL) goto fail;
-        mask = cap - 1;
-        if (prev != PREV_NONE) {
-            p = &g_prev[prev];
-            /* the new list is recorded as it goes, in arrays of its own when the old are read */
-            rec = p;
-        }
+    if (cache && prev != PREV_NONE) {
+        p = &g_prev[prev];
+        /* the new list is recorded as it goes, in arrays of its own when the old are read */
+        rec = p;
     }
     for (size_t i = 0; i < n; i++) {
         const char *s;
@@ -587,14 +590,12 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
             if (u == NULL && is_ascii(s, len)) {
                 u = id_cached(s, len);
                 cache_failed |= u == NULL;
+                looked_up = 1;
             }
 #if defined(__GNUC__)
             if (p != NULL && j + 8 < p->n && p->str[j + 8] != NULL) __builtin_prefetch(p->str[j + 8], 1);
 #endif
-            if (u != NULL) {
-                if (!ptrset_add(seen, mask, (uintptr_t)u)) goto fail;  /* an id twice */
-                Py_INCREF(u);
-            }
+            if (u != NULL) Py_INCREF(u);
         }
         if (u == NULL) {
             all_cached = 0;
@@ -603,7 +604,21 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
         }
         PyList_SET_ITEM(list, (Py_ssize_t)i, u);
     }
-    /* cached ids are unique by their pointers; any other id needs the full check */
+    /* Uniqueness. Ids taken from the previous list only are unique already: that list was,
+     * and its entries were taken at rising positions. Cached ids are unique when their
+     * pointers are (one str per text); any other id needs the full check. */
+    if (unique && cache && all_cached && looked_up) {
+        size_t cap = 8, mask;
+        uintptr_t *seen;
+        int dup = 0;
+        while (cap < 2 * n) cap <<= 1;
+        seen = (uintptr_t *)PyMem_Calloc(cap, sizeof(uintptr_t));
+        if (seen == NULL) goto fail;
+        mask = cap - 1;
+        for (size_t i = 0; i < n && !dup; i++) dup = !ptrset_add(seen, mask, (uintptr_t)PyList_GET_ITEM(list, (Py_ssize_t)i));
+        PyMem_Free(seen);
+        if (dup) goto fail;
+    }
     if (unique && !(cache && all_cached) && !unique_strs(list)) goto fail;
     if (rec != NULL) {  /* this list is the next one's previous (its short ASCII ids all cached) */
         if (cache_failed || !prev_reserve(rec, n)) {
@@ -611,8 +626,11 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
         } else {
             for (size_t i = 0; i < n; i++) {
                 PyObject *u = PyList_GET_ITEM(list, (Py_ssize_t)i);
-                Py_ssize_t len = PyUnicode_GET_LENGTH(u);
-                int cached = PyUnicode_IS_COMPACT_ASCII(u) && len <= ID_MAX_BYTES;
+                Py_ssize_t len;
+                int cached;
+                if (i < rec->n && rec->str[i] == u) continue;  /* recorded there already: no store */
+                len = PyUnicode_GET_LENGTH(u);
+                cached = PyUnicode_IS_COMPACT_ASCII(u) && len <= ID_MAX_BYTES;
                 rec->str[i] = cached ? u : NULL;
                 rec->len[i] = cached ? (uint8_t)len : UINT8_MAX;  /* never equal to an id's length */
                 if (cached && len) memcpy(rec->bytes + i * ID_MAX_BYTES, PyUnicode_DATA(u), (size_t)len);
@@ -620,11 +638,9 @@ static PyObject *rd_strs(rd_t *r, Py_ssize_t want, int unique, Py_ssize_t max_ch
             rec->n = n;
         }
     }
-    PyMem_Free(seen);
     return list;
 fail:
     PyErr_Clear();
-    PyMem_Free(seen);
     Py_DECREF(list);
     return NULL;
 }
@@ -689,6 +705,28 @@ static float load_f4(const uint8_t *p) {
     float f;
     memcpy(&f, p, 4);
     return f;
+}
+
+/* Every one of `count` float32 values at `p` (any alignment) within +-the float whose bits
+ * are `lim_bits`: |v| <= lim <=> (bits & 0x7fffffff) <= bits(lim) for a non-negative lim,
+ * and NaN (whose patterns are all above infinity's) fails it too. Integer compares without
+ * a branch, in a function of their own: the compiler makes vector code of it. */
+static NOINLINE int bits_within(const uint8_t *p, size_t count, uint32_t lim_bits) {
+    uint32_t bad = 0;
+    for (size_t j = 0; j < count; j++) {
+        uint32_t u;
+        memcpy(&u, p + 4 * j, 4);
+        bad |= (u & 0x7fffffffu) > lim_bits;
+    }
+    return !bad;
+}
+
+/* `count` (x, y) points: float32 offsets at `src` plus the anchor (ax, ay), as float64. */
+static NOINLINE void add_anchor(double *restrict dst, const uint8_t *restrict src, size_t count, double ax, double ay) {
+    for (size_t j = 0; j < count; j++) {
+        dst[2 * j] = ax + (double)load_f4(src + 8 * j);
+        dst[2 * j + 1] = ay + (double)load_f4(src + 8 * j + 4);
+    }
 }
 
 /* Checked size arithmetic for the output layout. */
@@ -943,20 +981,21 @@ static PyObject *decode_step(rd_t *r, const scan_t *sc, const limits_t *lim) {
         if (o.vtypes != NULL && n && nvt == 0) goto fail;
         if (!put_int(vtype, col[S_VTYPE].p, n, &C[S_VTYPE], 0, (double)nvt - 1, o.vtypes != NULL)) goto fail;
         if (has_path) {
-            /* offsets rising from 0 to m; vertices = float32 offset + the agent's float64 position */
+            /* offsets rising from 0 to m, checked before any vertex is touched: every vertex
+             * read and written is then within the m */
+            uint32_t bad = 0;
             memcpy(off, off_bin.p, (n + 1) * 4);
-            if (off[0] != 0 || off[n] != m) goto fail;
-            for (size_t i = 0; i < n; i++) {
-                size_t a = off[i], b = off[i + 1];
-                if (b < a || b > m) goto fail;  /* every vertex read and written within the m */
-                for (size_t j = a; j < b; j++) {
-                    double dx = (double)load_f4(dxy_bin.p + 8 * j), dy = (double)load_f4(dxy_bin.p + 8 * j + 4);
-                    if (!(dx >= -C[S_LADX].hi && dx <= C[S_LADX].hi && dy >= -C[S_LADX].hi && dy <= C[S_LADX].hi))
-                        goto fail;
-                    pxy[2 * j] = x[i] + dx;
-                    pxy[2 * j + 1] = y[i] + dy;
-                }
-            }
+            for (size_t i = 0; i < n; i++) bad |= off[i + 1] < off[i];
+            if (bad || off[0] != 0 || off[n] != m) goto fail;
+            /* every offset within +-the look-ahead bound, tested on the float32 bits before
+             * any vertex is made: |v| <= lim <=> (bits & 0x7fffffff) <= bits(lim) for a
+             * non-negative float lim, and NaN (all of whose patterns are above infinity's)
+             * fails it too. Integer compares with no branch compile to vector code; the
+             * float tests with a branch per value took half the decode. */
+            if (!bits_within(dxy_bin.p, 2 * m, g_path_lim_bits)) goto fail;
+            /* vertices = float32 offset + the agent's float64 position */
+            for (size_t i = 0; i < n; i++)
+                add_anchor(pxy + 2 * (size_t)off[i], dxy_bin.p + 8 * (size_t)off[i], off[i + 1] - off[i], x[i], y[i]);
         }
         /* traffic lights: phase integers 0..2^31-1, next finite numbers within +-1e9 (float32) */
         {
@@ -1438,10 +1477,34 @@ typedef struct {
     int narr;
 } hold_t;
 
+/* The attribute names the encoders read, as interned str made once: PyObject_GetAttrString
+ * makes a str of the name and hashes it on every call, and the instance dict then finds it
+ * by comparing characters (an interned key matches by identity). Keyed by the name's
+ * address (string literals and the column tables), which is stable. */
+#define MAX_NAMES 64
+static struct {
+    const char *key;
+    PyObject *str;
+} g_names[MAX_NAMES];
+
+static PyObject *get_attr(PyObject *o, const char *name) {
+    int i;
+    for (i = 0; i < MAX_NAMES && g_names[i].key != NULL; i++)
+        if (g_names[i].key == name) return PyObject_GetAttr(o, g_names[i].str);
+    if (i < MAX_NAMES) {
+        PyObject *u = PyUnicode_InternFromString(name);
+        if (u == NULL) return NULL;
+        g_names[i].key = name;
+        g_names[i].str = u;  /* kept for the life of the process */
+        return PyObject_GetAttr(o, u);
+    }
+    return PyObject_GetAttrString(o, name);
+}
+
 static PyObject *hold_attr(hold_t *h, PyObject *o, const char *name) {
     PyObject *v;
     if (h->nobj >= MAX_OBJS) return NULL;
-    v = PyObject_GetAttrString(o, name);
+    v = get_attr(o, name);
     if (v == NULL) {
         PyErr_Clear();
         return NULL;
@@ -1599,8 +1662,8 @@ static PyObject *prep_vtypes(PyObject *vt) {
     if (out == NULL) return NULL;
     for (Py_ssize_t i = 0; i < n; i++) {
         PyObject *v = PySequence_Fast_GET_ITEM(vt, i), *id, *vc, *pair;
-        id = PyObject_GetAttrString(v, "id");
-        vc = id ? PyObject_GetAttrString(v, "vclass") : NULL;
+        id = get_attr(v, "id");
+        vc = id ? get_attr(v, "vclass") : NULL;
         if (id == NULL || vc == NULL || !PyUnicode_Check(id) || !PyUnicode_Check(vc)) {
             Py_XDECREF(id);
             Py_XDECREF(vc);
@@ -1846,6 +1909,17 @@ static PyObject *py_configure(PyObject *self, PyObject *args) {
             PyErr_Format(PyExc_ValueError, "agent key %d is not %s", A_COL0 + c, STEP_COLS[c].name);
             return NULL;
         }
+    {  /* the largest float32 within the bound, as bits: path offsets are tested on their bits */
+        double lim = STEP_COLS[S_LADX].hi;
+        float f;
+        if (!(lim >= 0)) {
+            PyErr_SetString(PyExc_ValueError, "la_dx bounds must be a non-negative range");
+            return NULL;
+        }
+        f = lim >= (double)FLT_MAX ? FLT_MAX : (float)lim;
+        memcpy(&g_path_lim_bits, &f, 4);
+        if ((double)f > lim) g_path_lim_bits--;  /* rounded up: the float below it */  /* rounded up: the float below it */
+    }
     g_major = major;
     g_minor = minor;
     g_ready = host_is_little();

@@ -1069,31 +1069,48 @@ _DECODERS = {
 }
 
 
+_NDARRAY = np.ndarray
+_F8, _F4, _I4, _U4, _U2, _U1 = (np.dtype(t) for t in ("<f8", "<f4", "<i4", "<u4", "<u2", "<u1"))
+_NEW = object.__new__
+#: ``object.__setattr__(obj, "__dict__", fields)``: a frozen dataclass's fields set at once,
+#: without its ``__init__`` (a per-field ``object.__setattr__``, which after an idle wait
+#: costs tens of microseconds of cold interpreter code per message). Every field must be in
+#: ``fields``: tests compare them with ``dataclasses.fields``.
+_SET = object.__setattr__
+
+
 def _fast_step(p: tuple) -> StepMessage:
     """A StepMessage from the C decoder's parts: one buffer, laid out as decode_step in
-    _fastcodec.c writes it (float64, float32, int32, uint32, uint16, uint8 blocks). One
-    array per block and slices of it: each numpy call counts, with cold caches."""
+    _fastcodec.c writes it (float64, float32, int32, uint32, uint16, uint8 blocks). Every
+    array is an ``ndarray`` over its own span of that buffer, made by the same constructor:
+    after an idle wait each distinct numpy entry point (frombuffer, slicing, reshape) costs
+    tens of microseconds of cold code, the same call repeated little."""
     _, run, step, t, dt, sv, final, epoch, vt, ids, buf, n, m, has_path, tls_ids, tls_state, program, k = p
-    f8 = np.frombuffer(buf, np.float64, 4 * n + 2 * m)
-    o = 32 * n + 16 * m
-    f4 = np.frombuffer(buf, np.float32, 5 * n + k, o)
-    o += 4 * (5 * n + k)
-    i4 = np.frombuffer(buf, np.int32, n + k, o)
-    o += 4 * (n + k)
+    a = _NDARRAY
+    sh = (n,)
+    o = 32 * n + 16 * m  # float32 block
+    o4 = o + 20 * n + 4 * k  # int32 block
+    o_off = o4 + 4 * (n + k)  # uint32 offsets
     m_off = n + 1 if has_path else 0  # no path: empty offsets and (0, 2) points, as the Python decoder
-    u4 = np.frombuffer(buf, np.uint32, m_off, o)
-    o += 4 * m_off
-    u2 = np.frombuffer(buf, np.uint16, 2 * n, o)
-    u1 = np.frombuffer(buf, np.uint8, 2 * n, o + 4 * n)
-    n2, n3, n4 = 2 * n, 3 * n, 4 * n
-    agents = AgentBatch(ids=ids, cls=u1[:n], vtype=u2[:n], x=f8[:n], y=f8[n:n2], angle=f4[:n], speed=f4[n:n2],
-                        accel=f4[n2:n3], signals=u2[n:], la_x=f8[n2:n3], la_y=f8[n3:n4], length=f4[n3:n4],
-                        width=f4[n4:5 * n], lane=i4[:n], flags=u1[n:], path_offsets=u4,
-                        path_xy=f8[n4:].reshape(m, 2))
-    tls = TrafficLights(ids=tls_ids, state=tls_state, phase=i4[n:], next_switch=f4[5 * n:], program=program)
-    return StepMessage(run=run, step=step, time=t, step_length=dt, agents=agents, tls=tls,
-                       vtypes=None if vt is None else [VType(i, c) for i, c in vt],
-                       static_version=sv, final=final, epoch=epoch)
+    o2 = o_off + 4 * m_off  # uint16 block
+    o1 = o2 + 4 * n  # uint8 block
+    agents = _NEW(AgentBatch)
+    _SET(agents, "__dict__", {
+        "ids": ids, "cls": a(sh, _U1, buf, o1), "vtype": a(sh, _U2, buf, o2), "x": a(sh, _F8, buf, 0),
+        "y": a(sh, _F8, buf, 8 * n), "angle": a(sh, _F4, buf, o), "speed": a(sh, _F4, buf, o + 4 * n),
+        "accel": a(sh, _F4, buf, o + 8 * n), "signals": a(sh, _U2, buf, o2 + 2 * n),
+        "la_x": a(sh, _F8, buf, 16 * n), "la_y": a(sh, _F8, buf, 24 * n), "length": a(sh, _F4, buf, o + 12 * n),
+        "width": a(sh, _F4, buf, o + 16 * n), "lane": a(sh, _I4, buf, o4), "flags": a(sh, _U1, buf, o1 + n),
+        "path_offsets": a((m_off,), _U4, buf, o_off), "path_xy": a((m, 2), _F8, buf, 32 * n)})
+    tls = _NEW(TrafficLights)
+    _SET(tls, "__dict__", {"ids": tls_ids, "state": tls_state, "phase": a((k,), _I4, buf, o4 + 4 * n),
+                           "next_switch": a((k,), _F4, buf, o + 20 * n), "program": program})
+    msg = _NEW(StepMessage)
+    _SET(msg, "__dict__", {
+        "run": run, "step": step, "time": t, "step_length": dt, "agents": agents, "tls": tls,
+        "vtypes": None if vt is None else [VType(i, c) for i, c in vt], "static_version": sv, "final": final,
+        "epoch": epoch})
+    return msg
 
 
 def _fast_physics(p: tuple) -> PhysicsState:

@@ -390,6 +390,88 @@ def test_corrupt_and_hostile_steps():
     _both_decode(data.replace(b"\xa4kind", b"\xc4\x04kind"), fast=False)  # a bin key
 
 
+def _with_path_values(w: dict, values: list[float]) -> bytes:
+    """``w`` with its last path vertices' float32 offsets replaced by ``values`` (x, y, ...)."""
+    d = copy.deepcopy(w)
+    dxy = np.frombuffer(d["agents"]["path"]["dxy"], "<f4").copy()
+    dxy[len(dxy) - len(values):] = values
+    d["agents"]["path"]["dxy"] = dxy.tobytes()
+    return _pack(d)
+
+
+@needs_c
+def test_path_offsets_at_and_beyond_their_bound():
+    """The C decoder tests path offsets on their float32 bits: each side of the bound, both
+    signs, zeros, infinities and NaNs of either sign, as the Python decoder decides."""
+    w = _wire(dataclasses.replace(synthetic_step(40, seed=6, path_points=3), tls=_tls(3, True)))
+    lim = codec.OFFSET_LIMIT
+    above = float(np.nextafter(np.float32(lim), np.float32(np.inf)))
+    below = float(np.nextafter(np.float32(lim), np.float32(0)))
+    neg_nan = struct.unpack("<f", struct.pack("<I", 0xFFC00000))[0]
+    for values, ok in [([lim, -lim], True), ([-lim, below], True), ([0.0, -0.0], True),
+                       ([above, 0.0], False), ([0.0, -above], False), ([np.inf, 0.0], False),
+                       ([0.0, -np.inf], False), ([np.nan, 0.0], False), ([0.0, neg_nan], False),
+                       ([3.4e38, 0.0], False)]:
+        data = _with_path_values(w, values)
+        got = _both_decode(data, fast=ok)
+        assert (got is not None) is ok, values
+
+
+@needs_c
+def test_path_bound_between_two_floats():
+    """A bound that no float32 equals: the largest float32 below it passes, the next fails
+    (the C decoder rounds the bound down once, at configure)."""
+    fast = codec._fast
+    w = _wire(dataclasses.replace(synthetic_step(40, seed=6, path_points=3), tls=_tls(3, True)))
+    limits = DEFAULT_LIMITS._reader().fast_limits
+    lim = codec.OFFSET_LIMIT
+    up = float(np.nextafter(np.float32(lim), np.float32(np.inf)))  # lim + 1/128
+    try:
+        # floats near 1e5 are 1/128 apart: lim + 0.001 rounds to lim, lim + 0.006 rounds up to `up`
+        for bound in (lim + 0.001, lim + 0.006):
+            bounds = dict(codec.FLOAT_BOUNDS, la_dx=(-bound, bound), la_dy=(-bound, bound))
+            assert fast.configure(*codec.SCHEMA_VERSION, bounds, codec.INT_BOUNDS)
+            assert fast.decode(_with_path_values(w, [lim, -lim]), limits) is not None, bound
+            assert fast.decode(_with_path_values(w, [up, 0.0]), limits) is None, bound
+            assert fast.decode(_with_path_values(w, [0.0, -up]), limits) is None, bound
+    finally:
+        assert fast.configure(*codec.SCHEMA_VERSION, codec.FLOAT_BOUNDS, codec.INT_BOUNDS)
+
+
+@needs_c
+def test_decoded_steps_own_their_arrays():
+    """Each decoded step has arrays of its own: writing into one message's arrays changes
+    neither another message decoded from the same bytes nor the other arrays of its own."""
+    data = encode(synthetic_step(50, seed=3, step=1, path_points=4))
+    a, b = decode(data), decode(data)
+    assert _fast_takes(data)
+    _same(a, b)
+    before = copy.deepcopy(b)
+    for f in dataclasses.fields(AgentBatch):
+        v = getattr(a.agents, f.name)
+        if isinstance(v, np.ndarray) and v.size:
+            v[...] = 0
+    a.tls.phase[...] = 0
+    _same(b, before)
+    for name in ("x", "y", "la_x", "la_y", "path_xy"):
+        assert not np.shares_memory(getattr(b.agents, name), a.agents.x)
+    assert not np.shares_memory(b.agents.x, b.agents.y) and not np.shares_memory(b.agents.path_xy, b.agents.la_y)
+
+
+@needs_c
+def test_fast_steps_are_whole_dataclasses():
+    """The fast path builds the frozen dataclasses without their __init__: every field is
+    set (a field added later must be added there too), and they stay frozen and comparable."""
+    msg = synthetic_step(20, seed=2, step=3, path_points=2)
+    got = decode(encode(msg))
+    for obj in (got, got.agents, got.tls):
+        assert set(vars(obj)) == {f.name for f in dataclasses.fields(obj)}, type(obj).__name__
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            obj.foo = 1
+    assert dataclasses.replace(got, step=4).step == 4
+    _same(got, decode_python(encode(msg)))
+
+
 @needs_c
 def test_corrupt_and_hostile_physics():
     w = _wire(_physics(20, 4))
@@ -598,4 +680,23 @@ def test_ids_evolving_from_step_to_step(seed):
             assert got is not None and got.agents.ids == sent
         else:
             assert got is None
+    codec._fast.clear_cache()
+
+
+@needs_c
+def test_repeats_among_ids_of_the_previous_step():
+    """Ids taken from the previous step's list in order skip the pointer set (they are
+    unique by construction); a repeat among them still goes to the cache and is refused."""
+    codec._fast.clear_cache()
+    ids = [f"veh{i}" for i in range(50)]
+    base = synthetic_step(50, seed=1, step=1)
+    step = lambda sent: dataclasses.replace(base, agents=dataclasses.replace(base.agents, ids=sent))  # noqa: E731
+    for _ in range(2):  # the second time every id comes from the previous list
+        got = _both_decode(encode(step(ids)), fast=True)
+        assert got.agents.ids == ids
+    for i, d in [(10, 1), (10, 2), (0, 49), (48, 1), (20, 4), (20, 5)]:
+        sent = list(ids)
+        sent[i + d] = sent[i]
+        assert _both_decode(encode(step(sent)), fast=False) is None
+        assert _both_decode(encode(step(ids)), fast=True).agents.ids == ids  # and back
     codec._fast.clear_cache()

@@ -11,7 +11,12 @@ keys with the SUMO daemon's publisher settings (``STEP_PUT``):
   (the message built from numpy columns just before, as the bridge does); received stamp once the physics side's receive
   path has decoded it: callback -> ``to_bytes`` -> bounded ``DropOldest`` queue -> wake the
   main loop (``runtime.transport.Wake``) -> ``decode_as`` with the daemon's limits
-  (``physics_side.daemon``).
+  (``physics_side.daemon``). As in the daemon's loop, the previous step is released only
+  after the next one is decoded (and stamped).
+
+Per-phase columns (medians): ``encode`` on the publisher; ``handoff`` from the callback's
+put to the main loop holding the bytes, of which ``wake`` is the wake-up alone (callback's
+put to the main loop running again after its wait); ``decode``.
 
 Each row names its ``codec``: ``c`` (the C fast path of ``protocol.codec``) or ``python``
 (``SUMOCO_PURE_CODEC=1``: the publisher calls ``encode_python``, the subscriber process is
@@ -72,6 +77,8 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
     decode_ns: list[int] = []
     decode_cpu_ns: list[int] = []
     handoff_ns: list[int] = []
+    wake_ns: list[int] = []  # part of the hand-off: until the main loop runs again after its wait
+    woke = [0]
     steps: DropOldest[tuple[bytes, int]] = DropOldest(64, 256 << 20, size=lambda item: len(item[0]))
     wake = Wake()  # as PhysicsDaemon._wake
     stop = threading.Event()
@@ -87,20 +94,27 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
         wake.set()
 
     def main_loop() -> None:  # as PhysicsDaemon.run in lockstep: wait, take one step, decode
+        held: list[StepMessage] = []
         while not stop.is_set():
             if not steps:
                 wake.wait(0.05)
+                woke[0] = time.monotonic_ns()
                 wake.clear()
                 continue
             data, landed = steps.get()
             t0 = time.monotonic_ns()
             handoff_ns.append(t0 - landed)
+            if woke[0] >= landed:  # (it waited for this step)
+                wake_ns.append(woke[0] - landed)
             c0 = time.thread_time_ns()
             msg = decode_as(data, StepMessage, limits)
             t1 = time.monotonic_ns()
             e2e_at[msg.step] = t1
             decode_ns.append(t1 - t0)
             decode_cpu_ns.append(time.thread_time_ns() - c0)
+            # The daemon's loop holds the previous step until the next one is decoded and
+            # applied (``msg = self.handle_step(...)``): it is released here, after the stamp.
+            held[:] = [msg]
 
     tune_allocator()
     freeze_startup_objects()
@@ -118,7 +132,7 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
         for sub in subs:
             sub.undeclare()
     json.dump({"raw": raw_at, "e2e": e2e_at, "decode_ns": decode_ns, "decode_cpu_ns": decode_cpu_ns,
-               "handoff_ns": handoff_ns, "codec": "c" if FAST_CODEC else "python"}, sys.stdout)
+               "handoff_ns": handoff_ns, "wake_ns": wake_ns, "codec": "c" if FAST_CODEC else "python"}, sys.stdout)
 
 
 class _Sent(NamedTuple):
@@ -210,6 +224,7 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
     dec = np.asarray(got.get("decode_ns", []), float)[warmup:] / 1e6
     enc = np.asarray(sent.encode_ns, float)[warmup:] / 1e6
     hand = np.asarray(got.get("handoff_ns", []), float)[warmup:] / 1e6
+    woke = np.asarray(got.get("wake_ns", []), float)[warmup:] / 1e6
     return {
         "agents": agents,
         "path_points_per_agent": path_points,
@@ -226,6 +241,8 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
         "encode_ms_p50": round(float(np.median(enc)), 4) if len(enc) else None,
         "decode_ms_p50": round(float(np.median(dec)), 4) if len(dec) else None,
         "handoff_ms_p50": round(float(np.median(hand)), 4) if len(hand) else None,
+        # of the hand-off, the wake-up alone: callback's put to the main loop running again
+        "wake_ms_p50": round(float(np.median(woke)), 4) if len(woke) else None,
         # CPU time of the same calls: wall minus CPU is time spent waiting for a core
         "encode_cpu_ms_p50": _median_ms(sent.encode_cpu_ns, warmup),
         "decode_cpu_ms_p50": _median_ms(got.get("decode_cpu_ns", []), warmup),
