@@ -22,6 +22,8 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "sumoco_capi.h" /* module definition */
+
 /* ------------------------------------------------------------------ configuration */
 
 /* The wire's major version and the column bounds, handed over by protocol.codec at import
@@ -1954,10 +1956,5 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "protocol._fastcodec",
-    "C fast path of protocol.codec for step and physics messages (None: use the Python codec).", -1, methods,
-    NULL, NULL, NULL, NULL,
-};
-
-PyMODINIT_FUNC PyInit__fastcodec(void) { return PyModule_Create(&module); }
+SC_MODULE(PyInit__fastcodec, "protocol._fastcodec",
+          "C fast path of protocol.codec for step and physics messages (None: use the Python codec).", methods)
