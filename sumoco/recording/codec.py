@@ -91,6 +91,7 @@ class _Layout:
         self.exact_names = tuple(fields[i][0] for i in exact)
         self.units = np.array([fields[i][1] for i in real], np.float64).reshape(-1, 1)
         self.order2 = np.array([i for i, f in enumerate(fields) if f[2] == 2], np.intp)
+        self.order2_mask = np.array([[f[2] == 2] for f in fields], np.int64)  # (fields x 1) 1 on order-2 rows
         self.dts = tuple(f[3] for f in fields)
 
     def quantise(self, vals: dict, n: int) -> np.ndarray:
@@ -217,16 +218,19 @@ def _predict(st: _KeyState, pidx: np.ndarray | None) -> np.ndarray | None:
 def _remember(st: _KeyState, q: np.ndarray, pidx: np.ndarray | None, lay: _Layout) -> None:
     """Keep ``q`` and the next prediction base: q plus, on order-2 fields, the change since
     the last message of the agents that were in it."""
-    base = q.copy()
-    if st.q is not None and len(lay.order2):
-        o2 = lay.order2
-        if pidx is None:
-            base[o2] += q[o2] - st.q[o2]
-        else:
-            old = np.flatnonzero(pidx >= 0)
-            if len(old):
-                base[o2[:, None], old] += q[o2[:, None], old] - st.q[o2[:, None], pidx[old]]
-    st.q, st.base = q, base
+    if st.q is None or not len(lay.order2):
+        st.q, st.base = q, q
+        return
+    # whole-matrix arithmetic, the change masked to the order-2 rows: cheaper than indexing rows
+    if pidx is None:
+        change = q - st.q
+    else:
+        change = np.zeros_like(q)
+        old = np.flatnonzero(pidx >= 0)
+        change[:, old] = q[:, old] - st.q[:, pidx[old]]
+    change *= lay.order2_mask
+    change += q
+    st.q, st.base = q, change
 
 
 def _path_pred(st: _KeyState, pidx: np.ndarray, off: np.ndarray) -> np.ndarray:
