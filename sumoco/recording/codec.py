@@ -117,12 +117,10 @@ class _Layout:
         n = res.shape[1]
         if not n:
             return {name: ("i1", b"") for name in self.names}
-        # bits a row needs, from its extremes: ~lo = -lo - 1 without overflow
-        mag = np.maximum(~res.min(axis=1), res.max(axis=1))
-        level = ((mag >= 2**7).astype(np.int8) + (mag >= 2**15) + (mag >= 2**31)).tolist()
         blobs, out = {}, {}
-        for i, name in enumerate(self.names):
-            lv = level[i]
+        for i, (name, lo, hi) in enumerate(zip(self.names, res.min(axis=1).tolist(), res.max(axis=1).tolist())):
+            m = max(~lo, hi)  # ~lo = -lo - 1: fits iN when m < 2**(N-1)
+            lv = 0 if m < 0x80 else 1 if m < 0x8000 else 2 if m < 0x80000000 else 3
             blob = blobs.get(lv)
             if blob is None:  # one cast and one copy per int type, not per field
                 blob = blobs[lv] = res.astype(_INT_TYPES[lv]).tobytes()
@@ -166,6 +164,10 @@ class _Layout:
 _INT_NAMES = ("i1", "i2", "i4", "i8")
 _INT_TYPES = tuple(np.dtype("<" + t) for t in _INT_NAMES)
 _INT_SIZES = {t: 1 << i for i, t in enumerate(_INT_NAMES)}
+# "no paths" (physics states, steps without paths): shared, read-only, not allocated per message
+_NO_PATH_OFF = np.zeros(1, np.int64)
+_NO_PATH_Q = np.zeros((0, 2), np.int64)
+_NO_PATH_OFF.flags.writeable = _NO_PATH_Q.flags.writeable = False
 _STEP = _Layout(STEP_FIELDS)
 _PHYSICS = _Layout(PHYSICS_FIELDS)
 
@@ -181,8 +183,8 @@ class _KeyState:
     q: np.ndarray | None = None  # (fields x agents) quantised values of the last message
     base: np.ndarray | None = None  # the next prediction of each remembered agent: q, plus the
     # last change on order-2 fields (0 where the agent was new in the last message)
-    path_off: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
-    path_q: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    path_off: np.ndarray = field(default_factory=lambda: _NO_PATH_OFF)
+    path_q: np.ndarray = field(default_factory=lambda: _NO_PATH_Q)
     extra: dict = field(default_factory=dict)  # vtypes / tls last stored
 
 
@@ -326,7 +328,7 @@ class CompactEncoder:
             rec["path"] = {"cnt": _pack_int(np.diff(off)), "x": _pack_int(res[:, 0]), "y": _pack_int(res[:, 1])}
             st.path_off, st.path_q = off, pq
         else:
-            st.path_off, st.path_q = np.zeros(1, np.int64), np.zeros((0, 2), np.int64)
+            st.path_off, st.path_q = _NO_PATH_OFF, _NO_PATH_Q
         _remember(st, q, pidx, lay)
         self._st[topic] = st
         return schema, msgpack.packb(rec, use_bin_type=True)
@@ -385,7 +387,7 @@ class CompactDecoder:
             st.path_off, st.path_q = off, pq
             path_off, path_xy = off.astype(np.uint32), pq * PATH_UNIT
         else:
-            st.path_off, st.path_q = np.zeros(1, np.int64), np.zeros((0, 2), np.int64)
+            st.path_off, st.path_q = _NO_PATH_OFF, _NO_PATH_Q
         _remember(st, q, pidx, lay)
         st.seq = rec["seq"]
         self._st[topic] = st
