@@ -267,3 +267,39 @@ def test_the_writer_decodes_each_step_and_state_once_and_the_scene_is_the_same(t
     assert live._scene.channel.updates == want.channel.updates  # the same updates, stamps included
     # each step and state decoded once, for its compact record; the scene decodes only the static data
     assert calls == {"record": n_agent_msgs, "scene": 1, "peek": 0}
+
+
+class _CountingRecorder:
+    """Stands in for the MCAP writer: keeps what was written."""
+
+    context = None
+
+    def __init__(self) -> None:
+        self.written: list[str] = []
+
+    def write(self, topic, payload, stamp_ns=None, schema=None) -> None:
+        self.written.append(topic)
+
+    def flush(self) -> None:
+        pass
+
+
+def test_the_writer_takes_messages_in_batches_not_one_wake_up_each():
+    from sumoco.recording.record import WRITE_BATCH_S, LiveRecorder, RecordConfig
+
+    keys = Keys("sumoco", "b", "paper")
+    out = _CountingRecorder()
+    t0 = time.monotonic()
+    live = LiveRecorder(None, keys, out, config=RecordConfig(scene=False, physics_hz=0))
+    n = 100
+    for i in range(n):  # a message every 2 ms, like a live run's acks and states
+        live.on_sample(_Sample(keys.ack, b"%d" % i))
+        time.sleep(0.002)
+    assert live.drain(10)
+    elapsed = time.monotonic() - t0
+    live.stop()
+    assert out.written == [keys.ack] * n and live.written == n
+    # every pause lasts WRITE_BATCH_S, so there are at most elapsed / WRITE_BATCH_S of them
+    # (+1 for the one under way): the writer woke per batch, not per message
+    assert 1 <= live.idle_waits <= elapsed / WRITE_BATCH_S + 1
+    assert live.idle_waits <= n // 4

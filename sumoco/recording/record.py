@@ -47,6 +47,7 @@ CHUNK_BYTES = 1024 * 1024  # [B] uncompressed chunk: what a crash can lose at mo
 #: must still fit, or a full disk cuts the file in the middle of a record [B].
 RESERVE_BYTES = 4 * CHUNK_BYTES
 SPACE_CHECK_S = 0.25  # [s] between free-space checks
+WRITE_BATCH_S = 0.05  # [s] the writer waits this long once its queue is empty (stamps are receive times)
 _RESTART_S = 1.0  # [s] simulated time going back this far means the run restarted
 
 
@@ -237,6 +238,7 @@ class LiveRecorder:
         self._last_t: dict[str, float] = {}
         self.received = self.dropped = self.thinned = self.written = self.write_errors = 0
         self.compact_errors = 0
+        self.idle_waits = 0  # times the writer found its queue empty and paused
         self._encoder = rc.CompactEncoder() if self.config.encoding == "compact" else None
         self._stopped = threading.Event()
         self._static_sv: int | None = None
@@ -307,9 +309,17 @@ class LiveRecorder:
                 self.rec.flush()
                 next_flush = time.monotonic() + self.config.flush_s
             try:
-                item = self._q.get(timeout=self.config.flush_s or None)
+                item = self._q.get_nowait()
             except queue.Empty:
-                continue
+                # Nothing queued: let messages gather before waiting for the next one. Woken
+                # for each message, on a host whose cores the daemons keep busy, the writer
+                # spent as much CPU on the wake-up as on the message.
+                self.idle_waits += 1
+                time.sleep(WRITE_BATCH_S)
+                try:
+                    item = self._q.get(timeout=self.config.flush_s or None)
+                except queue.Empty:
+                    continue
             try:
                 if item is None:
                     return
