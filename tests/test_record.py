@@ -204,3 +204,102 @@ def test_recorder_records_the_network_of_a_restarted_sumo_side(tmp_path):
     statics = [decode(m.data) for m in read_recording(path).messages if m.topic == keys.static]
     assert [len(st.junctions.ids) for st in statics] == [len(runs[0].junctions.ids), len(runs[2].junctions.ids)]
     assert len(runs[2].junctions.ids) != len(runs[0].junctions.ids)
+
+
+class _Log:
+    """Stands in for the scene's channel: keeps each update's bytes and stamp."""
+
+    def __init__(self) -> None:
+        self.updates: list[tuple[bytes, int | None]] = []
+
+    def log(self, upd, log_time=None) -> None:
+        self.updates.append((upd.encode(), log_time))
+
+
+def test_the_writer_decodes_each_step_and_state_once_and_the_scene_is_the_same(tmp_path, monkeypatch):
+    from protocol.codec import encode
+    from sumoco.recording import record as record_mod
+    from sumoco.recording.record import LiveRecorder, McapRecorder, RecordConfig
+    from sumoco.viewing import scene as scene_mod
+    from synthetic.traffic import FakeRun
+
+    fake = FakeRun(grid=1, n=12, run="o")
+    keys = Keys("sumoco", "o")
+    paper, default = Keys("sumoco", "o", "paper"), Keys("sumoco", "o", "default")
+    feed = [(keys.static, encode(fake.static()))]
+    for k in range(60):  # 6 s: steps at 10 Hz, two physics instances at 50 Hz
+        step = fake.step(k)
+        feed.append((keys.step, encode(step)))
+        for j in range(5):
+            t = step.time + 0.02 * j
+            feed += [(inst.physics_state, encode(fake.physics(5 * k + j, t, k))) for inst in (paper, default)]
+    n_agent_msgs = len(feed) - 1
+
+    # the scene as a publisher fed the payloads alone draws it (thinned to 0.5 Hz)
+    want = scene_mod.ScenePublisher(None, min_period_s=2.0)
+    want.channel = _Log()
+    for i, (topic, payload) in enumerate(feed):
+        if want.offer(topic, payload):
+            want.feed(topic, payload, 1_000 + i)
+    assert len(want.channel.updates) == 1 + 3 * 3  # the network, and 3 each of steps and two instances
+
+    calls = {"record": 0, "scene": 0, "peek": 0}
+
+    def counting(name, fn):
+        def wrapped(*a, **kw):
+            calls[name] += 1
+            return fn(*a, **kw)
+        return wrapped
+
+    monkeypatch.setattr(record_mod, "decode", counting("record", record_mod.decode))
+    monkeypatch.setattr(scene_mod, "decode", counting("scene", scene_mod.decode))
+    monkeypatch.setattr(scene_mod, "peek", counting("peek", scene_mod.peek))
+    monkeypatch.setattr(time, "time_ns", lambda it=iter(range(1_000, 10**6)): next(it))  # stamps as above
+    rec = McapRecorder(tmp_path / "o.mcap")
+    live = LiveRecorder(None, keys, rec, config=RecordConfig(physics_hz=0.0, scene_hz=0.5))
+    live._scene.channel = _Log()
+    for topic, payload in feed:
+        live.on_sample(_Sample(topic, payload))
+    assert live.drain(20)
+    live.stop()
+    rec.close()
+    assert live.stats()["written"] == len(feed) and live.compact_errors == 0
+    assert live._scene.channel.updates == want.channel.updates  # the same updates, stamps included
+    # each step and state decoded once, for its compact record; the scene decodes only the static data
+    assert calls == {"record": n_agent_msgs, "scene": 1, "peek": 0}
+
+
+class _CountingRecorder:
+    """Stands in for the MCAP writer: keeps what was written."""
+
+    context = None
+
+    def __init__(self) -> None:
+        self.written: list[str] = []
+
+    def write(self, topic, payload, stamp_ns=None, schema=None) -> None:
+        self.written.append(topic)
+
+    def flush(self) -> None:
+        pass
+
+
+def test_the_writer_takes_messages_in_batches_not_one_wake_up_each():
+    from sumoco.recording.record import WRITE_BATCH_S, LiveRecorder, RecordConfig
+
+    keys = Keys("sumoco", "b", "paper")
+    out = _CountingRecorder()
+    t0 = time.monotonic()
+    live = LiveRecorder(None, keys, out, config=RecordConfig(scene=False, physics_hz=0))
+    n = 100
+    for i in range(n):  # a message every 2 ms, like a live run's acks and states
+        live.on_sample(_Sample(keys.ack, b"%d" % i))
+        time.sleep(0.002)
+    assert live.drain(10)
+    elapsed = time.monotonic() - t0
+    live.stop()
+    assert out.written == [keys.ack] * n and live.written == n
+    # every pause lasts WRITE_BATCH_S, so there are at most elapsed / WRITE_BATCH_S of them
+    # (+1 for the one under way): the writer woke per batch, not per message
+    assert 1 <= live.idle_waits <= elapsed / WRITE_BATCH_S + 1
+    assert live.idle_waits <= n // 4

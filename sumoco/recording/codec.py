@@ -74,17 +74,117 @@ def _unpack_int(v) -> np.ndarray:
     return np.frombuffer(b, "<" + dt).astype(np.int64)
 
 
+class _Layout:
+    """One message kind's fields as index arrays, so that a message's columns are handled as
+    one (fields x agents) matrix in a few numpy calls instead of several per field."""
+
+    def __init__(self, fields) -> None:
+        self.fields = fields
+        self.names = tuple(f[0] for f in fields)
+        real = [i for i, f in enumerate(fields) if f[1] is not None]
+        exact = [i for i, f in enumerate(fields) if f[1] is None]
+        # the tables list the quantised fields first: slices then address them without copies
+        if real + exact != list(range(len(fields))):
+            raise ValueError("compact fields must list the quantised ones before the exact ones")
+        self.n_real = len(real)
+        self.real_names = tuple(fields[i][0] for i in real)
+        self.exact_names = tuple(fields[i][0] for i in exact)
+        self.units = np.array([fields[i][1] for i in real], np.float64).reshape(-1, 1)
+        self.order2 = np.array([i for i, f in enumerate(fields) if f[2] == 2], np.intp)
+        self.order2_mask = np.array([[f[2] == 2] for f in fields], np.int64)  # (fields x 1) 1 on order-2 rows
+        self.dts = tuple(f[3] for f in fields)
+
+    def quantise(self, vals: dict, n: int) -> np.ndarray:
+        """(fields x n) int64: ``rint(value / unit)`` per quantised field, the exact ones as
+        integers (the same numpy casts as one field at a time)."""
+        q = np.empty((len(self.fields), n), np.int64)
+        k = self.n_real
+        real = np.array([vals[name] for name in self.real_names], np.float64)
+        if real.shape != (k, n):
+            raise ValueError(f"agent columns of unequal length ({real.shape[1:]} values for {n} agents)")
+        np.divide(real, self.units, out=real)
+        np.rint(real, out=real)
+        np.copyto(q[:k], real, casting="unsafe")
+        for i, name in enumerate(self.exact_names, k):
+            v = vals[name]
+            if len(v) != n:
+                raise ValueError(f"agent columns of unequal length ({len(v)} {name} for {n} agents)")
+            q[i] = v  # the integer cast of ``astype(int64)``
+        return q
+
+    def pack(self, res: np.ndarray) -> dict:
+        """Field -> ``[dtype, bytes]``: each row in its smallest int type (as ``_pack_int``)."""
+        n = res.shape[1]
+        if not n:
+            return {name: ("i1", b"") for name in self.names}
+        blobs, out = {}, {}
+        for i, (name, lo, hi) in enumerate(zip(self.names, res.min(axis=1).tolist(), res.max(axis=1).tolist())):
+            m = max(~lo, hi)  # ~lo = -lo - 1: fits iN when m < 2**(N-1)
+            lv = 0 if m < 0x80 else 1 if m < 0x8000 else 2 if m < 0x80000000 else 3
+            blob = blobs.get(lv)
+            if blob is None:  # one cast and one copy per int type, not per field
+                blob = blobs[lv] = res.astype(_INT_TYPES[lv]).tobytes()
+            w = n << lv
+            out[name] = (_INT_NAMES[lv], blob[i * w:(i + 1) * w])
+        return out
+
+    def unpack(self, cols: dict, n: int) -> np.ndarray:
+        dts, parts = [], []
+        for name in self.names:
+            dt, b = cols[name]
+            size = _INT_SIZES.get(dt)
+            if size is None or len(b) != n * size:
+                raise CompactError(f"column {name}: {len(b)} bytes of {dt!r} for {n} agents")
+            dts.append(dt)
+            parts.append(b)
+        if dts.count(dts[0]) == len(dts):  # one int type: one conversion
+            return np.frombuffer(b"".join(parts), "<" + dts[0]).reshape(len(dts), n).astype(np.int64)
+        res = np.empty((len(self.names), n), np.int64)
+        for dt in set(dts):  # one conversion per int type, not per field
+            rows = [i for i, d in enumerate(dts) if d == dt]
+            res[rows] = np.frombuffer(b"".join([parts[i] for i in rows]), "<" + dt).reshape(len(rows), n)
+        return res
+
+    def values(self, q: np.ndarray) -> dict:
+        """Field -> column of the message: ``q * unit`` (or q) in the field's dtype; the
+        columns of one dtype are rows of one new array."""
+        k = self.n_real
+        real = q[:k] * self.units
+        groups = {}
+        out = {}
+        for i, name in enumerate(self.names):
+            dt = self.dts[i]
+            conv = groups.get((i < k, dt))
+            if conv is None:
+                conv = groups[(i < k, dt)] = real.astype(dt) if i < k else q[k:].astype(dt)
+            out[name] = conv[i if i < k else i - k]
+        return out
+
+
+_INT_NAMES = ("i1", "i2", "i4", "i8")
+_INT_TYPES = tuple(np.dtype("<" + t) for t in _INT_NAMES)
+_INT_SIZES = {t: 1 << i for i, t in enumerate(_INT_NAMES)}
+# "no paths" (physics states, steps without paths): shared, read-only, not allocated per message
+_NO_PATH_OFF = np.zeros(1, np.int64)
+_NO_PATH_Q = np.zeros((0, 2), np.int64)
+_NO_PATH_OFF.flags.writeable = _NO_PATH_Q.flags.writeable = False
+_STEP = _Layout(STEP_FIELDS)
+_PHYSICS = _Layout(PHYSICS_FIELDS)
+
+
 @dataclass
 class _KeyState:
     """What both sides remember of the last message on one key."""
 
     seq: int = -1
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, object))
-    q: dict = field(default_factory=dict)  # field -> quantised values of the last message
-    dq: dict = field(default_factory=dict)  # field -> last change (valid where ``has_dq``)
-    has_dq: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    path_off: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
-    path_q: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    id_list: list = field(default_factory=list)  # ``ids`` as a list (compared whole: the same agents?)
+    unique: bool = True  # no id twice in ``ids`` (only then does an equal list map to itself)
+    q: np.ndarray | None = None  # (fields x agents) quantised values of the last message
+    base: np.ndarray | None = None  # the next prediction of each remembered agent: q, plus the
+    # last change on order-2 fields (0 where the agent was new in the last message)
+    path_off: np.ndarray = field(default_factory=lambda: _NO_PATH_OFF)
+    path_q: np.ndarray = field(default_factory=lambda: _NO_PATH_Q)
     extra: dict = field(default_factory=dict)  # vtypes / tls last stored
 
 
@@ -93,58 +193,46 @@ def _prev_index(ids: list[str], prev: np.ndarray) -> np.ndarray:
     cur = np.asarray(ids, dtype=object)
     if not len(prev) or not len(cur):
         return np.full(len(cur), -1, np.int64)
-    order = np.argsort(prev.astype(str), kind="stable")
-    sp = prev.astype(str)[order]
+    ps = prev.astype(str)
+    order = np.argsort(ps, kind="stable")
+    sp = ps[order]
     cs = cur.astype(str)
     pos = np.clip(np.searchsorted(sp, cs), 0, len(sp) - 1)
     hit = sp[pos] == cs
     return np.where(hit, order[pos], -1).astype(np.int64)
 
 
-def _quant(v: np.ndarray, unit: float | None) -> np.ndarray:
-    a = np.asarray(v, np.float64)
-    if unit is None:
-        return np.asarray(v).astype(np.int64)
-    return np.rint(a / unit).astype(np.int64)
+def _predict(st: _KeyState, pidx: np.ndarray | None) -> np.ndarray | None:
+    """(fields x n) prediction of each agent (SPEC 11); None = all zero. ``pidx`` None: the
+    agents are the remembered ones in the same order."""
+    if st.base is None:
+        return None
+    if pidx is None:
+        return st.base
+    old = pidx >= 0
+    if not old.any():
+        return None
+    pred = st.base[:, np.where(old, pidx, 0)]
+    pred[:, ~old] = 0
+    return pred
 
 
-def _dequant(q: np.ndarray, unit: float | None, dt: str) -> np.ndarray:
-    if unit is None:
-        return q.astype(dt)
-    return (q * unit).astype(dt)
-
-
-class _Columns:
-    """Shared residual logic of encoder and decoder for one key."""
-
-    def __init__(self, fields) -> None:
-        self.fields = fields
-
-    @staticmethod
-    def predict(st: _KeyState, name: str, order: int, pidx: np.ndarray) -> np.ndarray:
-        old = pidx >= 0
-        pred = np.zeros(len(pidx), np.int64)
-        last = st.q.get(name)
-        if last is None or not len(last):
-            return pred
-        j = pidx[old]
-        pred[old] = last[j]
-        if order == 2 and name in st.dq:
-            ok = st.has_dq[j]
-            pred[np.flatnonzero(old)[ok]] += st.dq[name][j[ok]]
-        return pred
-
-    @staticmethod
-    def update(st: _KeyState, fields, q: dict, pidx: np.ndarray) -> None:
-        old = pidx >= 0
-        dq = {}
-        for name, _unit, order, _dt in fields:
-            if order == 2:
-                d = np.zeros(len(pidx), np.int64)
-                if name in st.q and len(st.q[name]):
-                    d[old] = q[name][old] - st.q[name][pidx[old]]
-                dq[name] = d
-        st.q, st.dq, st.has_dq = q, dq, old.copy()
+def _remember(st: _KeyState, q: np.ndarray, pidx: np.ndarray | None, lay: _Layout) -> None:
+    """Keep ``q`` and the next prediction base: q plus, on order-2 fields, the change since
+    the last message of the agents that were in it."""
+    if st.q is None or not len(lay.order2):
+        st.q, st.base = q, q
+        return
+    # whole-matrix arithmetic, the change masked to the order-2 rows: cheaper than indexing rows
+    if pidx is None:
+        change = q - st.q
+    else:
+        change = np.zeros_like(q)
+        old = np.flatnonzero(pidx >= 0)
+        change[:, old] = q[:, old] - st.q[:, pidx[old]]
+    change *= lay.order2_mask
+    change += q
+    st.q, st.base = q, change
 
 
 def _path_pred(st: _KeyState, pidx: np.ndarray, off: np.ndarray) -> np.ndarray:
@@ -204,37 +292,44 @@ class CompactEncoder:
             head["tls"] = "same" if st.extra.get("tls") == tls else tls
             head["vtypes"] = "same" if ("vtypes" in st.extra and st.extra["vtypes"] == vt) else vt
             st.extra["tls"], st.extra["vtypes"] = tls, vt
-            fields, schema, ids = STEP_FIELDS, STEP_SCHEMA, a.ids
+            lay, schema, ids = _STEP, STEP_SCHEMA, a.ids
         elif isinstance(msg, PhysicsState):
             a = msg.agents
             vals = {f[0]: getattr(a, f[0]) for f in PHYSICS_FIELDS}
             head = {"run": msg.run, "tick": int(msg.tick), "t": float(msg.time), "sumo_step": int(msg.sumo_step),
                     "counters": dict(msg.counters)}
-            fields, schema, ids = PHYSICS_FIELDS, PHYSICS_SCHEMA, a.ids
+            lay, schema, ids = _PHYSICS, PHYSICS_SCHEMA, a.ids
         else:
             raise TypeError(f"no compact encoding for {type(msg).__name__}")
-        pidx = _prev_index(ids, st.ids)
-        new = pidx < 0
-        # agent order as references: consecutive indices pack to a run of 1s
-        ref = np.diff(np.concatenate([[-1], pidx]))
-        cols = {}
-        q = {}
-        for name, unit, order, _dt in fields:
-            q[name] = _quant(vals[name], unit)
-            cols[name] = _pack_int(q[name] - _Columns.predict(st, name, order, pidx))
-        rec = {"f": FORMAT, "seq": seq, "key": key, "n": len(ids), "ref": _pack_int(ref),
-               "new": [ids[i] for i in np.flatnonzero(new)], "cols": cols, **head}
+        ids = list(ids)
+        n = len(ids)
+        q = lay.quantise(vals, n)
+        # Mostly the same agents in the same order as last time: then every agent refers to
+        # itself (a run of 1s) and the sorted name lookup is not needed. Only for unique ids:
+        # the lookup maps a repeated name to its first occurrence.
+        if n and st.unique and ids == st.id_list:
+            pidx = None
+            ref, new_names = ("i1", b"\x01" * n), []
+        else:
+            pidx = _prev_index(ids, st.ids)
+            # agent order as references: consecutive indices pack to a run of 1s
+            ref = _pack_int(np.diff(np.concatenate([[-1], pidx])))
+            new_names = [ids[i] for i in np.flatnonzero(pidx < 0)]
+            st.ids, st.id_list, st.unique = np.asarray(ids, dtype=object), ids, len(set(ids)) == n
+        pred = _predict(st, pidx)
+        cols = lay.pack(q if pred is None else q - pred)
+        rec = {"f": FORMAT, "seq": seq, "key": key, "n": n, "ref": ref,
+               "new": new_names, "cols": cols, **head}
         if isinstance(msg, StepMessage) and len(msg.agents.path_offsets):
             off = np.asarray(msg.agents.path_offsets, np.int64)
             off = off - off[0]
             pq = np.rint(np.asarray(msg.agents.path_xy, np.float64).reshape(-1, 2)[:off[-1]] / PATH_UNIT).astype(np.int64)
-            res = pq - _path_pred(st, pidx, off)
+            res = pq - _path_pred(st, np.arange(n) if pidx is None else pidx, off)
             rec["path"] = {"cnt": _pack_int(np.diff(off)), "x": _pack_int(res[:, 0]), "y": _pack_int(res[:, 1])}
             st.path_off, st.path_q = off, pq
         else:
-            st.path_off, st.path_q = np.zeros(1, np.int64), np.zeros((0, 2), np.int64)
-        _Columns.update(st, fields, q, pidx)
-        st.ids = np.asarray(list(ids), dtype=object)
+            st.path_off, st.path_q = _NO_PATH_OFF, _NO_PATH_Q
+        _remember(st, q, pidx, lay)
         self._st[topic] = st
         return schema, msgpack.packb(rec, use_bin_type=True)
 
@@ -262,28 +357,41 @@ class CompactDecoder:
             self._st.pop(topic, None)
             self.skipped += 1
             raise CompactError(f"{topic}: record {rec['seq']} follows a missing one (skipped to the next keyframe)")
-        fields = STEP_FIELDS if schema == STEP_SCHEMA else PHYSICS_FIELDS
+        lay = _STEP if schema == STEP_SCHEMA else _PHYSICS
         n = int(rec["n"])
-        pidx = np.cumsum(_unpack_int(rec["ref"])) - 1 if n else np.zeros(0, np.int64)
-        new_names = iter(rec["new"])
-        ids = [st.ids[j] if j >= 0 else next(new_names) for j in pidx.tolist()]
-        q, vals = {}, {}
-        for name, unit, order, dt in fields:
-            q[name] = _unpack_int(rec["cols"][name]) + _Columns.predict(st, name, order, pidx)
-            vals[name] = _dequant(q[name], unit, dt)
+        ref = rec["ref"]
+        if n and n == len(st.id_list) and not rec["new"] and ref[0] == "i1" and ref[1] == b"\x01" * n:
+            # every agent is the remembered one at its place (the encoder's common case)
+            pidx, ids = None, st.id_list
+        else:
+            pidx = np.cumsum(_unpack_int(ref)) - 1 if n else np.zeros(0, np.int64)
+            old = pidx >= 0
+            names = np.empty(n, object)
+            names[old] = st.ids[pidx[old]]
+            new = rec["new"]
+            if len(new) != n - int(old.sum()):
+                raise CompactError(f"{topic}: record {rec['seq']} names {len(new)} new agents for "
+                                   f"{n - int(old.sum())} references to none")
+            names[~old] = new
+            ids = names.tolist()
+            st.ids, st.id_list = names, ids
+        res = lay.unpack(rec["cols"], n)
+        pred = _predict(st, pidx)
+        q = res if pred is None else res + pred
+        vals = lay.values(q)
         path_off, path_xy = np.zeros(0, np.uint32), np.zeros((0, 2), np.float64)
         if "path" in rec:
             off = np.concatenate([[0], np.cumsum(_unpack_int(rec["path"]["cnt"]))]).astype(np.int64)
             res = np.column_stack([_unpack_int(rec["path"]["x"]), _unpack_int(rec["path"]["y"])])
-            pq = res + _path_pred(st, pidx, off)
+            pq = res + _path_pred(st, np.arange(n) if pidx is None else pidx, off)
             st.path_off, st.path_q = off, pq
             path_off, path_xy = off.astype(np.uint32), pq * PATH_UNIT
         else:
-            st.path_off, st.path_q = np.zeros(1, np.int64), np.zeros((0, 2), np.int64)
-        _Columns.update(st, fields, q, pidx)
-        st.ids = np.asarray(ids, dtype=object)
+            st.path_off, st.path_q = _NO_PATH_OFF, _NO_PATH_Q
+        _remember(st, q, pidx, lay)
         st.seq = rec["seq"]
         self._st[topic] = st
+        ids = list(ids)  # the message's own list (the state keeps its copy)
         if schema == STEP_SCHEMA:
             tls = st.extra["tls"] if rec["tls"] == "same" else rec["tls"]
             vt = st.extra.get("vtypes") if rec["vtypes"] == "same" else rec["vtypes"]

@@ -18,6 +18,7 @@ time and stops cleanly at a truncated end (a crash loses at most the last chunk)
 
 from __future__ import annotations
 
+import functools
 import logging
 import queue
 import shutil
@@ -34,6 +35,7 @@ from mcap.stream_reader import StreamReader
 from protocol.codec import DEFAULT_LIMITS, MAX_AGENTS, DecodeLimits, decode, encode, peek
 from protocol.errors import ConfigError, ProtocolError, SumocoError
 from protocol.keys import Keys
+from protocol.messages import PhysicsState, StepMessage
 from sumoco.recording import codec as rc
 
 log = logging.getLogger(__name__)
@@ -45,6 +47,7 @@ CHUNK_BYTES = 1024 * 1024  # [B] uncompressed chunk: what a crash can lose at mo
 #: must still fit, or a full disk cuts the file in the middle of a record [B].
 RESERVE_BYTES = 4 * CHUNK_BYTES
 SPACE_CHECK_S = 0.25  # [s] between free-space checks
+WRITE_BATCH_S = 0.05  # [s] the writer waits this long once its queue is empty (stamps are receive times)
 _RESTART_S = 1.0  # [s] simulated time going back this far means the run restarted
 
 
@@ -56,6 +59,7 @@ class RecordingError(SumocoError):
     """A recording file is missing or unreadable."""
 
 
+@functools.lru_cache(maxsize=4096)  # asked for every message; a run has a few dozen keys
 def kind_of_topic(topic: str) -> str:
     """Message kind carried on a key (the key layout of protocol.keys)."""
     parts = topic.split("/")
@@ -234,6 +238,7 @@ class LiveRecorder:
         self._last_t: dict[str, float] = {}
         self.received = self.dropped = self.thinned = self.written = self.write_errors = 0
         self.compact_errors = 0
+        self.idle_waits = 0  # times the writer found its queue empty and paused
         self._encoder = rc.CompactEncoder() if self.config.encoding == "compact" else None
         self._stopped = threading.Event()
         self._static_sv: int | None = None
@@ -304,9 +309,17 @@ class LiveRecorder:
                 self.rec.flush()
                 next_flush = time.monotonic() + self.config.flush_s
             try:
-                item = self._q.get(timeout=self.config.flush_s or None)
+                item = self._q.get_nowait()
             except queue.Empty:
-                continue
+                # Nothing queued: let messages gather before waiting for the next one. Woken
+                # for each message, on a host whose cores the daemons keep busy, the writer
+                # spent as much CPU on the wake-up as on the message.
+                self.idle_waits += 1
+                time.sleep(WRITE_BATCH_S)
+                try:
+                    item = self._q.get(timeout=self.config.flush_s or None)
+                except queue.Empty:
+                    continue
             try:
                 if item is None:
                     return
@@ -315,7 +328,7 @@ class LiveRecorder:
                     self._queued_bytes -= len(payload)
                 if self.failed or not self._keep(topic, payload):
                     continue
-                data, out_schema = self._compact(topic, payload, schema)
+                data, out_schema, msg = self._compact(topic, payload, schema)
                 try:
                     self.rec.write(topic, data, stamp, schema=out_schema)
                 except Exception:
@@ -323,37 +336,45 @@ class LiveRecorder:
                         self._encoder.reset(topic)  # the next record on this key must not refer to a lost one
                     raise
                 self.written += 1
-                self._track_static_version(topic, payload)
-                if self._scene_worker is not None and self._scene.offer(topic, payload):
-                    self._scene_worker.put(topic, payload, stamp)
+                self._track_static_version(topic, payload, msg)
+                # the message decoded for the compact record serves the scene too (no second parse)
+                if self._scene_worker is not None and self._scene.offer(
+                        topic, payload, None if msg is None else msg.time):
+                    self._scene_worker.put(topic, payload, stamp, msg)
             except Exception:  # a write problem is logged and counted; recording goes on
                 self.write_errors += 1
                 log.exception("recording %s failed", item[0] if item else "?")
             finally:
                 self._q.task_done()
 
-    def _compact(self, topic: str, payload: bytes, schema: str | None) -> tuple[bytes, str | None]:
+    def _compact(self, topic: str, payload: bytes, schema: str | None) -> tuple[bytes, str | None, object]:
         """A step or physics payload as a compact record; anything else (or a payload that does
-        not decode) as it came."""
+        not decode) as it came. Also the decoded step or physics message (None if not decoded)."""
         if self._encoder is None or (schema or kind_of_topic(topic)) not in ("step", "physics"):
-            return payload, schema
+            return payload, schema, None
+        msg = None
         try:
-            out_schema, data = self._encoder.encode(topic, decode(payload, self.limits))
-            return data, out_schema
+            msg = decode(payload, self.limits)
+            out_schema, data = self._encoder.encode(topic, msg)
+            return data, out_schema, msg
         except (ProtocolError, TypeError, ValueError) as e:
             self.compact_errors += 1
             self._encoder.reset(topic)
             log.debug("recording %s as it came (%s)", topic, e)
-            return payload, schema
+            return payload, schema, msg if isinstance(msg, (StepMessage, PhysicsState)) else None
 
-    def _track_static_version(self, topic: str, payload: bytes) -> None:
-        """Record every static-data version the steps refer to (SPEC 3.2: tables change in a run)."""
+    def _track_static_version(self, topic: str, payload: bytes, msg=None) -> None:
+        """Record every static-data version the steps refer to (SPEC 3.2: tables change in a run).
+        ``msg``: the payload already decoded, if it was."""
         if topic == self.keys.static:
             self._static_sv = int(peek(payload, ("sv",)).get("sv", 0))  # static data: the default limits
             self._static_bytes = payload
         elif topic == self.keys.step and self._static_sv is not None:
-            head = peek(payload, ("sv", "step"), self.limits)
-            sv, step = int(head.get("sv", 0)), head.get("step")
+            if isinstance(msg, StepMessage):
+                sv, step = int(msg.static_version), msg.step
+            else:
+                head = peek(payload, ("sv", "step"), self.limits)
+                sv, step = int(head.get("sv", 0)), head.get("step")
             # A step index that goes back is a new SUMO side under the same run id: its static
             # versions start again, and its network may differ although the version is the same.
             restarted = step is not None and self._last_step is not None and step < self._last_step

@@ -157,19 +157,21 @@ class ScenePublisher:
         """Agents whose size (from the newest step) the physics scene draws with."""
         return len(self._sizes)
 
-    def offer(self, topic: str, payload: bytes) -> bool:
+    def offer(self, topic: str, payload: bytes, t: float | None = None) -> bool:
         """Whether ``payload`` is worth queuing for ``feed``: a physics state not due by
         ``min_period_s`` is thinned here, on the producer's thread, from its time field alone.
         Every physics state used to wake the worker and be decoded in full before ``feed``
         thinned it: 90 % of a recording hub's scene work (two 50 Hz instances beside 10 Hz
         steps). Steps and static data always pass (the sizes come from every step). Called
-        from one producer thread."""
+        from one producer thread. ``t``: the message's time when the caller has decoded it
+        already (the payload is then not parsed again)."""
         if not self.min_period_s or not topic.endswith("/state"):
             return True
-        try:
-            t = peek(payload, ("t",), self.limits).get("t")
-        except Exception:  # feed decodes it, counts the error and says why
-            return True
+        if t is None:
+            try:
+                t = peek(payload, ("t",), self.limits).get("t")
+            except Exception:  # feed decodes it, counts the error and says why
+                return True
         return not isinstance(t, float) or self._due(topic, t, self._offered_t)
 
     def _due(self, key: str, t: float, book: dict[str, float] | None = None) -> bool:
@@ -183,8 +185,9 @@ class ScenePublisher:
         book[key] = t
         return True
 
-    def feed(self, topic: str, payload: bytes, stamp_ns: int | None = None) -> bool:
-        """Decode one payload and log its scene update; False when nothing was logged."""
+    def feed(self, topic: str, payload: bytes, stamp_ns: int | None = None, msg=None) -> bool:
+        """Decode one payload and log its scene update; False when nothing was logged.
+        ``msg``: the payload as the caller decoded it already (with these limits)."""
         parts = topic.split("/")
         is_step = parts[-2:] == ["sumo", "step"]
         is_static = parts[-2:] == ["sumo", "static"]
@@ -192,7 +195,8 @@ class ScenePublisher:
         if not (is_step or is_static or is_physics):
             return False
         try:
-            msg = decode(payload, DEFAULT_LIMITS if is_static else self.limits)
+            if msg is None:
+                msg = decode(payload, DEFAULT_LIMITS if is_static else self.limits)
             if is_static and isinstance(msg, StaticData):
                 upd = network_scene(msg)
             elif is_step and isinstance(msg, StepMessage):
