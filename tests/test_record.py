@@ -254,16 +254,17 @@ def test_the_writer_decodes_each_step_and_state_once_and_the_scene_is_the_same(t
     monkeypatch.setattr(record_mod, "decode", counting("record", record_mod.decode))
     monkeypatch.setattr(scene_mod, "decode", counting("scene", scene_mod.decode))
     monkeypatch.setattr(scene_mod, "peek", counting("peek", scene_mod.peek))
-    monkeypatch.setattr(time, "time_ns", lambda it=iter(range(1_000, 10**6)): next(it))  # stamps as above
     rec = McapRecorder(tmp_path / "o.mcap")
-    live = LiveRecorder(None, keys, rec, config=RecordConfig(physics_hz=0.0, scene_hz=0.5))
+    # a scene queue that holds every update: a slow scene thread must not drop one here
+    live = LiveRecorder(None, keys, rec, config=RecordConfig(physics_hz=0.0, scene_hz=0.5, scene_queue=64))
+    live.clock_ns = lambda it=iter(range(1_000, 10**6)): next(it)  # stamps as above
     live._scene.channel = _Log()
     for topic, payload in feed:
         live.on_sample(_Sample(topic, payload))
     assert live.drain(20)
     live.stop()
     rec.close()
-    assert live.stats()["written"] == len(feed) and live.compact_errors == 0
+    assert live.stats()["written"] == len(feed) and live.compact_errors == 0 and live.scene_dropped == 0
     assert live._scene.channel.updates == want.channel.updates  # the same updates, stamps included
     # each step and state decoded once, for its compact record; the scene decodes only the static data
     assert calls == {"record": n_agent_msgs, "scene": 1, "peek": 0}

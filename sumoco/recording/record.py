@@ -247,6 +247,9 @@ class LiveRecorder:
         self._refetching = threading.Event()
         self.static_versions = 0
         self.failed: str | None = None  # why recording stopped early (disk full), else None
+        # Each message's log time; a test swaps in its own clock (patching time.time_ns would
+        # also count every other thread's call).
+        self.clock_ns = time.time_ns
         self._writer = threading.Thread(target=self._write_loop, name="record-writer", daemon=True)
         self._writer.start()
 
@@ -262,7 +265,7 @@ class LiveRecorder:
         """The subscriber's callback (Zenoh's thread): copy the bytes and hand them over to
         the writer, nothing else; a full queue drops the sample and counts it."""
         self.received += 1
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+        item = (str(sample.key_expr), sample.payload.to_bytes(), self.clock_ns())
         n = len(item[1])
         with self._bytes_lock:
             full = self._queued_bytes + n > self._max_bytes
@@ -400,7 +403,7 @@ class LiveRecorder:
                             return
                         with self._bytes_lock:
                             self._queued_bytes += len(data)
-                        self._q.put((self.keys.static, data, time.time_ns(), "static"))
+                        self._q.put((self.keys.static, data, self.clock_ns(), "static"))
                         self.static_versions += 1
                         return
                 self._stopped.wait(0.3)
@@ -425,7 +428,7 @@ class LiveRecorder:
                     data = reply.ok.payload.to_bytes()
                     with self._bytes_lock:
                         self._queued_bytes += len(data)
-                    self._q.put((key, data, time.time_ns(), kind))
+                    self._q.put((key, data, self.clock_ns(), kind))
                     return data
             self._stopped.wait(0.2)
         return None
