@@ -23,7 +23,8 @@ import numpy as np
 
 from physics_side import models
 from physics_side.policies.base import Step, Verdict, log
-from physics_side.policies.footprints import centre, footprint_gap, gap_floor, near_pairs, overlaps_any
+from physics_side.policies.footprints import (centre, footprint_gap, footprints_overlap, gap_floor, near_pairs,
+                                              overlaps_any)
 from protocol.frames import wrap_pi
 from protocol.messages import AgentMode
 
@@ -45,19 +46,54 @@ def ghosts(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, length: np.ndarray, 
     [m]) placed this step (``placed``) whose footprint overlaps a live body, or one placed
     before it this step, become ghosts (a motorcycle put on SUMO's pose 2.1 m past its stop
     stood with its rear in a bicycle queued beside it); a ghost (``ghost``: still one from
-    before) GHOST_CLEAR_M clear of every other body joins again."""
+    before) GHOST_CLEAR_M clear of every other body joins again.
+
+    The rule is sequential (a body placed earlier in the step, or a ghost that joined, counts
+    for the next), but only bodies near another have a say: the pairs whose footprints touch
+    come from one grid search and one exact test per margin, and the Python loop runs over
+    the few bodies in such a pair. (Testing each placed body against every other body took
+    0.19 s for 1,000 agents spawned in one step, 1.4 s for 5,000.)"""
     ghost = ghost.copy()
-    idx = np.arange(len(ghost))
     fresh = np.zeros(len(ghost), bool)
-    for i in np.flatnonzero(placed):
-        other = (idx != i) & (~placed | (idx < i)) & ~ghost & ~(ped & ped[i])
-        if overlaps_any(i, cx, cy, yaw, length, width, other):
+    todo_placed, was_ghost = placed.any(), ghost.any()
+    if not (todo_placed or was_ghost):
+        return ghost, fresh
+    (i0, j0), (ic, jc) = _touching(cx, cy, yaw, length, width, ped)
+    # only a body in a touching pair has a say; the rest keep their state (placed) or join (ghosts)
+    for i in np.intersect1d(np.flatnonzero(placed), i0):
+        js = j0[np.searchsorted(i0, i, "left"):np.searchsorted(i0, i, "right")]  # touching at margin 0
+        # live bodies, and those placed before it this step that did not become ghosts
+        if (~ghost[js] & (~placed[js] | (js < i))).any():
             ghost[i] = fresh[i] = True
-    for i in np.flatnonzero(ghost & ~fresh):
-        other = (idx != i) & ~ghost & ~(ped & ped[i])
-        if not overlaps_any(i, cx, cy, yaw, length, width, other, GHOST_CLEAR_M):
+    old_ghosts = ghost & ~fresh
+    near = np.zeros(len(ghost), bool)
+    near[ic] = True
+    ghost[old_ghosts & ~near] = False  # nobody within GHOST_CLEAR_M
+    for i in np.flatnonzero(old_ghosts & near):
+        js = jc[np.searchsorted(ic, i, "left"):np.searchsorted(ic, i, "right")]  # within GHOST_CLEAR_M
+        if not (~ghost[js]).any():
             ghost[i] = False
     return ghost, fresh
+
+
+def _touching(cx, cy, yaw, length, width, ped):
+    """The ordered pairs (i, j), sorted by i, whose footprints overlap grown by 0 and by
+    GHOST_CLEAR_M, pedestrian pairs left out. Candidates are the pairs whose circumscribed
+    discs (grown by GHOST_CLEAR_M, and a hair for rounding) overlap; each is tested exactly
+    with body i as footprint a, as ``overlaps_any`` tests it."""
+    # a body with a non-finite pose or size touches nothing (its gaps are NaN): left out of the grid
+    ok = np.flatnonzero(np.isfinite(cx) & np.isfinite(cy) & np.isfinite(yaw) & np.isfinite(length) & np.isfinite(width))
+    half_diag = 0.5 * np.hypot(length[ok] + 2 * GHOST_CLEAR_M, width[ok] + 2 * GHOST_CLEAR_M)
+    a, b = near_pairs(np.asarray(cx[ok], float), np.asarray(cy[ok], float), half_diag * (1 + 1e-9) + 1e-9)
+    a, b = ok[a], ok[b]
+    keep = ~(ped[a] & ped[b])
+    i = np.concatenate([a[keep], b[keep]])  # both orders: the test is not symmetric to the last bit
+    j = np.concatenate([b[keep], a[keep]])
+    order = np.argsort(i, kind="stable")
+    i, j = i[order], j[order]
+    args = (cx[i], cy[i], yaw[i], length[i], width[i], cx[j], cy[j], yaw[j], length[j], width[j])
+    hit0, hit_clear = footprints_overlap(*args), footprints_overlap(*args, margin=GHOST_CLEAR_M)
+    return (i[hit0], j[hit0]), (i[hit_clear], j[hit_clear])
 
 
 def sumo_overlaps(idx: np.ndarray, h, sumo_len: np.ndarray, sumo_wid: np.ndarray, ped: np.ndarray) -> np.ndarray:
