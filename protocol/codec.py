@@ -221,7 +221,12 @@ def _load_fast() -> Any:
         from protocol._fastcodec import configure
     except ImportError:
         return None
-    return sys.modules["protocol._fastcodec"] if configure(*SCHEMA_VERSION, FLOAT_BOUNDS, INT_BOUNDS) else None
+    fast = sys.modules["protocol._fastcodec"]
+    # Not another checkout's build found through an editable install (runtime.native's
+    # beside_its_package, which this layer cannot import): the Python path runs then.
+    if os.path.dirname(os.path.realpath(fast.__file__)) != os.path.dirname(os.path.realpath(__file__)):
+        return None
+    return fast if configure(*SCHEMA_VERSION, FLOAT_BOUNDS, INT_BOUNDS) else None
 
 
 _fast = _load_fast()

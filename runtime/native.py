@@ -8,20 +8,44 @@ still succeeds and the Python path runs. An environment variable forces the Pyth
 from __future__ import annotations
 
 import importlib
+import logging
 import os
+import sys
 from types import ModuleType
+
+log = logging.getLogger(__name__)
 
 
 def optional_extension(module: str, pure_env: str) -> ModuleType | None:
-    """The C extension ``module`` (dotted name); None when it is not built or the environment
-    variable ``pure_env`` is set to anything but "" or "0". (``protocol.codec`` loads its own:
-    the protocol layer imports nothing of the runtime.)"""
+    """The C extension ``module`` (dotted name); None when it is not built, when it was found
+    in another checkout (``beside_its_package``), or when the environment variable
+    ``pure_env`` is set to anything but "" or "0". (``protocol.codec`` loads its own: the
+    protocol layer imports nothing of the runtime.)"""
     if os.environ.get(pure_env, "") not in ("", "0"):
         return None
     try:
-        return importlib.import_module(module)
+        mod = importlib.import_module(module)
     except ImportError:
         return None
+    return mod if beside_its_package(mod) else None
+
+
+def beside_its_package(mod: ModuleType) -> bool:
+    """Was the extension ``mod`` loaded from its own package's directory? An editable install
+    adds the installed checkout to every package's search path, so a second checkout without
+    built extensions silently ran its Python against the first one's C (whatever version
+    that was). Such a module is refused (logged): the Python path runs until this checkout is
+    built (``make``, or ``pip install -e .``)."""
+    parent = sys.modules.get(mod.__name__.rpartition(".")[0])
+    own, pkg = getattr(mod, "__file__", None), getattr(parent, "__file__", None)
+    if own is None or pkg is None:
+        return True
+    here, there = os.path.dirname(os.path.realpath(own)), os.path.dirname(os.path.realpath(pkg))
+    if here == there:
+        return True
+    log.warning("C extension %s found in %s, not beside its package in %s (another checkout's build): "
+                "the Python path runs; build this checkout (make, or pip install -e .)", mod.__name__, here, there)
+    return False
 
 
 def numpy_math_is_libm() -> bool:
@@ -41,4 +65,4 @@ def numpy_math_is_libm() -> bool:
         np.array_equal(np.hypot(y, x), [math.hypot(p, q) for p, q in zip(y.tolist(), x.tolist())])
 
 
-__all__ = ["numpy_math_is_libm", "optional_extension"]
+__all__ = ["beside_its_package", "numpy_math_is_libm", "optional_extension"]

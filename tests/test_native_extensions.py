@@ -63,3 +63,44 @@ def test_the_numpy_math_check_sees_a_difference(monkeypatch):
     real = np.cos
     monkeypatch.setattr(np, "cos", lambda a: np.nextafter(real(a), np.inf))
     assert not numpy_math_is_libm()
+
+
+def test_an_extension_from_another_directory_is_refused_and_logged(caplog):
+    import logging
+    from pathlib import Path
+    from types import ModuleType
+
+    import physics_side
+    from runtime.native import beside_its_package
+
+    here = ModuleType("physics_side._here")
+    here.__file__ = str(Path(physics_side.__file__).parent / "_here.so")
+    assert beside_its_package(here)
+    there = ModuleType("physics_side._there")
+    there.__file__ = "/elsewhere/checkout/physics_side/_there.so"
+    with caplog.at_level(logging.WARNING, logger="runtime.native"):
+        assert not beside_its_package(there)
+    assert "physics_side._there" in caplog.text and "/elsewhere/checkout/physics_side" in caplog.text
+    assert beside_its_package(ModuleType("physics_side._nofile"))  # (no file to compare: accepted)
+
+
+def test_a_checkout_without_built_extensions_runs_its_python_paths(tmp_path):
+    """A copy of the packages without the .so files: with this checkout installed editable, its
+    extensions are on every package's search path; the copy must run its own Python paths,
+    not this checkout's C (which may be another version)."""
+    import shutil
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for pkg in ("protocol", "runtime", "physics_side", "sumo_side"):
+        shutil.copytree(root / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("*.so", "__pycache__"))
+    flags = sorted({(module, flag) for _, module, flag, _, _ in EXTENSIONS})
+    code = "import importlib; print(" + ", ".join(
+        f"importlib.import_module({m!r}).{f}" for m, f in flags) + ", importlib.import_module('protocol').__file__)"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SUMOCO_PURE")}
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    fields = out.stdout.split()
+    assert fields[:-1] == ["False"] * len(flags), dict(zip(flags, fields))
+    assert fields[-1].startswith(str(tmp_path)), out.stdout  # the copy's Python ran
