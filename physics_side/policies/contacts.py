@@ -38,6 +38,8 @@ GUARD_HOLD_S = 1.0  # [s] a guarded pair stays carried at least this long after 
 GUARD_KEEP_M = 0.3  # [m] ... and while SUMO has it closer than this
 MAX_GUARD_PAIRS = 4096  # active guard pairs (bounded; more are not guarded, logged)
 LOG_PAIRS = 5  # pairs named in one log line
+PAIR_SLACK = 1e-9  # [1] and [m]: the ghost rule's candidate discs grow by this share and this much, so
+# footprints touching corner to corner (at exactly the discs' distance) stay candidates after rounding
 
 
 def ghosts(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray,
@@ -55,8 +57,7 @@ def ghosts(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, length: np.ndarray, 
     0.19 s for 1,000 agents spawned in one step, 1.4 s for 5,000.)"""
     ghost = ghost.copy()
     fresh = np.zeros(len(ghost), bool)
-    todo_placed, was_ghost = placed.any(), ghost.any()
-    if not (todo_placed or was_ghost):
+    if not (placed.any() or ghost.any()):
         return ghost, fresh
     (i0, j0), (ic, jc) = _touching(cx, cy, yaw, length, width, ped)
     # only a body in a touching pair has a say; the rest keep their state (placed) or join (ghosts)
@@ -79,12 +80,12 @@ def ghosts(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, length: np.ndarray, 
 def _touching(cx, cy, yaw, length, width, ped):
     """The ordered pairs (i, j), sorted by i, whose footprints overlap grown by 0 and by
     GHOST_CLEAR_M, pedestrian pairs left out. Candidates are the pairs whose circumscribed
-    discs (grown by GHOST_CLEAR_M, and a hair for rounding) overlap; each is tested exactly
-    with body i as footprint a, as ``overlaps_any`` tests it."""
+    discs (grown by GHOST_CLEAR_M and PAIR_SLACK) overlap; each is tested exactly with body i
+    as footprint a, as ``overlaps_any`` tests it."""
     # a body with a non-finite pose or size touches nothing (its gaps are NaN): left out of the grid
     ok = np.flatnonzero(np.isfinite(cx) & np.isfinite(cy) & np.isfinite(yaw) & np.isfinite(length) & np.isfinite(width))
     half_diag = 0.5 * np.hypot(length[ok] + 2 * GHOST_CLEAR_M, width[ok] + 2 * GHOST_CLEAR_M)
-    a, b = near_pairs(np.asarray(cx[ok], float), np.asarray(cy[ok], float), half_diag * (1 + 1e-9) + 1e-9)
+    a, b = near_pairs(np.asarray(cx[ok], float), np.asarray(cy[ok], float), half_diag * (1 + PAIR_SLACK) + PAIR_SLACK)
     a, b = ok[a], ok[b]
     keep = ~(ped[a] & ped[b])
     i = np.concatenate([a[keep], b[keep]])  # both orders: the test is not symmetric to the last bit
