@@ -116,6 +116,35 @@ def test_a_thousand_bodies_spawned_at_once_are_sorted_in_one_pass():
     assert len(calls) == 2 and max(calls) < 50  # two exact tests, over the near pairs only
 
 
+def test_a_later_step_tests_only_the_pairs_of_the_placed_and_the_ghosts():
+    """1,000 cars in a queue 0.5 m apart (every neighbour a candidate pair), one placed, one an
+    old ghost: the exact tests cover their pairs only."""
+    from physics_side.policies import contacts as contacts_mod
+
+    n = 1000
+    cx, cy = np.arange(n) * 5.0, np.zeros(n)
+    yaw, ped = np.zeros(n), np.zeros(n, bool)
+    length, width = np.full(n, 4.5), np.full(n, 1.8)
+    placed, ghost = np.zeros(n, bool), np.zeros(n, bool)
+    placed[300], ghost[700] = True, True
+    calls = []
+    real = contacts_mod.footprints_overlap
+
+    def counting(*a, **kw):
+        calls.append(len(a[0]))
+        return real(*a, **kw)
+
+    contacts_mod.footprints_overlap = counting
+    try:
+        got = ghosts(cx, cy, yaw, length, width, ped, ghost, placed)
+    finally:
+        contacts_mod.footprints_overlap = real
+    want = _ghosts_one_by_one(cx, cy, yaw, length, width, ped, ghost, placed)
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert list(np.flatnonzero(got[0])) == [700]  # (0.5 m from its neighbours: not GHOST_CLEAR_M clear)
+    assert len(calls) == 2 and max(calls) <= 4  # bodies 300 and 700, each with its two neighbours
+
+
 def test_sumo_overlaps_and_the_teleport_excuse():
     h = SimpleNamespace(x=np.array([10.0, 6.0, 30.0]), y=np.zeros(3), yaw=np.zeros(3))  # bumpers
     L, W = np.full(3, 5.0), np.full(3, 1.8)

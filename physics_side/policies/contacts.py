@@ -59,7 +59,7 @@ def ghosts(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, length: np.ndarray, 
     fresh = np.zeros(len(ghost), bool)
     if not (placed.any() or ghost.any()):
         return ghost, fresh
-    (i0, j0), (ic, jc) = _touching(cx, cy, yaw, length, width, ped)
+    (i0, j0), (ic, jc) = _touching(cx, cy, yaw, length, width, ped, placed | ghost)
     # only a body in a touching pair has a say; the rest keep their state (placed) or join (ghosts)
     for i in np.intersect1d(np.flatnonzero(placed), i0):
         js = j0[np.searchsorted(i0, i, "left"):np.searchsorted(i0, i, "right")]  # touching at margin 0
@@ -77,8 +77,9 @@ def ghosts(cx: np.ndarray, cy: np.ndarray, yaw: np.ndarray, length: np.ndarray, 
     return ghost, fresh
 
 
-def _touching(cx, cy, yaw, length, width, ped):
-    """The ordered pairs (i, j), sorted by i, whose footprints overlap grown by 0 and by
+def _touching(cx, cy, yaw, length, width, ped, asking):
+    """The ordered pairs (i, j), sorted by i, with i one of the bodies ``asking`` (placed or
+    ghosts: the only ones the rule decides), whose footprints overlap grown by 0 and by
     GHOST_CLEAR_M, pedestrian pairs left out. Candidates are the pairs whose circumscribed
     discs (grown by GHOST_CLEAR_M and PAIR_SLACK) overlap; each is tested exactly with body i
     as footprint a, as ``overlaps_any`` tests it."""
@@ -87,9 +88,11 @@ def _touching(cx, cy, yaw, length, width, ped):
     half_diag = 0.5 * np.hypot(length[ok] + 2 * GHOST_CLEAR_M, width[ok] + 2 * GHOST_CLEAR_M)
     a, b = near_pairs(np.asarray(cx[ok], float), np.asarray(cy[ok], float), half_diag * (1 + PAIR_SLACK) + PAIR_SLACK)
     a, b = ok[a], ok[b]
-    keep = ~(ped[a] & ped[b])
+    keep = ~(ped[a] & ped[b]) & (asking[a] | asking[b])
     i = np.concatenate([a[keep], b[keep]])  # both orders: the test is not symmetric to the last bit
     j = np.concatenate([b[keep], a[keep]])
+    mine = asking[i]
+    i, j = i[mine], j[mine]
     order = np.argsort(i, kind="stable")
     i, j = i[order], j[order]
     args = (cx[i], cy[i], yaw[i], length[i], width[i], cx[j], cy[j], yaw[j], length[j], width[j])
