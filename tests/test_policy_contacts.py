@@ -89,56 +89,44 @@ def test_ghosts_equal_the_one_by_one_rule_on_crowded_scenes():
     assert cases > 150  # most scenes had ghosts to decide
 
 
-def test_a_thousand_bodies_spawned_at_once_are_sorted_in_one_pass():
-    """1,000 bodies placed in one step, 3 of them onto occupied spots: the same answer as one
-    by one, with the exact tests done in a handful of array calls (counted)."""
+def _ghosts_counting_tests(monkeypatch, *args):
+    """``ghosts(*args)`` and the number of pairs in each exact footprint test it ran."""
     from physics_side.policies import contacts as contacts_mod
 
+    calls, real = [], contacts_mod.footprints_overlap
+
+    def counting(*a, **kw):
+        calls.append(len(a[0]))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(contacts_mod, "footprints_overlap", counting)
+    return ghosts(*args), calls
+
+
+def test_a_thousand_bodies_spawned_at_once_are_sorted_in_one_pass(monkeypatch):
+    """1,000 bodies placed in one step, 3 of them onto occupied spots: the same answer as one
+    by one, with the exact tests done in a handful of array calls (counted)."""
     n = 1000
     cx, cy = np.arange(n) * 10.0, np.zeros(n)
     cx[[10, 500, 999]] = cx[[9, 499, 998]] + 3.0
     yaw, ped = np.zeros(n), np.zeros(n, bool)
     length, width = np.full(n, 4.5), np.full(n, 1.8)
     placed = np.ones(n, bool)
-    calls = []
-    real = contacts_mod.footprints_overlap
-
-    def counting(*a, **kw):
-        calls.append(len(a[0]))
-        return real(*a, **kw)
-
-    contacts_mod.footprints_overlap = counting
-    try:
-        got = ghosts(cx, cy, yaw, length, width, ped, np.zeros(n, bool), placed)
-    finally:
-        contacts_mod.footprints_overlap = real
+    got, calls = _ghosts_counting_tests(monkeypatch, cx, cy, yaw, length, width, ped, np.zeros(n, bool), placed)
     assert list(np.flatnonzero(got[0])) == [10, 500, 999] and list(np.flatnonzero(got[1])) == [10, 500, 999]
     assert len(calls) == 2 and max(calls) < 50  # two exact tests, over the near pairs only
 
 
-def test_a_later_step_tests_only_the_pairs_of_the_placed_and_the_ghosts():
+def test_a_later_step_tests_only_the_pairs_of_the_placed_and_the_ghosts(monkeypatch):
     """1,000 cars in a queue 0.5 m apart (every neighbour a candidate pair), one placed, one an
     old ghost: the exact tests cover their pairs only."""
-    from physics_side.policies import contacts as contacts_mod
-
     n = 1000
     cx, cy = np.arange(n) * 5.0, np.zeros(n)
     yaw, ped = np.zeros(n), np.zeros(n, bool)
     length, width = np.full(n, 4.5), np.full(n, 1.8)
     placed, ghost = np.zeros(n, bool), np.zeros(n, bool)
     placed[300], ghost[700] = True, True
-    calls = []
-    real = contacts_mod.footprints_overlap
-
-    def counting(*a, **kw):
-        calls.append(len(a[0]))
-        return real(*a, **kw)
-
-    contacts_mod.footprints_overlap = counting
-    try:
-        got = ghosts(cx, cy, yaw, length, width, ped, ghost, placed)
-    finally:
-        contacts_mod.footprints_overlap = real
+    got, calls = _ghosts_counting_tests(monkeypatch, cx, cy, yaw, length, width, ped, ghost, placed)
     want = _ghosts_one_by_one(cx, cy, yaw, length, width, ped, ghost, placed)
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert list(np.flatnonzero(got[0])) == [700]  # (0.5 m from its neighbours: not GHOST_CLEAR_M clear)
