@@ -114,6 +114,42 @@ def test_recorder_never_blocks_the_transport_and_counts_drops():
     assert live.dropped >= 186 and live.written == len(slow.written) == live.received - live.dropped
 
 
+def test_a_sample_after_stop_is_counted_late_and_every_received_one_is_accounted_for():
+    """Zenoh can still run a callback while the subscriber is undeclared: such a sample must
+    not be counted as received and then lost behind the writer's end marker."""
+    import threading
+
+    from sumoco.recording.record import LiveRecorder, RecordConfig
+
+    keys = Keys("sumoco", "late")
+    out = _CountingRecorder()
+    live = LiveRecorder(None, keys, out, config=RecordConfig(scene=False, physics_hz=0))
+    go = threading.Event()
+
+    def feed(k: int) -> None:
+        go.wait(5)
+        for i in range(3000):
+            live.on_sample(_Sample(keys.ack, b"%d-%d" % (k, i)))
+
+    feeders = [threading.Thread(target=feed, args=(k,)) for k in range(3)]
+    for t in feeders:
+        t.start()
+    go.set()
+    deadline = time.monotonic() + 5
+    while live.received < 500 and time.monotonic() < deadline:  # stop while they are feeding
+        time.sleep(0.0005)
+    live.stop(10)
+    for t in feeders:
+        t.join(10)
+    assert not any(t.is_alive() for t in feeders)
+    assert live.received + live.late == 3 * 3000 and live.received >= 500
+    assert live.received == live.written + live.dropped == len(out.written)
+    before = live.received
+    live.on_sample(_Sample(keys.ack, b"after"))
+    assert live.received == before and live.late >= 1 and len(out.written) == live.written
+    assert live.stats()["late"] == live.late
+
+
 def test_recorder_records_each_static_version_and_replay_serves_it(tmp_path):
     """SPEC 3.2: when a step's `sv` moves on, the recorder asks again; replay serves each version."""
     import dataclasses

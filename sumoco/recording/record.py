@@ -208,7 +208,9 @@ class LiveRecorder:
     """Subscribes to every key of a run and records it (use ``start``/``stop``).
 
     Counters: ``received``, ``dropped`` (queue full), ``thinned`` (physics states skipped by
-    ``physics_hz``), ``written``; ``scene_errors`` and ``scene_dropped`` for the scene.
+    ``physics_hz``), ``written``; ``late`` (arrived after ``stop`` began, not recorded and not
+    in ``received``); ``scene_errors`` and ``scene_dropped`` for the scene. Every received
+    message is written, thinned, dropped or counted in ``write_errors``.
     ``limits``: the decode limits of steps and physics states (``RunConfig.decode_limits``
     of the run; by default those of the largest run).
     """
@@ -237,6 +239,11 @@ class LiveRecorder:
         self._period = 1.0 / self.config.physics_hz if self.config.physics_hz > 0 else 0.0
         self._last_t: dict[str, float] = {}
         self.received = self.dropped = self.thinned = self.written = self.write_errors = 0
+        self.late = 0
+        # Set under _bytes_lock by stop(): Zenoh may still be running a callback when the
+        # subscriber is undeclared, and a sample queued behind the writer's end marker would be
+        # counted as received but never written.
+        self._closing = False
         self.compact_errors = 0
         self.idle_waits = 0  # times the writer found its queue empty and paused
         self._encoder = rc.CompactEncoder() if self.config.encoding == "compact" else None
@@ -264,22 +271,21 @@ class LiveRecorder:
     def on_sample(self, sample: zenoh.Sample) -> None:
         """The subscriber's callback (Zenoh's thread): copy the bytes and hand them over to
         the writer, nothing else; a full queue drops the sample and counts it."""
-        self.received += 1
         item = (str(sample.key_expr), sample.payload.to_bytes(), self.clock_ns())
         n = len(item[1])
-        with self._bytes_lock:
-            full = self._queued_bytes + n > self._max_bytes
-            if not full:
-                self._queued_bytes += n
-        try:
-            if full:
-                raise queue.Full
-            self._q.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
-            if not full:
-                with self._bytes_lock:
-                    self._queued_bytes -= n
+        with self._bytes_lock:  # the check and the put are one step against stop()
+            if self._closing:
+                self.late += 1
+                return
+            self.received += 1
+            if self._queued_bytes + n > self._max_bytes:
+                self.dropped += 1
+            else:
+                try:
+                    self._q.put_nowait(item)
+                    self._queued_bytes += n
+                except queue.Full:
+                    self.dropped += 1
         if self._on_message is not None:
             self._on_message(item[0], item[1])
 
@@ -466,6 +472,8 @@ class LiveRecorder:
     def stop(self, timeout_s: float = 30.0) -> None:
         """Stop listening, then write what is queued (bounded wait)."""
         self._stopped.set()
+        with self._bytes_lock:
+            self._closing = True
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None
@@ -479,7 +487,7 @@ class LiveRecorder:
             log.warning("recorder dropped %d of %d messages (writer queue full)", self.dropped, self.received)
 
     def stats(self) -> dict[str, int]:
-        return {"received": self.received, "written": self.written, "dropped": self.dropped,
+        return {"received": self.received, "written": self.written, "dropped": self.dropped, "late": self.late,
                 "write_errors": self.write_errors, "static_versions": self.static_versions,
                 "thinned": self.thinned, "compact_errors": self.compact_errors, "scene_errors": self.scene_errors, "scene_dropped": self.scene_dropped}
 
