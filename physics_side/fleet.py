@@ -133,6 +133,8 @@ class Fleet:
         self.stop_v0 = np.zeros(0)
         self.stop_t = 0.0
         self._gen = -1
+        self._params_slots = np.zeros(0, np.int64)
+        self._bits = None  # what ``_set_bits`` set last: ((generation, bits version), slots, ghost, placed)
         self._groups: C.Groups | None = None
         self._cache = None
         self._last_obs = None
@@ -308,8 +310,9 @@ class Fleet:
         a = msg.agents
         cls, flags = a.cls[rows], a.flags[rows]
         self.preset = preset = self._preset_lut[cls]
+        if ids != self.ids:  # (the same agents in the same order: the index stands)
+            self._index = dict(zip(ids, range(len(ids))))
         self.ids = ids
-        self._index = dict(zip(ids, range(len(ids))))
         self.wire_vtype = a.vtype[rows].astype(np.uint16)
         self.wire_cls = cls.astype(np.uint8)
         self.kind = self.world.tables.kind[self.slots].astype(np.int8)
@@ -323,7 +326,9 @@ class Fleet:
         self.tau = max(0.0, float(tau))
         self.state = self.state.take(prev)
         self.stopping = False
-        self._params()
+        if self._gen != self.world.generation or not np.array_equal(self.slots, self._params_slots):
+            self._params()
+        self._groups = None  # (the modes changed)
         self.sumo_len, self.sumo_wid = a.length[rows].astype(np.float64), a.width[rows].astype(np.float64)
 
     def _step(self, msg: StepMessage, rows: np.ndarray, prev: np.ndarray, is_new: np.ndarray,
@@ -381,9 +386,17 @@ class Fleet:
         self._cache = (placed_obs, None)  # the first tick starts from the state after the placements
 
     def _set_bits(self) -> None:
-        """The world's collision bits of every agent: ghosts, and bodies placed every tick."""
+        """The world's collision bits of every agent: ghosts, and bodies placed every tick.
+        Skipped when they would be the bits already set: the same slots, ghosts and placed
+        bodies, and no other change of bits since (a park, a recompile)."""
         placed = (self.mode == AgentMode.KINEMATIC) | (self.mode == AgentMode.EXTERNAL)
-        self.world.set_ghost(self.slots, self._policy.ghost, placed)
+        ghost = self._policy.ghost
+        w, last = self.world, self._bits
+        if (last is not None and last[0] == (w.generation, w.bits_version) and np.array_equal(last[1], self.slots)
+                and np.array_equal(last[2], ghost) and np.array_equal(last[3], placed)):
+            return
+        w.set_ghost(self.slots, ghost, placed)
+        self._bits = ((w.generation, w.bits_version), self.slots.copy(), np.array(ghost, bool), placed)
 
     def _split_collisions(self, began: np.ndarray) -> None:
         self._ghost_sumo_overlaps(self._policy.collisions_began(began, self.ref, self._samples.newest, self.sumo_len,
@@ -416,6 +429,7 @@ class Fleet:
                                        t.max_rsteer[s], t.roll_stiffness[s] / _BICYCLE_ROLL_STIFFNESS, t.stab_max[s])
         self._rear_idx = np.flatnonzero(self.limits.max_rear > 0)
         self._gen = self.world.generation
+        self._params_slots = self.slots.copy()  # the slots these are of (tables change only with the generation)
         self._groups = None
         # tightest path curvature [1/m] each vehicle's bumper follows when driven: its front
         # steering's; a steered rear axle keeps a long body on SUMO's chord rather than turning

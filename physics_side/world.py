@@ -211,6 +211,7 @@ class PhysicsWorld:
         # MuJoCo's CPU time switch it on.
         self.measure_cpu = False
         self.time = 0.0  # [s] simulated time
+        self.bits_version = 0  # counts ``set_ghost`` calls: collision bits written by anyone
         self.pools = SlotPools(
             self.timestep, shards, self.threads, initial, pool_chunk=pool_chunk, awd=awd, expect=expect,
             adopt_early=adopt_early, counters=self.counters,
@@ -611,6 +612,7 @@ class PhysicsWorld:
         slots = np.asarray(slots, np.int64)
         if len(slots) == 0:
             return
+        self.bits_version += 1  # (callers that keep what they set see that it changed)
         t = self._tables
         ghost = np.broadcast_to(np.asarray(ghost, bool), slots.shape)
         g, gm = t.geom[slots], t.geom_model[slots]

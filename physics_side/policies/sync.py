@@ -214,7 +214,9 @@ class Samples:
         self.kin_rate = np.zeros(0)
         """[rad/s] the rate kinematic bodies turn at between samples (``carry_pose.turn_rate``)."""
         self._batch = None
-        self._rows: dict[str, int] = {}
+        self._rows: dict[str, int] = {}  # agent id -> its row in ``_batch``
+        self._ids: list[str] = []  # the agents and rows ``_rows`` maps
+        self._row_of = np.zeros(0, np.int64)
         self._time = 0.0
 
     def advance(self, msg: StepMessage, rows: np.ndarray, ids: list[str], prev: np.ndarray, old: Reference | None,
@@ -241,7 +243,9 @@ class Samples:
             ref = self._interpolation(msg, rows, ids, a.flags[rows], cur, yaw_rate, old is not None, hop | ped_hop)
         self.newest = cur
         self._batch, self._time = a, msg.time
-        self._rows = dict(zip(ids, rows.tolist()))
+        if ids != self._ids or not np.array_equal(rows, self._row_of):  # (else the same map)
+            self._rows = dict(zip(ids, rows.tolist()))
+            self._ids, self._row_of = ids, rows
         return Sample(x, y, speed, yaw_rate, ref, side_rate, slow, hop, ped_hop)
 
     def _interpolation(self, msg: StepMessage, rows: np.ndarray, ids: list[str], flags: np.ndarray, cur: Reference,
