@@ -116,3 +116,16 @@ def test_e2e_bench_quick_rows():
         _positive(r, "raw_ms_p50", "raw_ms_p99", "latency_ms_p50", "latency_ms_p99", "ratio_p50", "ratio_p99")
         assert r["raw_ms_p50"] <= r["raw_ms_p99"] and r["latency_ms_p50"] <= r["latency_ms_p99"], r
         _positive(r, "encode_ms_p50", "decode_ms_p50")
+
+
+def test_process_rows_are_set_beside_what_bare_workers_reach_on_the_host():
+    from sumoco.bench.scale import _beside_bare_workers
+
+    rows = [{"shards": 1, "agents_realtime": 300}, {"shards": 2, "agents_realtime": 540, "vs_one_shard": 1.8},
+            {"bench": "scale_processes", "processes": 1, "vs_linear": 1.0},
+            {"bench": "scale_processes", "processes": 2, "vs_linear": 0.8},
+            {"bench": "scale_processes", "processes": 4, "vs_linear": 0.7}]
+    _beside_bare_workers(rows)
+    one, two, four = rows[2:]
+    assert two["bare_vs_one"] == 1.8 and two["vs_bare"] == 0.89  # 1.6x of the host's 1.8x
+    assert "vs_bare" not in one and "vs_bare" not in four  # no bare row to set them beside

@@ -24,7 +24,9 @@ Rows (one JSON object each; field names stable across versions):
   from CPU time per tick (``agents_realtime_cpu``, ``vs_one_shard_cpu``).
 - ``scale_processes`` rows (``sumoco.bench.processes``): ``processes``, ``agents_realtime``,
   ``vs_linear``: the same figure through one command, ``sumoco physics --processes p``
-  (supervisor, shard processes, Zenoh, a lockstep run driven from this process).
+  (supervisor, shard processes, Zenoh, a lockstep run driven from this process);
+  ``bare_vs_one`` (the shard row's ``vs_one_shard`` at the same count: the host's own limit)
+  and ``vs_bare`` (``processes x vs_linear / bare_vs_one``).
 - take-over row: ``takeover_s`` from a SIGKILL of one of two lockstep shards until the
   survivor publishes every agent (``new_size``: the killed shard had a vehicle size the
   survivor had not simulated).
@@ -739,7 +741,21 @@ def run_scale_bench(sizes=(1000, 2500, 5000, 10000), pool_sizes=(1024, 2048, 409
         except (RuntimeError, OSError, subprocess.SubprocessError) as e:
             log.error("bench scale: %s rows failed: %s", name, e)
             rows.append({"row": name, "error": str(e)})
+    _beside_bare_workers(rows)
     return rows
+
+
+def _beside_bare_workers(rows: list[dict]) -> None:
+    """Each ``scale_processes`` row's ``vs_linear`` against what as many bare workers (the
+    shard rows: MuJoCo and the fleet, no transport, no supervisor) reach on this host
+    (``bare_vs_one``, ``vs_bare``): two copies of one workload on the two cores of a shared
+    host do not run at twice the speed of one, and that part is the host's."""
+    bare = {r["shards"]: r.get("vs_one_shard") for r in rows if "shards" in r and "agents_realtime" in r}
+    for r in rows:
+        b = bare.get(r.get("processes"))
+        if r.get("bench") == "scale_processes" and b and r.get("vs_linear") is not None:
+            r["bare_vs_one"] = b
+            r["vs_bare"] = round(r["vs_linear"] * r["processes"] / b, 2)
 
 
 __all__ = ["cosim_rows", "lockstep_row", "pool_row", "realtime_row", "run_scale_bench", "shard_rows", "takeover_bench",
