@@ -7,7 +7,10 @@
  *   the wrapper calls np.tanh between the two);
  * - control: the longitudinal loop (standing reference, Reference.mean_speed_lead's correction, stopping, integral,
  *   brake loop, torques, hold, roll back) and the lateral law (Stanley at the front bumper
- *   or front-axle pure pursuit) with their clips.
+ *   or front-axle pure pursuit) with their clips;
+ * - limit: control.limit_commands' vehicle limits once the bend ahead's curvature and the
+ *   reference speed are known (friction-circle steering, traction, curve speed, saturation
+ *   and grip cuts, a leaning two-wheeler's friction circle); body: _limit_commands_numpy.
  *
  * The numpy body (control._control_default_numpy, ~55 numpy calls over every agent with the
  * mean-speed lead's: ~0.3 ms per control tick at 1,000 cars) stays the reference: each loop evaluates its expressions
@@ -289,6 +292,117 @@ done:
     return result;
 }
 
+/* ------------------------------------------------------------------ limit */
+
+/* arguments, in the order of control._limit_commands_c's call; each group is None together
+ * where the numpy body skips it */
+enum {
+    L_STEER, L_DRIVE, L_BRAKE, L_SPEED, L_WB, L_A_LAT, L_MAX_STEER, L_MAX_REAR, /* always */
+    L_YAW_RATE, L_GRIP,                                                        /* lim.any_grip */
+    L_KAP, L_V_REF, L_MASK, L_ERR_LAT, L_MEFF, L_RW,                           /* catch_up */
+    L_ROLL, L_BIKE, L_MAX_DRIVE, L_MAX_BRAKE,                                  /* lim.any_bike */
+    L_OUT, L_CONST, L_ARGS
+};
+enum {
+    LC_REAR_STEERED, LC_V_MIN, LC_G, LC_MAX_GRIP_USE, LC_GRIP_LATERAL, LC_CURV_FLOOR, LC_SAT_SHARE, LC_SAT_DECEL,
+    LC_SAT_LAT, LC_A_LAT_FLOOR, LC_COUNT
+};
+enum { LO_STEER, LO_DRIVE, LO_BRAKE, LO_ROWS };
+
+static const char *const limit_names[L_OUT] = {
+    "steer", "drive", "brake", "speed", "wheelbase", "a_lat", "max_steer", "max_rear", "yaw_rate", "grip_torque",
+    "kap", "v_ref", "mask", "err_lat", "m_eff", "r_wheel", "roll", "bike", "max_drive", "max_brake"};
+static const int limit_groups[][2] = {{L_YAW_RATE, L_GRIP}, {L_KAP, L_RW}, {L_ROLL, L_MAX_BRAKE}};
+
+static PyObject *py_limit(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    sc_buf b[L_CONST] = {{{0}}};
+    PyObject *result = NULL;
+    double c[LC_COUNT];
+    (void)self;
+    if (nargs != L_ARGS) {
+        PyErr_Format(PyExc_TypeError, "limit takes %d arguments", L_ARGS);
+        return NULL;
+    }
+    if (!get_consts(args[L_CONST], "limit", c, LC_COUNT)) return NULL;
+    for (size_t g = 0; g < sizeof limit_groups / sizeof limit_groups[0]; g++) {
+        const int none = args[limit_groups[g][0]] == Py_None;
+        for (int a = limit_groups[g][0] + 1; a <= limit_groups[g][1]; a++)
+            if ((args[a] == Py_None) != none) {
+                PyErr_Format(PyExc_ValueError, "limit: %s and %s are None together", limit_names[limit_groups[g][0]],
+                             limit_names[a]);
+                return NULL;
+            }
+    }
+    if (!sc_get(args[L_STEER], &b[L_STEER], "steer", SC_F64, 0, 0)) goto done;
+    if (b[L_STEER].v.ndim != 1) {
+        PyErr_SetString(PyExc_ValueError, "limit: steer needs 1 dimension");
+        goto done;
+    }
+    const Py_ssize_t n = b[L_STEER].v.shape[0];
+    for (int a = L_DRIVE; a < L_OUT; a++) {
+        const char kind = a == L_MASK || a == L_BIKE ? SC_BOOL : SC_F64;
+        if (!get_n(args[a], &b[a], "limit", limit_names[a], kind, n, a >= L_YAW_RATE, 0)) goto done;
+    }
+    if (!sc_get(args[L_OUT], &b[L_OUT], "out", SC_F64, 1, 0) || !sc_shape(&b[L_OUT], "out", 2, LO_ROWS, n)) goto done;
+
+    const double *steer = b[L_STEER].v.buf, *drive = b[L_DRIVE].v.buf, *brake = b[L_BRAKE].v.buf,
+                 *speed = b[L_SPEED].v.buf, *wb = b[L_WB].v.buf, *a_lat = b[L_A_LAT].v.buf,
+                 *max_steer = b[L_MAX_STEER].v.buf, *max_rear = b[L_MAX_REAR].v.buf;
+    const double *yaw_rate = b[L_YAW_RATE].held ? b[L_YAW_RATE].v.buf : NULL,
+                 *grip = b[L_GRIP].held ? b[L_GRIP].v.buf : NULL;
+    const double *kap = b[L_KAP].held ? b[L_KAP].v.buf : NULL, *v_ref = kap ? b[L_V_REF].v.buf : NULL,
+                 *err_lat = kap ? b[L_ERR_LAT].v.buf : NULL, *m_eff = kap ? b[L_MEFF].v.buf : NULL,
+                 *r_wheel = kap ? b[L_RW].v.buf : NULL;
+    const uint8_t *mask = kap ? b[L_MASK].v.buf : NULL;
+    const double *roll = b[L_ROLL].held ? b[L_ROLL].v.buf : NULL, *max_drive = roll ? b[L_MAX_DRIVE].v.buf : NULL,
+                 *max_brake = roll ? b[L_MAX_BRAKE].v.buf : NULL;
+    const uint8_t *bike = roll ? b[L_BIKE].v.buf : NULL;
+    double *o = b[L_OUT].v.buf;
+    const int rear_steered = c[LC_REAR_STEERED] != 0.0;
+    const double g = c[LC_G], max_use = c[LC_MAX_GRIP_USE], share = c[LC_SAT_SHARE], decel = c[LC_SAT_DECEL];
+
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double v = speed[i];
+        /* steer_limit: minimum(max_steer, arctan(L * a_lat / maximum(v, v_min) ** 2)) (** 2: x * x) */
+        const double vm = np_max(v, c[LC_V_MIN]);
+        const double lim_f = np_min(max_steer[i], atan(wb[i] * a_lat[i] / (vm * vm)));
+        const int fixed = max_rear[i] <= 0;
+        double st = steer[i], dr = drive[i], br = brake[i];
+        if (!rear_steered || fixed) st = clip(st, -lim_f, lim_f); /* (np.clip with array bounds: clip()) */
+        if (grip) { /* traction_limit */
+            const double use = np_min(fabs(v * yaw_rate[i]) / g, max_use) * c[LC_GRIP_LATERAL];
+            dr = np_min(dr, grip[i] * sqrt(1.0 - use * use));
+        }
+        if (kap) {
+            /* curve_speed_cut */
+            if (mask[i] && v > np_max(sqrt(a_lat[i] / np_max(kap[i], c[LC_CURV_FLOOR])), v_ref[i])) dr = 0.0;
+            /* saturation_speed_cut against where(mask, v_ref, inf) */
+            const double vr = mask[i] ? v_ref[i] : INFINITY;
+            if (fabs(st) >= share * max_steer[i] && v > vr) {
+                dr = 0.0;
+                br = np_max(br, np_min((v - vr) * decel, decel) * m_eff[i] * r_wheel[i]);
+            }
+            /* at the tyres' limit (a fixed rear axle), faster than the reference and off the path */
+            const int grip_sat = fabs(st) >= share * lim_f && (!rear_steered || fixed);
+            if (grip_sat && v > vr && fabs(err_lat[i]) > c[LC_SAT_LAT]) dr = 0.0;
+        }
+        if (bike && bike[i]) { /* lean_traction_limit of drive and brake (the same use) */
+            const double use = np_min(fabs(tan(roll[i])) * g / np_max(a_lat[i], c[LC_A_LAT_FLOOR]), max_use);
+            const double rest = sqrt(1.0 - use * use);
+            dr = np_min(dr, max_drive[i] * rest);
+            br = np_min(br, max_brake[i] * rest);
+        }
+        o[LO_STEER * n + i] = st;
+        o[LO_DRIVE * n + i] = dr;
+        o[LO_BRAKE * n + i] = br;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    sc_release_all(b, L_CONST);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"prepare", (PyCFunction)(void (*)(void))py_prepare, METH_FASTCALL,
      "prepare(speed, s_act, e_lat, out, constants) -> None: into out (3, n) the forward speed np.maximum(speed, 0), "
@@ -302,8 +416,17 @@ static PyMethodDef methods[] = {
      "control_default's commands into out (5, n): steer, drive, brake, commanded acceleration, integral. "
      "float64 (n,) arrays (stopping, rolls_back: bool; v0, a0: Reference.speed, .accel for the mean-speed lead); stopping / stop_speed, max_rear, rolls_back and "
      "drift may be None. constants: see control._default_constants."},
+    {"limit", (PyCFunction)(void (*)(void))py_limit, METH_FASTCALL,
+     "limit(steer, drive, brake, speed, wheelbase, a_lat, max_steer, max_rear, yaw_rate, grip_torque, kap, v_ref, "
+     "mask, err_lat, m_eff, r_wheel, roll, bike, max_drive, max_brake, out, constants) -> None: "
+     "control.limit_commands' (steer, drive, brake) into out (3, n). float64 (n,) arrays (mask, bike: bool); "
+     "None together: yaw_rate, grip_torque (no grip limit); kap .. r_wheel (no catch-up; kap: largest |curvature| "
+     "ahead, v_ref: the reference speed); roll .. max_brake (no two-wheelers). constants: (rear_steered, "
+     "STEER_LIMIT_V_MIN, G, MAX_GRIP_USE, GRIP_LATERAL, CURVATURE_FLOOR, STEER_SAT_SHARE, STEER_SAT_DECEL, "
+     "GRIP_SAT_LAT_M, A_LAT_FLOOR)."},
     {NULL, NULL, 0, NULL},
 };
 
 SC_MODULE(PyInit__controlkernel, "physics_side._controlkernel",
-          "C fast path of physics_side.control.control_default (bit-identical to its numpy body).", methods)
+          "C fast paths of physics_side.control.control_default and limit_commands (bit-identical to their numpy "
+          "bodies).", methods)

@@ -896,7 +896,30 @@ def limit_commands(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs,
     SUMO turns cars through 45-65 deg within a step; running wide, they fell behind and sped up
     to catch up (16.5 m/s behind SUMO's 13.9), which widened the turn until they were placed.
     A leaning two-wheeler's tyres carry less drive and braking. ``obs``: speed [m/s], yaw_rate
-    [rad/s], roll [rad] per agent."""
+    [rad/s], roll [rad] per agent.
+
+    The elementwise arithmetic runs in C when it is built (``FAST_CONTROL``), bit-identical to
+    ``_limit_commands_numpy``, which runs otherwise and for inputs the C path does not read;
+    the bend ahead's curvature and the reference speed are looked up here for both."""
+    kap = v_ref = None
+    if catch_up is not None:
+        c = catch_up
+        v = np.maximum(obs.speed, 0.0)
+        kap = np.abs(c.ref.path.at(c.s_act + v * CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
+        v_ref = c.ref.at(c.tau).speed
+    if FAST_CONTROL:
+        out = _limit_commands_c(steer, drive, brake, obs, p, lim, rear_steered, catch_up, kap, v_ref)
+        if out is not None:
+            return out
+    return _limit_commands_numpy(steer, drive, brake, obs, p, lim, rear_steered, catch_up, kap, v_ref)
+
+
+def _limit_commands_numpy(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs, p: VehicleParams,
+                          lim: VehicleLimits, rear_steered: bool, catch_up: CatchUp | None, kap: np.ndarray | None,
+                          v_ref: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """``limit_commands`` in numpy once the largest path curvature ahead ``kap`` [1/m] and
+    the reference speed ``v_ref`` [m/s] are known (``catch_up`` only; the reference for the
+    C path, which computes the same bits)."""
     lim_f = steer_limit(obs.speed, p.wheelbase, lim.a_lat, p.max_steer)
     fixed = lim.max_rear <= 0
     steer = np.where(fixed, np.clip(steer, -lim_f, lim_f), steer) if rear_steered else np.clip(steer, -lim_f, lim_f)
@@ -904,9 +927,6 @@ def limit_commands(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs,
         drive = traction_limit(drive, obs.speed, obs.yaw_rate, lim.grip_torque)
     if catch_up is not None:
         c = catch_up
-        v = np.maximum(obs.speed, 0.0)
-        kap = np.abs(c.ref.path.at(c.s_act + v * CURVE_PREVIEW_S[:, None]).curvature).max(axis=0)
-        v_ref = c.ref.at(c.tau).speed
         drive = curve_speed_cut(drive, obs.speed, kap, v_ref, lim.a_lat, c.mask)
         vr = np.where(c.mask, v_ref, np.inf)
         drive, brake = saturation_speed_cut(drive, brake, steer, p.max_steer, obs.speed, vr, p.m_eff, p.r_wheel)
@@ -918,6 +938,34 @@ def limit_commands(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs,
         drive = np.where(lim.bike, lean_traction_limit(drive, obs.roll, lim.a_lat, p.max_drive), drive)
         brake = np.where(lim.bike, lean_traction_limit(brake, obs.roll, lim.a_lat, p.max_brake), brake)
     return steer, drive, brake
+
+
+def _limit_commands_c(steer: np.ndarray, drive: np.ndarray, brake: np.ndarray, obs, p: VehicleParams,
+                      lim: VehicleLimits, rear_steered: bool, catch_up: CatchUp | None, kap: np.ndarray | None,
+                      v_ref: np.ndarray | None) -> tuple[np.ndarray, ...] | None:
+    """``_limit_commands_numpy`` in C (physics_side._controlkernel.limit), reading the attributes
+    the numpy body reads under the same flags. None for inputs it does not read (not float64
+    (n,) C-contiguous, a catch-up mask not bool: ``mask & ...`` of other integers is bitwise):
+    the numpy body then runs."""
+    if type(steer) is not np.ndarray or steer.ndim != 1:
+        return None
+    grip = (obs.yaw_rate, lim.grip_torque) if lim.any_grip else (None, None)
+    cut = (None,) * 6
+    if catch_up is not None:
+        if getattr(catch_up.mask, "dtype", None) != np.bool_:
+            return None
+        cut = (kap, v_ref, catch_up.mask, catch_up.err_lat, p.m_eff, p.r_wheel)
+    bike = (obs.roll, lim.bike, p.max_drive, p.max_brake) if lim.any_bike else (None,) * 4
+    # the module's constants at call time (none copied into C)
+    consts = (float(bool(rear_steered)), STEER_LIMIT_V_MIN, G, MAX_GRIP_USE, GRIP_LATERAL, CURVATURE_FLOOR,
+              STEER_SAT_SHARE, STEER_SAT_DECEL, GRIP_SAT_LAT_M, A_LAT_FLOOR)
+    out = np.empty((3, len(steer)))
+    try:
+        _kernel.limit(steer, drive, brake, obs.speed, p.wheelbase, lim.a_lat, p.max_steer, lim.max_rear, *grip, *cut,
+                      *bike, out, consts)
+    except (TypeError, ValueError):
+        return None
+    return out[0], out[1], out[2]
 
 
 def rear_axle_commands(steer: np.ndarray, obs, p: VehicleParams, lim: VehicleLimits, idx: np.ndarray,
