@@ -24,5 +24,6 @@ def test_bench_rows_have_the_fields_and_drive_well():
         assert k in r
     assert r["agents"] == 30 and r["tick_ms"] > 0 and 0 < r["mujoco_ms"] < r["tick_ms"]
     assert abs(r["overhead_ms"] - (r["tick_ms"] - r["mujoco_ms"])) < 1e-2
+    assert 0 < r["overhead_share_p50"] < 1 and abs(r["overhead_share"] - r["overhead_ms"] / r["tick_ms"]) < 1e-2
     assert abs(r["rtf"] - 20.0 / r["tick_ms"]) < 0.05 * r["rtf"]
     assert r["max_err_m"] < 0.1 and r["collisions"] == 0 and r["placements"] == 30

@@ -10,6 +10,9 @@ loopback Zenoh session. A row:
 - ``agents``; ``tick_ms``: mean wall time of a control tick including the per-step work
   amortised over the step's ticks; ``tick_p95_ms``;
 - ``mujoco_ms``: the MuJoCo substeps of a tick; ``overhead_ms`` = tick_ms - mujoco_ms;
+  ``overhead_share`` = overhead_ms / tick_ms, and ``overhead_share_p50`` from medians (the
+  median tick's overhead over the median tick): a preemption by another process on a shared
+  host lands in either part of a tick at random and moves the means, rarely the medians;
 - ``rtf``: 20 ms / tick_ms (real-time factor of the control loop); ``shards``, ``threads``;
 - ``phases_ms``: the overhead by phase per tick (``Fleet.phase_s``: sync, policies, act per
   step, spread over its ticks; observe, control, actuate, measure per tick; the daemon's
@@ -112,6 +115,7 @@ def bench_one(n: int, seconds: float = 2.0, warmup_s: float = 0.4, settings: Phy
         "mujoco_ms": round(mujoco_ms, 3),
         "overhead_ms": round(tick_ms - mujoco_ms, 3),
         "overhead_share": round((tick_ms - mujoco_ms) / tick_ms, 3),
+        "overhead_share_p50": round(float(np.median(tick - mj) / np.median(tick)), 3),
         # where the overhead goes, per tick [ms] (per-step phases spread over the step's ticks)
         "phases_ms": {p: round(v * 1e3 / n_ticks, 3) for p, v in phases.items()},
         "load_avg_1min": round(os.getloadavg()[0], 2),
