@@ -50,7 +50,7 @@ from protocol.order import StepOrder, Verdict
 from protocol.tables import StaticTracker
 from runtime.config import RunConfig
 from runtime.queues import DropOldest
-from runtime.transport import Wake
+from runtime.transport import RingPoll, Wake
 
 log = logging.getLogger("physics")
 
@@ -110,6 +110,7 @@ class PhysicsDaemon:
         self._static_asked = -math.inf
         self._alive_events: collections.deque[bool] = collections.deque(maxlen=ALIVE_EVENTS)
         self._wake = Wake()  # (a C-level lock: cheaper than Event after an idle wait)
+        self._poll: RingPoll | None = None  # physics.busy_poll_ms: the step subscriber's ring
         self._stop = threading.Event()
         self.counters: dict[str, int] = {"rejected": 0, "dropped_steps": 0, "acks": 0, "states": 0,
                                          "static_queries": 0}
@@ -154,7 +155,13 @@ class PhysicsDaemon:
         self._pub_state = s.declare_publisher(self.keys.physics_state, congestion_control=cc)
         self._pub_ack = s.declare_publisher(self.keys.ack, congestion_control=zenoh.CongestionControl.BLOCK)
         self._pub_feedback = s.declare_publisher(self.keys.feedback, congestion_control=zenoh.CongestionControl.BLOCK)
-        self._sub_step = s.declare_subscriber(self.keys.step, self._on_step)
+        if self.cfg.busy_poll_ms > 0:  # steps from a ring the loop polls (``_idle``), no wake-up per step
+            self._poll = RingPoll(s, self.keys.step, self.cfg.step_queue, self.cfg.busy_poll_ms / MS_PER_S,
+                                  self._on_step)
+            self._sub_step = self._poll
+            log.info("steps busy-polled for up to %g ms after each acknowledgement", self.cfg.busy_poll_ms)
+        else:
+            self._sub_step = s.declare_subscriber(self.keys.step, self._on_step)
         self._sub_alive = s.liveliness().declare_subscriber(self.keys.sumo_alive, self._on_alive, history=True)
         self._token = s.liveliness().declare_token(self.keys.physics_alive)
         self._declared = [self._token, self._sub_alive, self._sub_step, self._pub_ack, self._pub_state,
@@ -437,11 +444,12 @@ class PhysicsDaemon:
                 break
             self._handle_alive()
             self._status.maybe_log(self.fleet, self.all_counters)  # counted only when it logs: a step waits behind this
+            if self._poll is not None:
+                self._poll.pull()
             if self._run_over and not self._steps:
                 # after the final step (following the next run): nothing to simulate or publish
                 # until a step of a new incarnation arrives
-                self._wake.wait(IDLE_WAIT_S)
-                self._wake.clear()
+                self._idle()
                 next_tick = time.monotonic()
                 continue
             if (not self.sumo_present and self.fleet.stopping and self.fleet.n and not self._at_rest()
@@ -453,8 +461,7 @@ class PhysicsDaemon:
                 continue
             if self.lockstep:
                 if not self._steps:
-                    self._wake.wait(IDLE_WAIT_S)
-                    self._wake.clear()
+                    self._idle()
                     continue
                 msg = self.handle_step(self._steps.get())
                 if msg is None:
@@ -463,6 +470,8 @@ class PhysicsDaemon:
                 for _ in range(ticks_to(self.time, end, self.fleet.dt)):
                     self._tick()
                 self._ack(msg.step)
+                if self._poll is not None:
+                    self._poll.arm()  # the next step is due once SUMO has stepped
                 # The SUMO side ends on the same step: it marks it final, and it applies the
                 # same duration rule to the same SUMO time.
                 if (msg.final and not self.cfg.follow_next_run) or self._duration_done(msg.time):
@@ -490,8 +499,7 @@ class PhysicsDaemon:
                     if not self.sumo_present:
                         self.fleet.begin_stop()  # a step that came before SUMO left: stop after it
                 if self.fleet.ref is None and not self.fleet.n:
-                    self._wake.wait(IDLE_WAIT_S)
-                    self._wake.clear()
+                    self._idle()
                     next_tick = time.monotonic()
                     continue
                 next_tick = self._pace(next_tick)
@@ -501,6 +509,15 @@ class PhysicsDaemon:
                     break
         self._status.maybe_log(self.fleet, self.all_counters(), force=True)
         return 0
+
+    def _idle(self) -> None:
+        """Wait (at most IDLE_WAIT_S) for a message: woken by a callback, or polling the step
+        ring (``physics.busy_poll_ms``: spinning within its window after an ack)."""
+        if self._poll is not None:
+            self._poll.wait(self._stop, IDLE_WAIT_S, self._wake)
+        else:
+            self._wake.wait(IDLE_WAIT_S)
+        self._wake.clear()
 
     def _end_of_run(self, msg: StepMessage) -> None:
         """The followed incarnation's final step while following the next run: one last state,

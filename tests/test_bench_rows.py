@@ -104,6 +104,9 @@ def test_scale_bench_quick_rows():
 def test_e2e_bench_quick_rows():
     rows = _bench("e2e", 180)
     assert {(r["shm"], r["path_points_per_agent"]) for r in rows} == {(False, 0), (False, 12), (True, 0), (True, 12)}
+    # a pair in turn: woken by the callback, and busy-polling as physics.busy_poll_ms does
+    pair = [r for r in rows if r.get("pair") == "busy_poll"]
+    assert [r["busy_poll_ms"] for r in pair] == [0.0, 25.0] and pair[0]["spins"] == 0 and pair[1]["spins"] > 0, pair
     # both codecs in the same run when the C fast path is built, the Python one alone otherwise
     assert {r["codec"] for r in rows} == ({"c", "python"} if FAST_CODEC else {"python"})
     for r in rows:

@@ -17,9 +17,11 @@ pytestmark = pytest.mark.integration
 SIM_S = 22.0  # [s] the reference car leaves the network at ~19 s
 
 
-def _config(tmp_path):
-    p = tmp_path / "demo.toml"
+def _config(tmp_path, busy_poll_ms: float = 0.0):
+    p = tmp_path / f"demo-{busy_poll_ms:g}.toml"
     text = (ROOT / "configs" / "demo.toml").read_text()
+    assert "\nthreads = 1\n" in text
+    text = text.replace("\nthreads = 1\n", f"\nthreads = 1\nbusy_poll_ms = {busy_poll_ms}\n")
     text = text.replace('sumocfg = "scenarios/paper/paper.sumocfg"',
                         f'sumocfg = "{ROOT / "configs/scenarios/paper/paper.sumocfg"}"')
     text += "lad_sweep = false\n"
@@ -27,10 +29,10 @@ def _config(tmp_path):
     return p
 
 
-def _demo(cfg, out):
+def _demo(cfg, out, quiet: bool = True):
     r = subprocess.run(
         [sys.executable, "-m", "sumoco.cli", "demo", "--config", str(cfg), "--out", str(out),
-         "--duration", str(SIM_S), "--quiet"],
+         "--duration", str(SIM_S)] + (["--quiet"] if quiet else []),
         capture_output=True, text=True, timeout=240, cwd=ROOT,
     )
     assert r.returncode == 0, r.stderr[-3000:]
@@ -51,12 +53,17 @@ def _strip(summary):
 @pytest.fixture(scope="module")
 def two_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("demo")
-    cfg = _config(tmp)
-    return tmp, _demo(cfg, tmp / "a"), _demo(cfg, tmp / "b")
+    # the second run's physics processes busy-poll their steps (physics.busy_poll_ms): a
+    # different receive path, the same steps in the same order
+    return tmp, _demo(_config(tmp), tmp / "a"), _demo(_config(tmp, busy_poll_ms=20.0), tmp / "b", quiet=False)
 
 
 def test_lockstep_runs_are_deterministic(two_runs):
-    _, a, b = two_runs
+    """Two lockstep runs give the same summary, also when one busy-polls its steps."""
+    tmp, a, b = two_runs
+    for preset in ("paper", "default"):  # (run b logs at INFO)
+        log = (tmp / "b" / "logs" / f"physics-{preset}.log").read_text()
+        assert "steps busy-polled for up to 20 ms after each acknowledgement" in log, preset
     assert a["steps"] == b["steps"] > 200
     assert _strip(a) == _strip(b)
 

@@ -82,3 +82,11 @@ def test_rate_errors_name_the_number_to_change(tmp_path):
         check_rates(0.1, 50.0, 0.02)
     with pytest.raises(ConfigError, match="control_hz"):
         _load(tmp_path, "[physics]\ncontrol_hz = 10\n")
+
+
+@pytest.mark.parametrize("value", [-1.0, 10_001.0])
+def test_a_busy_poll_window_out_of_range_is_named(tmp_path, value):
+    assert _load(tmp_path, "").physics.busy_poll_ms == 0.0  # off unless asked for
+    assert _load(tmp_path, "[physics]\nbusy_poll_ms = 20.0\n").physics.busy_poll_ms == 20.0
+    with pytest.raises(ConfigError, match=r"physics\.busy_poll_ms: expected 0 \(off\) to 10000 ms"):
+        _load(tmp_path, f"[physics]\nbusy_poll_ms = {value}\n")

@@ -23,6 +23,11 @@ Each row names its ``codec``: ``c`` (the C fast path of ``protocol.codec``) or `
 started with the variable set); ``run_e2e_bench`` measures both in one run when the C path
 is built.
 
+The ``busy_poll`` pair (rows with ``"pair": "busy_poll"``): the default receive path and,
+right after it, the subscriber polling a ring of steps as a daemon with
+``physics.busy_poll_ms`` does (``runtime.transport.RingPoll``, window ``BUSY_POLL_ROW_MS``:
+it spins from one step to the next, a core busy; ``spins`` counts its passes).
+
 Both processes run with the daemons' process settings (``runtime.hotpath``). CLOCK_MONOTONIC is shared by all processes of one host, so the difference of
 two stamps is the one-way latency. Messages alternate raw / e2e half a period apart, so
 machine load hits both streams alike; the row carries both and their ratio.
@@ -49,13 +54,16 @@ from protocol.messages import StepMessage
 from runtime.config import ZenohConfig
 from runtime.hotpath import freeze_startup_objects, tune_allocator
 from runtime.queues import DropOldest
-from runtime.transport import Wake, free_tcp_port, open_session
+from runtime.transport import RingPoll, Wake, free_tcp_port, open_session
 from synthetic.traffic import synthetic_step
 
 KEYS = Keys("sumocobench", "e2e")
 RAW_KEY = f"{KEYS.base}/raw/step"
 #: The SUMO daemon's step publisher settings (sumo_side.daemon): never dropped, not batched.
 STEP_PUT = {"congestion_control": zenoh.CongestionControl.BLOCK, "express": True}
+#: [ms] the busy-poll rows' window: longer than the 20 ms between two steps, so the subscriber
+#: spins from one step to the next, as a lockstep daemon whose window covers SUMO's step
+BUSY_POLL_ROW_MS = 25.0
 
 
 def _percentiles(a: np.ndarray) -> tuple[float | None, float | None, float | None]:
@@ -70,7 +78,8 @@ def _median_ms(ns: list[int], skip: int) -> float | None:
     return round(float(np.median(a)) / 1e6, 4) if len(a) else None
 
 
-def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agents: int) -> None:
+def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agents: int,
+                busy_poll_ms: float = 0.0) -> None:
     cfg = ZenohConfig(listen=(f"tcp/127.0.0.1:{free_tcp_port()}",), connect=(connect,), shared_memory=shm)
     raw_at: list[int] = []
     e2e_at: dict[int, int] = {}
@@ -93,11 +102,18 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
         steps.put((data, time.monotonic_ns()))
         wake.set()
 
+    poll: list[RingPoll] = []  # busy_poll_ms > 0: the step subscriber's ring (PhysicsDaemon._poll)
+
     def main_loop() -> None:  # as PhysicsDaemon.run in lockstep: wait, take one step, decode
         held: list[StepMessage] = []
         while not stop.is_set():
+            if poll:
+                poll[0].pull()
             if not steps:
-                wake.wait(0.05)
+                if poll:  # as PhysicsDaemon._idle
+                    poll[0].wait(stop, 0.05, wake)
+                else:
+                    wake.wait(0.05)
                 woke[0] = time.monotonic_ns()
                 wake.clear()
                 continue
@@ -115,13 +131,18 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
             # The daemon's loop holds the previous step until the next one is decoded and
             # applied (``msg = self.handle_step(...)``): it is released here, after the stamp.
             held[:] = [msg]
+            if poll:
+                poll[0].arm()  # as the daemon after its ack: the next step is due
 
     tune_allocator()
     freeze_startup_objects()
     with open_session(cfg) as s:
+        if busy_poll_ms > 0:
+            poll.append(RingPoll(s, KEYS.step, 64, busy_poll_ms / 1e3, on_step))
         worker = threading.Thread(target=main_loop, daemon=True)
         worker.start()
-        subs = [s.declare_subscriber(RAW_KEY, on_raw), s.declare_subscriber(KEYS.step, on_step)]
+        subs = [s.declare_subscriber(RAW_KEY, on_raw), *poll] if poll else \
+            [s.declare_subscriber(RAW_KEY, on_raw), s.declare_subscriber(KEYS.step, on_step)]
         tok = s.liveliness().declare_token(KEYS.physics_alive)
         deadline = time.monotonic() + timeout_s
         while (len(raw_at) < count or len(e2e_at) < count) and time.monotonic() < deadline:
@@ -132,7 +153,8 @@ def _subscriber(connect: str, shm: bool, count: int, timeout_s: float, max_agent
         for sub in subs:
             sub.undeclare()
     json.dump({"raw": raw_at, "e2e": e2e_at, "decode_ns": decode_ns, "decode_cpu_ns": decode_cpu_ns,
-               "handoff_ns": handoff_ns, "wake_ns": wake_ns, "codec": "c" if FAST_CODEC else "python"}, sys.stdout)
+               "handoff_ns": handoff_ns, "wake_ns": wake_ns, "codec": "c" if FAST_CODEC else "python",
+               "spins": poll[0].spins if poll else 0}, sys.stdout)
 
 
 class _Sent(NamedTuple):
@@ -145,7 +167,7 @@ class _Sent(NamedTuple):
 
 
 def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: int, period_s: float,
-              codec: str = "c") -> tuple[_Sent, dict]:
+              codec: str = "c", busy_poll_ms: float = 0.0) -> tuple[_Sent, dict]:
     """Start the subscriber process, then send ``steps`` of both streams half a period apart;
     the subscriber's receive stamps and costs (its JSON) with our send stamps."""
     sent = _Sent([], [], [], [])
@@ -157,7 +179,8 @@ def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: i
         alive = s.liveliness().declare_subscriber(KEYS.physics_alive, history=True)
         proc = subprocess.Popen(
             [sys.executable, "-m", "sumoco.bench.e2e", "--sub", ep, "--count", str(steps),
-             "--timeout", str(steps * period_s + 30), "--max-agents", str(agents)] + (["--shm"] if shm else []),
+             "--timeout", str(steps * period_s + 30), "--max-agents", str(agents), "--busy-poll-ms", str(busy_poll_ms)]
+            + (["--shm"] if shm else []),
             stdout=subprocess.PIPE, env=env,
         )
         try:
@@ -195,9 +218,10 @@ def _exchange(cfg: ZenohConfig, ep: str, build, agents: int, shm: bool, steps: i
 
 
 def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, warmup: int = 20,
-            path_points: int = 12, codec: str = "c") -> dict:
+            path_points: int = 12, codec: str = "c", busy_poll_ms: float = 0.0) -> dict:
     """One row: raw and end-to-end latency at ``agents``, measured in the same run, with the
-    ``codec`` ``c`` or ``python`` on both sides."""
+    ``codec`` ``c`` or ``python`` on both sides; ``busy_poll_ms`` > 0: the subscriber polls
+    its steps as the daemon does with ``physics.busy_poll_ms``."""
     if codec not in ("c", "python") or (codec == "c" and not FAST_CODEC):
         raise ValueError(f"codec {codec!r} not available (the C fast path is {'on' if FAST_CODEC else 'off'})")
     load_before = os.getloadavg()[0]
@@ -212,7 +236,7 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
     nbytes = len(encode(build(0)))
     tune_allocator()
     freeze_startup_objects()
-    sent, got = _exchange(cfg, ep, build, agents, shm, steps, period_s, codec)
+    sent, got = _exchange(cfg, ep, build, agents, shm, steps, period_s, codec, busy_poll_ms)
     if got.get("codec", codec) != codec:
         raise RuntimeError(f"subscriber decoded with {got['codec']}, not {codec}")
     raw_at = got.get("raw", [])
@@ -230,6 +254,10 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
         "path_points_per_agent": path_points,
         "codec": codec,
         "shm": shm,
+        # the subscriber's busy-poll window after each step [ms] (0: woken by the callback);
+        # ``spins``: its passes over an empty ring (it holds a core while it spins)
+        "busy_poll_ms": busy_poll_ms,
+        "spins": got.get("spins", 0),
         "bytes": nbytes,
         "sent": steps,
         "received_raw": len(raw_at),
@@ -254,11 +282,18 @@ def measure(agents: int, shm: bool, steps: int = 300, period_s: float = 0.02, wa
 
 def run_e2e_bench(sizes=(100, 1000), quick: bool = False) -> list[dict]:
     """Rows for steps without paths and with the SUMO side's 12 path points per agent,
-    over TCP and shared memory, with the C codec and the Python one (when the C one is built)."""
+    over TCP and shared memory, with the C codec and the Python one (when the C one is built);
+    then with 12 path points over TCP, the subscriber busy-polling (``BUSY_POLL_ROW_MS``)
+    and the default rows again beside them (the two in turn, as the host's load drifts)."""
     steps = 60 if quick else 300
     codecs = ("c", "python") if FAST_CODEC else ("python",)
-    return [measure(n, shm, steps=steps, path_points=pts, codec=c)
+    rows = [measure(n, shm, steps=steps, path_points=pts, codec=c)
             for n in sizes for pts in (0, 12) for shm in (False, True) for c in codecs]
+    for n in sizes[:1] if quick else sizes:
+        for window in (0.0, BUSY_POLL_ROW_MS):
+            rows.append({**measure(n, False, steps=steps, path_points=12, codec=codecs[0], busy_poll_ms=window),
+                         "pair": "busy_poll"})
+    return rows
 
 
 if __name__ == "__main__":
@@ -267,9 +302,10 @@ if __name__ == "__main__":
     ap.add_argument("--count", type=int, default=100)
     ap.add_argument("--timeout", type=float, default=60)
     ap.add_argument("--max-agents", type=int, default=10_000)
+    ap.add_argument("--busy-poll-ms", type=float, default=0.0)
     ap.add_argument("--shm", action="store_true")
     a = ap.parse_args()
     if a.sub:
-        _subscriber(a.sub, a.shm, a.count, a.timeout, a.max_agents)
+        _subscriber(a.sub, a.shm, a.count, a.timeout, a.max_agents, a.busy_poll_ms)
     else:
         print(json.dumps(run_e2e_bench(), indent=1))
