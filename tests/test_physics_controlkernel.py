@@ -60,17 +60,24 @@ def _run(fast: bool, args: tuple, kwargs: dict, state: C.ControlState, monkeypat
     return cmd, st
 
 
-def _same(args: tuple, kwargs: dict, state: C.ControlState, monkeypatch) -> None:
-    """The C path runs (it takes these inputs) and gives the numpy body's bits."""
-    calls = []
-    real = C._control_default_c
+def _spy(monkeypatch, name: str) -> list[bool]:
+    """``control.<name>`` (a C path that returns None for inputs it does not take) patched to
+    note each call: True where the C path ran."""
+    calls: list[bool] = []
+    real = getattr(C, name)
 
     def spy(*a):
         out = real(*a)
         calls.append(out is not None)
         return out
 
-    monkeypatch.setattr(C, "_control_default_c", spy)
+    monkeypatch.setattr(C, name, spy)
+    return calls
+
+
+def _same(args: tuple, kwargs: dict, state: C.ControlState, monkeypatch) -> None:
+    """The C path runs (it takes these inputs) and gives the numpy body's bits."""
+    calls = _spy(monkeypatch, "_control_default_c")
     c, sc = _run(True, args, kwargs, state, monkeypatch)
     assert calls == [True]
     p, sp = _run(False, args, kwargs, state, monkeypatch)
@@ -366,17 +373,9 @@ def test_kernel_rejects_what_it_cannot_read():
 def _limit_same(args: tuple, kwargs: dict, monkeypatch) -> tuple:
     """limit_commands through the C path (it takes these inputs) and through the numpy body:
     the same bits, the inputs not written. Returns the numpy body's (steer, drive, brake)."""
-    calls = []
-    real = C._limit_commands_c
-
-    def spy(*a):
-        out = real(*a)
-        calls.append(out is not None)
-        return out
-
     before = [np.array(a, copy=True) for a in args[:3]]
     with monkeypatch.context() as m, np.errstate(all="ignore"):
-        m.setattr(C, "_limit_commands_c", spy)
+        calls = _spy(m, "_limit_commands_c")
         m.setattr(C, "FAST_CONTROL", True)
         fast = LIMIT_COMMANDS(*args, **kwargs)
         m.setattr(C, "FAST_CONTROL", False)
