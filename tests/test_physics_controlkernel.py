@@ -60,6 +60,19 @@ def _run(fast: bool, args: tuple, kwargs: dict, state: C.ControlState, monkeypat
     return cmd, st
 
 
+def _fails(fn, args: list):
+    """``fails(i, value, exc, match)``: ``fn`` with argument ``i`` of ``args`` replaced by
+    ``value`` raises ``exc`` matching ``match``."""
+
+    def fails(i, value, exc, match):
+        a = list(args)
+        a[i] = value
+        with pytest.raises(exc, match=match):
+            fn(*a)
+
+    return fails
+
+
 def _spy(monkeypatch, name: str) -> list[bool]:
     """``control.<name>`` (a C path that returns None for inputs it does not take) patched to
     note each call: True where the C path ran."""
@@ -346,12 +359,7 @@ def test_kernel_rejects_what_it_cannot_read():
     consts = (cc[0], cc[1], -3.0, 0.02, *cc[2:7], 1.0, *cc[7:], 2.0, 0.06, 0.05, 0.11)
     args = [z] * 19 + [None, None] + [z] * 9 + [None, None, z, z, None, z, np.empty((5, n)), consts]
     k.control(*args)
-
-    def fails(i, value, exc, match):
-        a = list(args)
-        a[i] = value
-        with pytest.raises(exc, match=match):
-            k.control(*a)
+    fails = _fails(k.control, args)
 
     fails(0, z.astype(np.float32), TypeError, "fx: needs float64")
     fails(3, np.zeros(8)[::2], TypeError, "cy: needs a C-contiguous")
@@ -600,12 +608,7 @@ def test_limit_kernel_rejects_what_it_cannot_read():
     args = [z] * 8 + [z, z] + [z, z, t, z, z, z] + [z, t, z, z] + [np.empty((3, n)), consts]
     k.limit(*args)
     k.limit(*args[:8], *[None] * 12, *args[20:])
-
-    def fails(i, value, exc, match):
-        a = list(args)
-        a[i] = value
-        with pytest.raises(exc, match=match):
-            k.limit(*a)
+    fails = _fails(k.limit, args)
 
     fails(0, z.astype(np.float32), TypeError, "steer: needs float64")
     fails(0, np.zeros((2, n)), ValueError, "steer needs 1 dimension")
